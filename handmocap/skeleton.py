@@ -1,0 +1,28 @@
+"""The one joint-order table of the project (DESIGN.md "Joints, frames, units").
+
+21 joints, MediaPipe's and the paper's order: 0 wrist; 1-4 thumb (CMC, MCP, IP, tip);
+5-8 index (MCP, PIP, DIP, tip); 9-12 middle; 13-16 ring; 17-20 little.
+"""
+import numpy as np
+
+NUM_JOINTS = 21
+
+JOINT_NAMES = (
+    "wrist",
+    "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
+    "index_mcp", "index_pip", "index_dip", "index_tip",
+    "middle_mcp", "middle_pip", "middle_dip", "middle_tip",
+    "ring_mcp", "ring_pip", "ring_dip", "ring_tip",
+    "little_mcp", "little_pip", "little_dip", "little_tip",
+)
+
+# Parent of each joint; the wrist (0) has none (-1).
+PARENTS = np.array([-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19])
+
+ROOT = 9                # joint that root-relative coordinates are centred on (middle MCP)
+REF_BONE = (0, 9)       # bone whose length is 1 in scale-normalized coordinates
+
+FINGER_TIPS = (4, 8, 12, 16, 20)
+
+# (parent, child) pairs of the 20 bones, in child order 1..20.
+BONES = tuple((int(PARENTS[j]), j) for j in range(1, NUM_JOINTS))
