@@ -26,3 +26,13 @@ FINGER_TIPS = (4, 8, 12, 16, 20)
 
 # (parent, child) pairs of the 20 bones, in child order 1..20.
 BONES = tuple((int(PARENTS[j]), j) for j in range(1, NUM_JOINTS))
+
+# The 16 joints that carry a rotation (all but the tips), in project order; MANO-style
+# relative poses (16,3) list their rotations in this order.
+NON_TIP_JOINTS = tuple(j for j in range(NUM_JOINTS) if j not in FINGER_TIPS)
+
+# MANO's joint order (16 joints: wrist, index, middle, little, ring, thumb, then the tips
+# thumb, index, middle, ring, little) as project joint ids: xyz_mano = xyz[..., MANO_ORDER, :]
+# and xyz = xyz_mano[..., FROM_MANO_ORDER, :].
+MANO_ORDER = np.array([0, 5, 6, 7, 9, 10, 11, 17, 18, 19, 13, 14, 15, 1, 2, 3, 4, 8, 12, 16, 20])
+FROM_MANO_ORDER = np.argsort(MANO_ORDER)
