@@ -1,0 +1,166 @@
+"""The one bus: brokerless ZeroMQ PUB/SUB between node processes, with file-based discovery.
+
+Wire: every message is three frames, `[topic + b"\\0", type name, msgpack payload]`. The
+trailing NUL makes ZeroMQ's prefix subscription an exact topic match. A control type
+`_eos` (payload: the publishing node's name) marks the end of a publisher's stream.
+
+Discovery: each node binds one XPUB socket (by default `ipc://<run dir>/<node>.pub`, so
+nothing listens on the network) and writes `<run dir>/<node>.json` saying what it publishes
+and subscribes; the file is rewritten every HEARTBEAT_S as the node's heartbeat. Subscribers
+scan the run dir and connect straight to each publisher of a topic they want: no broker on
+the data path. A node on another host is reached with an explicit `tcp://` endpoint
+(`connect` in the launch file); its own socket listens on the network only when the launch
+file gives it a `bind: tcp://...` endpoint.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zmq
+
+EOS = b"_eos"
+HEARTBEAT_S = 0.5
+STALE_S = 5.0   # a node file whose heartbeat is older than this, or whose pid is gone, is dead
+
+
+def run_dir(graph: str | None = None) -> Path:
+    """Directory that holds one graph's sockets and node files.
+
+    $HANDMOCAP_RUN_DIR if set, else <tmp>/handmocap-<uid>/<graph> with graph from the
+    argument, $HANDMOCAP_GRAPH or "default". Kept short: unix socket paths max out at 107 bytes.
+    """
+    if os.environ.get("HANDMOCAP_RUN_DIR"):
+        d = Path(os.environ["HANDMOCAP_RUN_DIR"])
+    else:
+        graph = graph or os.environ.get("HANDMOCAP_GRAPH", "default")
+        d = Path(tempfile.gettempdir()) / f"handmocap-{os.getuid()}" / graph
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def topic_frame(topic: str) -> bytes:
+    return topic.encode() + b"\0"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@dataclass
+class NodeInfo:
+    """What a node file says about one running node."""
+    name: str
+    pid: int
+    endpoint: str
+    publishes: dict = field(default_factory=dict)    # topic -> message type
+    subscribes: dict = field(default_factory=dict)   # topic -> "latest" | "all"
+    ready: bool = False
+    observer: bool = False   # tools (handtopic) that must not hold a graph's start
+    heartbeat_ns: int = 0
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def alive(self) -> bool:
+        return _pid_alive(self.pid) and time.time_ns() - self.heartbeat_ns < STALE_S * 1e9
+
+
+def write_node_file(directory: Path, info: NodeInfo) -> None:
+    """Atomically (re)write a node's file; its mtime and heartbeat_ns are the heartbeat."""
+    info.heartbeat_ns = time.time_ns()
+    tmp = directory / f".{info.name}.json.{os.getpid()}"
+    tmp.write_text(json.dumps(info.__dict__))
+    os.replace(tmp, directory / f"{info.name}.json")
+
+
+def read_node_files(directory: Path, alive_only: bool = True) -> dict[str, NodeInfo]:
+    nodes = {}
+    for p in directory.glob("*.json"):
+        try:
+            info = NodeInfo(**json.loads(p.read_text()))
+        except (OSError, ValueError, TypeError):
+            continue   # being rewritten or foreign: the next scan sees it
+        if not alive_only or info.alive:
+            nodes[info.name] = info
+    return nodes
+
+
+class Publisher:
+    """One XPUB socket per node. XPUB (not PUB) so that the node sees subscriptions arrive and
+    can hold its first message until every subscriber of the graph is connected."""
+
+    def __init__(self, ctx: zmq.Context, endpoint: str):
+        self.sock = ctx.socket(zmq.XPUB)
+        self.sock.setsockopt(zmq.SNDHWM, 0)       # keep-all subscribers must lose nothing
+        self.sock.setsockopt(zmq.XPUB_VERBOSE, 1)  # count every subscriber, not each prefix once
+        self.sock.setsockopt(zmq.LINGER, 2000)
+        self.sock.bind(endpoint)
+        self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.subscriptions: Counter[bytes] = Counter()
+
+    def poll_subscriptions(self) -> None:
+        while True:
+            try:
+                ev = self.sock.recv(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            if ev[:1] == b"\x01":
+                self.subscriptions[ev[1:]] += 1
+            elif ev[:1] == b"\x00" and self.subscriptions[ev[1:]] > 0:
+                self.subscriptions[ev[1:]] -= 1
+
+    def subscriber_count(self, topic: str) -> int:
+        self.poll_subscriptions()
+        t = topic_frame(topic)
+        return sum(n for prefix, n in self.subscriptions.items() if t.startswith(prefix))
+
+    def send(self, topic: str, type_name: str, payload: bytes) -> None:
+        big = len(payload) > 65536   # zero-copy only pays for large frames
+        self.sock.send_multipart([topic_frame(topic), type_name.encode(), payload], copy=not big)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class Subscriber:
+    """SUB sockets of one node: `latest` (drained on every wake-up, freshest message per topic
+    kept; ZMQ_CONFLATE is no use here, it breaks multipart messages) and `all` (keep-all)."""
+
+    def __init__(self, ctx: zmq.Context):
+        self.ctx = ctx
+        self.socks: dict[str, zmq.Socket] = {}
+        self.connected: dict[str, set[str]] = {"latest": set(), "all": set()}
+
+    def socket(self, mode: str) -> zmq.Socket:
+        if mode not in self.socks:
+            s = self.ctx.socket(zmq.SUB)
+            s.setsockopt(zmq.RCVHWM, 0)   # latest-only drains eagerly; keep-all must lose nothing
+            s.setsockopt(zmq.LINGER, 0)
+            self.socks[mode] = s
+        return self.socks[mode]
+
+    def subscribe(self, topic: str | None, mode: str) -> None:
+        """topic None: every topic (the recorder's 'record all')."""
+        self.socket(mode).subscribe(b"" if topic is None else topic_frame(topic))
+
+    def connect(self, endpoint: str, mode: str) -> bool:
+        if endpoint in self.connected[mode]:
+            return False
+        self.socket(mode).connect(endpoint)
+        self.connected[mode].add(endpoint)
+        return True
+
+    def close(self) -> None:
+        for s in self.socks.values():
+            s.close()

@@ -1,0 +1,392 @@
+"""`handlaunch FILE.yaml [name:=value ...]`: start a graph of nodes, supervise it, stop it.
+
+A launch file:
+
+    graph: default            # optional: name of the run dir (isolates graphs on one host)
+    args:                     # settable on the command line as name:=value
+      input: {help: video file, image folder or bag}          # no default: required
+      bag: {default: out.mcap}
+    env: {OMP_NUM_THREADS: "1"}                               # for every node
+    nodes:
+      replay:                 # node name (unique in the graph)
+        node: replay          # module handmocap.nodes.replay (or a dotted module path)
+        params: {source: $(var input), loop: false}
+        required: true        # its failure fails the graph
+      recorder:
+        node: recorder
+        params: {output: $(var bag)}
+        remap: {/camera/image: /cam0/image}
+        respawn: true         # restart on failure, back-off from respawn_delay (s) doubling to 30 s
+        env: {}
+        bind: tcp://127.0.0.1:6000    # optional: listen here instead of the default ipc socket
+        connect: [tcp://10.0.0.2:6000] # optional: publishers on other hosts
+
+Everything is checked before any process starts; an error names the file, line and problem.
+The launcher returns when every node has finished (a finite replay ends, its end-of-stream
+drains the graph), with exit 1 if a required node failed; Ctrl-C/SIGTERM stops all nodes.
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from . import bus
+from .node import parse_cli_params
+
+NODE_KEYS = {"node", "params", "remap", "env", "respawn", "respawn_delay", "required", "bind", "connect"}
+TOP_KEYS = {"graph", "args", "env", "nodes"}
+VAR = re.compile(r"\$\((var|env) ([A-Za-z_][A-Za-z0-9_]*)(?: ([^)]*))?\)")
+STARTUP_TIMEOUT_S = 120
+STOP_TIMEOUT_S = 5
+MAX_BACKOFF_S = 30
+
+
+class LaunchError(Exception):
+    """A launch file problem, already phrased as `file:line: problem`."""
+
+
+# -- loading with line numbers ----------------------------------------------------------
+def _load_yaml_with_lines(path: Path) -> tuple[object, dict]:
+    """Parse YAML; also return {key path tuple: 1-based line} for error messages."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise LaunchError(f"{path}: no such launch file") from None
+    except OSError as e:
+        raise LaunchError(f"{path}: cannot read: {e.strerror}") from None
+    try:
+        root = yaml.compose(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark else str(path)
+        raise LaunchError(f"{where}: malformed YAML: {getattr(e, 'problem', None) or e}") from None
+    lines: dict[tuple, int] = {}
+
+    def build(node, key_path):
+        lines[key_path] = node.start_mark.line + 1
+        if isinstance(node, yaml.MappingNode):
+            out = {}
+            for k, v in node.value:
+                key = yaml.safe_load(yaml.serialize(k))
+                lines[key_path + (key,)] = k.start_mark.line + 1
+                out[key] = build(v, key_path + (key,))
+            return out
+        if isinstance(node, yaml.SequenceNode):
+            return [build(v, key_path + (i,)) for i, v in enumerate(node.value)]
+        return yaml.safe_load(yaml.serialize(node))
+
+    return (build(root, ()) if root is not None else None), lines
+
+
+@dataclass
+class NodeSpec:
+    name: str
+    module: str
+    params: dict = field(default_factory=dict)
+    remap: dict = field(default_factory=dict)
+    env: dict = field(default_factory=dict)
+    respawn: bool = False
+    respawn_delay: float = 1.0
+    required: bool = False
+    bind: str | None = None
+    connect: list = field(default_factory=list)
+
+
+@dataclass
+class LaunchFile:
+    path: Path
+    graph: str | None
+    nodes: list[NodeSpec]
+
+
+def resolve_module(name: str) -> str:
+    return name if "." in name else f"handmocap.nodes.{name}"
+
+
+def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
+    """Parse and check a launch file completely (no process is started here)."""
+    path = Path(path)
+    doc, lines = _load_yaml_with_lines(path)
+
+    def err(key_path, problem):
+        line = lines.get(tuple(key_path), lines.get(tuple(key_path[:-1]), 1))
+        return LaunchError(f"{path}:{line}: {problem}")
+
+    if not isinstance(doc, dict):
+        raise err((), "a launch file is a mapping with a 'nodes:' section")
+    for k in doc:
+        if k not in TOP_KEYS:
+            raise err((k,), f"unknown key {k!r} (expected one of {', '.join(sorted(TOP_KEYS))})")
+    declared = doc.get("args") or {}
+    if not isinstance(declared, dict):
+        raise err(("args",), "'args' must map argument names to {default: ..., help: ...}")
+    for name in cli_args:
+        if name not in declared:
+            raise LaunchError(f"{path}:{lines.get(('args',), 1)}: unknown argument {name!r} given on the "
+                              f"command line; this file declares: {', '.join(declared) or 'none'}")
+    values = {}
+    for name, spec in declared.items():
+        spec = spec if isinstance(spec, dict) else {"default": spec}
+        if name in cli_args:
+            values[name] = cli_args[name]
+        elif "default" in spec:
+            values[name] = spec["default"]
+        else:
+            raise err(("args", name), f"argument {name!r} is required: add {name}:=VALUE"
+                      + (f" ({spec['help']})" if spec.get("help") else ""))
+
+    def substitute(obj, key_path):
+        if isinstance(obj, dict):
+            return {k: substitute(v, key_path + (k,)) for k, v in obj.items()}
+        if isinstance(obj, list):
+            return [substitute(v, key_path + (i,)) for i, v in enumerate(obj)]
+        if not isinstance(obj, str):
+            return obj
+
+        def value(m):
+            kind, name, default = m.groups()
+            if kind == "env":
+                if name in os.environ:
+                    return os.environ[name]
+                if default is None:
+                    raise err(key_path, f"environment variable {name} is not set and has no default")
+                return default
+            if name not in values:
+                raise err(key_path, f"$(var {name}) is not declared under 'args:'")
+            return values[name]
+
+        whole = VAR.fullmatch(obj)
+        if whole:                      # keep the argument's type (int, bool, null)
+            return value(whole)
+        return VAR.sub(lambda m: str(value(m)), obj)
+
+    nodes_doc = doc.get("nodes")
+    if not isinstance(nodes_doc, dict) or not nodes_doc:
+        raise err(("nodes",), "'nodes:' must map node names to node entries")
+    common_env = substitute(doc.get("env") or {}, ("env",))
+    specs = []
+    for name, entry in nodes_doc.items():
+        kp = ("nodes", name)
+        if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", name):
+            raise err(kp, f"bad node name {name!r} (letters, digits, '_' and '-')")
+        if not isinstance(entry, dict) or "node" not in entry:
+            raise err(kp, f"node {name!r} needs a 'node:' key naming its module")
+        for k in entry:
+            if k not in NODE_KEYS:
+                raise err(kp + (k,), f"node {name!r}: unknown key {k!r} "
+                          f"(expected one of {', '.join(sorted(NODE_KEYS))})")
+        entry = substitute(entry, kp)
+        module = resolve_module(str(entry["node"]))
+        try:
+            found = importlib.util.find_spec(module)
+        except ModuleNotFoundError:
+            found = None
+        if found is None:
+            raise err(kp + ("node",), f"node {name!r}: unknown node type {entry['node']!r} "
+                      f"(no module {module}); available: {', '.join(available_nodes())}")
+        params = entry.get("params") or {}
+        if not isinstance(params, dict):
+            raise err(kp + ("params",), f"node {name!r}: 'params' must be a mapping")
+        known = getattr(importlib.import_module(module), "PARAMS", None)
+        if known is not None:
+            for p in params:
+                if p not in known:
+                    raise err(kp + ("params", p), f"node {name!r} ({entry['node']}) has no parameter {p!r}; "
+                              f"known: {', '.join(sorted(known))}")
+        specs.append(NodeSpec(name=name, module=module, params=params, remap=entry.get("remap") or {},
+                              env={**common_env, **(entry.get("env") or {})},
+                              respawn=bool(entry.get("respawn", False)),
+                              respawn_delay=float(entry.get("respawn_delay", 1.0)),
+                              required=bool(entry.get("required", False)), bind=entry.get("bind"),
+                              connect=list(entry.get("connect") or [])))
+    return LaunchFile(path=path, graph=doc.get("graph"), nodes=specs)
+
+
+def available_nodes() -> list[str]:
+    nodes_dir = Path(importlib.util.find_spec("handmocap.nodes").origin).parent
+    return sorted(p.stem for p in nodes_dir.glob("*.py") if not p.stem.startswith("_"))
+
+
+# -- supervision ------------------------------------------------------------------------
+class Child:
+    def __init__(self, spec: NodeSpec, env: dict, log):
+        self.spec, self.base_env, self.log = spec, env, log
+        self.proc: subprocess.Popen | None = None
+        self.started = 0.0
+        self.backoff = spec.respawn_delay
+        self.restart_at: float | None = None
+        self.restarts = 0
+        self.exit_code: int | None = None
+
+    def start(self) -> None:
+        env = {**self.base_env, **{k: str(v) for k, v in self.spec.env.items()},
+               "HANDMOCAP_NODE_NAME": self.spec.name,
+               "HANDMOCAP_PARAMS": json.dumps(self.spec.params),
+               "HANDMOCAP_REMAP": json.dumps(self.spec.remap),
+               "HANDMOCAP_CONNECT": json.dumps(self.spec.connect),
+               "PYTHONUNBUFFERED": "1"}
+        if self.spec.bind:
+            env["HANDMOCAP_BIND"] = self.spec.bind
+        self.proc = subprocess.Popen([sys.executable, "-m", self.spec.module], env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     stdin=subprocess.DEVNULL, start_new_session=True)
+        self.started = time.monotonic()
+        self.exit_code = None
+        threading.Thread(target=self._pump, args=(self.proc,), daemon=True).start()
+
+    def _pump(self, proc) -> None:
+        for line in iter(proc.stdout.readline, b""):
+            self.log(self.spec.name, line.decode(errors="replace").rstrip("\n"))
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def terminate(self) -> None:
+        if self.running:
+            self.proc.send_signal(signal.SIGTERM)
+
+
+class Launcher:
+    def __init__(self, launch: LaunchFile, out=sys.stdout):
+        self.launch = launch
+        self.out = out
+        self._lock = threading.Lock()
+        self.dir = bus.run_dir(launch.graph)
+        self.id = f"launch-{uuid.uuid4().hex[:8]}"
+        env = {**os.environ, "HANDMOCAP_RUN_DIR": str(self.dir), "HANDMOCAP_LAUNCH_ID": self.id}
+        self.children = [Child(s, env, self.print) for s in launch.nodes]
+        self.stopping = False
+
+    def print(self, who: str, text: str) -> None:
+        with self._lock:
+            print(f"[{who}] {text}", file=self.out, flush=True)
+
+    def check_names_free(self) -> None:
+        live = bus.read_node_files(self.dir)
+        for c in self.children:
+            if c.spec.name in live:
+                raise LaunchError(f"{self.launch.path}: node {c.spec.name!r} is already running in graph "
+                                  f"{self.dir} (pid {live[c.spec.name].pid}); stop it, or run this graph "
+                                  f"under another name (graph: in the file, or HANDMOCAP_GRAPH=...)")
+            (self.dir / f"{c.spec.name}.json").unlink(missing_ok=True)   # stale file of a dead node
+
+    def run(self) -> int:
+        self.check_names_free()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: setattr(self, "stopping", True))
+        for c in self.children:
+            c.start()
+        self.print("handlaunch", f"started {len(self.children)} node(s) in {self.dir}")
+        ready_file = self.dir / f"{self.id}.ready"
+        t0, failed = time.monotonic(), None
+        try:
+            while not self.stopping:
+                if not ready_file.exists():
+                    if self._all_ready():
+                        ready_file.touch()
+                    elif time.monotonic() - t0 > STARTUP_TIMEOUT_S:
+                        self.print("handlaunch", f"error: nodes not up after {STARTUP_TIMEOUT_S} s: "
+                                   f"{', '.join(self._not_ready())}")
+                        failed = "startup"
+                        break
+                failed = self._supervise()
+                if failed or all(c.exit_code == 0 for c in self.children):
+                    break
+                time.sleep(0.05)
+        finally:
+            self._stop_all()
+            ready_file.unlink(missing_ok=True)
+        if failed:
+            return 1
+        if self.stopping:
+            self.print("handlaunch", "stopped")
+            return 130 if any(c.exit_code not in (0, None) for c in self.children if c.spec.required) else 0
+        self.print("handlaunch", "all nodes finished")
+        return 0
+
+    def _all_ready(self) -> bool:
+        return not self._not_ready()
+
+    def _not_ready(self) -> list[str]:
+        files = bus.read_node_files(self.dir)
+        return [c.spec.name for c in self.children
+                if c.exit_code is None and not (c.spec.name in files and files[c.spec.name].ready)]
+
+    def _supervise(self) -> str | None:
+        now = time.monotonic()
+        for c in self.children:
+            if c.restart_at is not None:
+                if now >= c.restart_at:
+                    c.restart_at = None
+                    c.restarts += 1
+                    self.print("handlaunch", f"respawning {c.spec.name} (restart {c.restarts})")
+                    c.start()
+                continue
+            if c.proc is None or c.exit_code is not None or c.running:
+                continue
+            c.exit_code = c.proc.returncode
+            if c.exit_code == 0:
+                continue
+            (self.dir / f"{c.spec.name}.json").unlink(missing_ok=True)
+            how = f"killed by signal {-c.exit_code}" if c.exit_code < 0 else f"exit code {c.exit_code}"
+            if c.spec.respawn:
+                if now - c.started > 10:
+                    c.backoff = c.spec.respawn_delay   # it ran a while: not a crash loop
+                self.print("handlaunch", f"node {c.spec.name} died ({how}); respawn in {c.backoff:.1f} s")
+                c.restart_at = now + c.backoff
+                c.backoff = min(c.backoff * 2, MAX_BACKOFF_S)
+            elif c.spec.required:
+                self.print("handlaunch", f"error: required node {c.spec.name} failed ({how}); stopping the graph")
+                return c.spec.name
+            else:
+                self.print("handlaunch", f"warning: node {c.spec.name} failed ({how})")
+        return None
+
+    def _stop_all(self) -> None:
+        for c in self.children:
+            c.restart_at = None
+            c.terminate()
+        deadline = time.monotonic() + STOP_TIMEOUT_S
+        for c in self.children:
+            if c.proc is None:
+                continue
+            try:
+                c.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self.print("handlaunch", f"{c.spec.name} did not stop in {STOP_TIMEOUT_S} s; killing it")
+                c.proc.kill()
+                c.proc.wait()
+            if c.exit_code is None:
+                c.exit_code = c.proc.returncode
+            (self.dir / f"{c.spec.name}.json").unlink(missing_ok=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print(__doc__.strip())
+        return 0 if argv else 2
+    try:
+        launch = load_launch_file(argv[0], parse_cli_params(argv[1:]))
+        return Launcher(launch).run()
+    except LaunchError as e:
+        print(f"handlaunch: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

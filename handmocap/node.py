@@ -1,0 +1,373 @@
+"""The node runtime: what every process of the graph is built on.
+
+A node is a thin loop over plain functions, like a dora-rs Python node:
+
+    node = Node("detector", params={"model": None})
+    node.subscribe("/camera/image", "Image", mode="latest")
+    node.advertise("/hand/keypoints", "HandKeypoints")
+    for msg in node:                      # ends on SIGINT/SIGTERM or when all inputs ended
+        hands = detect(msg.data["data"])  # plain function, knows nothing of the bus
+        node.publish("/hand/keypoints", {"hands": hands, ...}, stamp_ns=msg.stamp_ns)
+
+Parameters come from the launch file (env HANDMOCAP_PARAMS, JSON) or, when a node is run by
+hand, from `name:=value` arguments; topic remaps from HANDMOCAP_REMAP. Received messages are
+decoded and validated; a malformed or oversized one is dropped, counted in the node's
+status and logged once per (topic, cause); it never stops the node.
+
+End of stream: when a node closes, it sends `_eos` on every topic it advertised. A node
+whose every input topic has ended (all its known publishers sent `_eos` or died) ends its
+loop, closes and so passes the end downstream: that is how a finite replay drains the
+graph and `handlaunch` returns.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections import Counter, defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+import zmq
+
+from . import bus, codec
+
+SCAN_S = 0.2          # how often subscribers look for new publishers
+GONE_GRACE_S = 1.0    # a publisher gone without end-of-stream counts as ended after this
+READY_TIMEOUT_S = 60  # how long a publisher waits for its graph to start
+
+
+@dataclass
+class Message:
+    topic: str
+    type: str
+    data: dict          # decoded message, numpy arrays as read-only views
+    raw: bytes          # the wire payload, unchanged (the recorder stores this)
+    recv_ns: int
+
+    @property
+    def stamp_ns(self) -> int:
+        return self.data["header"]["stamp_ns"]
+
+
+def parse_cli_params(argv: list[str]) -> dict:
+    """`name:=value` pairs, values parsed as YAML scalars (so 2 is an int, true a bool)."""
+    out = {}
+    for arg in argv:
+        if ":=" not in arg:
+            raise SystemExit(f"error: expected name:=value, got {arg!r}")
+        k, v = arg.split(":=", 1)
+        out[k] = yaml.safe_load(v) if v else ""
+    return out
+
+
+class Node:
+    def __init__(self, name: str | None = None, params: dict | None = None, observer: bool = False,
+                 argv: list[str] | None = None):
+        self.name = os.environ.get("HANDMOCAP_NODE_NAME") or name or Path(sys.argv[0]).stem
+        self.log = logging.getLogger(self.name)
+        if not logging.getLogger().handlers:
+            logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                                format="%(levelname)s %(message)s" if "HANDMOCAP_LAUNCH_ID" in os.environ
+                                else f"[{self.name}] %(levelname)s %(message)s")
+        given = json.loads(os.environ.get("HANDMOCAP_PARAMS", "{}"))
+        given.update(parse_cli_params(sys.argv[1:] if argv is None else argv))
+        defaults = params or {}
+        unknown = sorted(set(given) - set(defaults))
+        if params is not None and unknown:
+            raise SystemExit(f"error: node {self.name!r} has no parameter(s) {', '.join(unknown)}; "
+                             f"known: {', '.join(sorted(defaults)) or 'none'}")
+        self.params = {**defaults, **given}
+        self.remap = json.loads(os.environ.get("HANDMOCAP_REMAP", "{}"))
+        self.dir = bus.run_dir()
+        self.ctx = zmq.Context.instance()
+        bind = os.environ.get("HANDMOCAP_BIND") or f"ipc://{self.dir}/{self.name}.pub"
+        self.pub = bus.Publisher(self.ctx, bind)
+        self.sub = bus.Subscriber(self.ctx)
+        self.extra_endpoints = json.loads(os.environ.get("HANDMOCAP_CONNECT", "[]"))
+        self.info = bus.NodeInfo(self.name, os.getpid(), self.pub.endpoint, observer=observer)
+        self.types: dict[str, str] = {}            # subscribed topic -> expected type (None: any)
+        self.seq: Counter[str] = Counter()
+        self.stats = {"received": Counter(), "published": Counter(), "dropped": Counter(),
+                      "superseded": Counter()}
+        self._logged_drops: set = set()
+        self._publishers: dict[str, set[str]] = defaultdict(set)   # topic -> node names seen
+        self._pub_pids: dict[str, int] = {}
+        self._ended: dict[str, set[str]] = defaultdict(set)        # topic -> names that sent EOS
+        self._gone_since: dict[str, float] = {}                    # publisher -> when first seen gone
+        self._file_lock = threading.Lock()
+        self._next_scan = 0.0
+        self._graph_ready = "HANDMOCAP_LAUNCH_ID" not in os.environ
+        self._stop = threading.Event()
+        self._closed = False
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self._stop.set())
+        self._announce()
+        threading.Thread(target=self._heartbeat, daemon=True).start()
+
+    # -- declaring topics ---------------------------------------------------------------
+    def resolve(self, topic: str) -> str:
+        return self.remap.get(topic, topic)
+
+    def subscribe(self, topic: str | None, type_name: str | None = None, mode: str = "latest") -> str:
+        """Receive `topic` (None: every topic) in mode 'latest' (freshest only) or 'all'."""
+        if mode not in ("latest", "all"):
+            raise ValueError(f"mode must be 'latest' or 'all', not {mode!r}")
+        topic = "*" if topic is None else self.resolve(topic)
+        self.types[topic] = type_name
+        self.info.subscribes[topic] = mode
+        self.sub.subscribe(None if topic == "*" else topic, mode)
+        for ep in self.extra_endpoints:
+            self.sub.connect(ep, mode)
+        self._announce()
+        return topic
+
+    def advertise(self, topic: str, type_name: str) -> str:
+        codec.schema(type_name)   # fail now on a type that does not exist
+        topic = self.resolve(topic)
+        self.info.publishes[topic] = type_name
+        self._announce()
+        return topic
+
+    # -- publishing ---------------------------------------------------------------------
+    def publish(self, topic: str, body: dict, stamp_ns: int | None = None, frame_id: str = "camera") -> None:
+        """Send `body` (a message without header) on `topic`; the header is filled here:
+        stamp_ns is the capture time of the frame this message derives from (default now)."""
+        topic = self.resolve(topic)
+        type_name = self.info.publishes.get(topic)
+        if type_name is None:
+            raise KeyError(f"{self.name}: publish on {topic!r} without advertise()")
+        msg = {"header": codec.header(self.seq[topic], frame_id, stamp_ns), **body}
+        self.seq[topic] += 1
+        validate = type_name if os.environ.get("HANDMOCAP_VALIDATE_SEND") else None
+        self.publish_raw(topic, type_name, codec.encode(msg, validate))
+
+    def publish_raw(self, topic: str, type_name: str, payload: bytes) -> None:
+        """Send an already-encoded payload unchanged (bag playback)."""
+        if topic not in self.info.publishes:
+            self.info.publishes[topic] = type_name
+            self._announce()
+        if not self._graph_ready:
+            self.wait_for_graph()
+        self.pub.send(topic, type_name, payload)
+        self.stats["published"][topic] += 1
+
+    def wait_for_graph(self) -> None:
+        """Hold the first message until the launcher says every node is up and every node
+        that subscribes to our topics is connected, so a finite source loses no frame."""
+        self.ready()
+        launch_id = os.environ["HANDMOCAP_LAUNCH_ID"]
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        while not (self.dir / f"{launch_id}.ready").exists():
+            if self._stop.is_set() or time.monotonic() > deadline:
+                break
+            time.sleep(0.01)
+        deadline = time.monotonic() + 10
+        while not self._stop.is_set():
+            missing = self._missing_subscribers()
+            if not missing:
+                break
+            if time.monotonic() > deadline:
+                self.log.warning("starting without all subscribers connected: %s", missing)
+                break
+            time.sleep(0.005)
+        self._graph_ready = True
+
+    def _missing_subscribers(self) -> dict:
+        nodes = bus.read_node_files(self.dir)
+        missing = {}
+        for topic in self.info.publishes:
+            want = sum(1 for n in nodes.values() if n.name != self.name and not n.observer
+                       for t in n.subscribes if t in (topic, "*"))
+            have = self.pub.subscriber_count(topic)
+            if have < want:
+                missing[topic] = f"{have}/{want}"
+        return missing
+
+    # -- receiving ----------------------------------------------------------------------
+    def ok(self) -> bool:
+        return not self._stop.is_set()
+
+    def ready(self) -> None:
+        """Mark this node as set up (the launcher starts sources once every node is)."""
+        if not self.info.ready:
+            self.info.ready = True
+            self._scan(force=True)
+            self._announce()
+
+    def __iter__(self):
+        return self.events()
+
+    def events(self, timeout: float | None = None):
+        """Yield received Messages; with `timeout` (s), yield None when nothing came in that
+        long (a tick for periodic work). Ends on shutdown or when every input has ended."""
+        self.ready()
+        poller = zmq.Poller()
+        socks = {s: mode for mode, s in self.sub.socks.items()}
+        for s in socks:
+            poller.register(s, zmq.POLLIN)
+        last = time.monotonic()
+        while not self._stop.is_set():
+            self._scan()
+            if not self.info.observer and self._inputs_ended():
+                break
+            ready = dict(poller.poll(timeout=100))
+            got = False
+            for s, mode in socks.items():
+                if s not in ready:
+                    continue
+                batch = self._drain_latest(s) if mode == "latest" else self._recv_some(s)
+                for frames in batch:
+                    msg = self._decode(frames)
+                    if msg is not None:
+                        got = True
+                        yield msg
+            if got:
+                last = time.monotonic()
+            elif timeout is not None and time.monotonic() - last >= timeout:
+                last = time.monotonic()
+                yield None
+
+    def _recv_some(self, s: zmq.Socket, limit: int = 256) -> list:
+        out = []
+        for _ in range(limit):
+            try:
+                out.append(s.recv_multipart(zmq.NOBLOCK))
+            except zmq.Again:
+                break
+        return out
+
+    def _drain_latest(self, s: zmq.Socket) -> list:
+        """Read everything queued, keep the freshest message per topic (end-of-stream marks are
+        kept, after the data they follow)."""
+        latest, eos = {}, []
+        while True:
+            try:
+                frames = s.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            if len(frames) == 3 and frames[1] == bus.EOS:
+                eos.append(frames)
+            else:
+                if frames[0] in latest:
+                    self.stats["superseded"][frames[0].rstrip(b"\0").decode(errors="replace")] += 1
+                latest[frames[0]] = frames
+        return list(latest.values()) + eos
+
+    def _decode(self, frames: list) -> Message | None:
+        if len(frames) != 3:
+            return self._drop("?", "frames", f"{len(frames)} frames, expected 3")
+        topic = frames[0].rstrip(b"\0").decode(errors="replace")
+        type_name = frames[1].decode(errors="replace")
+        if type_name == bus.EOS.decode():
+            self._ended[topic].add(frames[2].decode(errors="replace"))
+            return None
+        want = self.types.get(topic, self.types.get("*"))
+        if want is not None and want != type_name:
+            return self._drop(topic, "type", f"got {type_name}, expected {want}")
+        try:
+            data = codec.decode(frames[2], type_name)
+        except codec.MalformedMessage as e:
+            return self._drop(topic, e.reason, str(e))
+        self.stats["received"][topic] += 1
+        return Message(topic, type_name, data, frames[2], time.time_ns())
+
+    def _drop(self, topic: str, reason: str, detail: str) -> None:
+        self.stats["dropped"][f"{topic}:{reason}"] += 1
+        if (topic, reason) not in self._logged_drops:
+            self._logged_drops.add((topic, reason))
+            self.log.warning("dropped a malformed message on %s (%s); further drops of this kind "
+                             "are only counted in the node status", topic, detail[:200])
+        return None
+
+    # -- discovery and end of stream --------------------------------------------------------
+    def _scan(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now < self._next_scan:
+            return
+        self._next_scan = now + SCAN_S
+        if not self.info.subscribes:
+            return
+        files = bus.read_node_files(self.dir, alive_only=False)
+        for info in files.values():
+            if info.name == self.name or not info.publishes:
+                continue
+            if not info.alive:
+                continue
+            self._gone_since.pop(info.name, None)
+            if self._pub_pids.get(info.name) != info.pid:   # new, or respawned: its stream reopens
+                self._pub_pids[info.name] = info.pid
+                for ended in self._ended.values():
+                    ended.discard(info.name)
+            for topic, mode in self.info.subscribes.items():
+                if topic == "*" or topic in info.publishes:
+                    self.sub.connect(info.endpoint, mode)
+                    self._publishers[topic].add(info.name)
+        alive = {n for n, i in files.items() if i.alive}
+        for name in set(self._pub_pids) - alive:
+            self._gone_since.setdefault(name, now)
+
+    def _inputs_ended(self) -> bool:
+        """Every input that has publishers has heard end-of-stream from all of them (a publisher
+        that vanished without one counts after GONE_GRACE_S, time for its last frames to land)."""
+        now = time.monotonic()
+        gone = {n for n, t in self._gone_since.items() if now - t > GONE_GRACE_S}
+        topics = [t for t in self.info.subscribes if self._publishers.get(t)]
+        return bool(topics) and all(self._publishers[t] <= (self._ended[t] | gone) for t in topics)
+
+    # -- status -------------------------------------------------------------------------
+    def _announce(self) -> None:
+        with self._file_lock:
+            if self._closed:
+                return
+            try:
+                self.info.stats = {k: dict(v) for k, v in self.stats.items()}
+                bus.write_node_file(self.dir, self.info)
+            except (OSError, RuntimeError):   # RuntimeError: a counter grew while being copied
+                pass
+
+    def _heartbeat(self) -> None:
+        while not self._stop.wait(bus.HEARTBEAT_S) and not self._closed:
+            self._announce()
+
+    # -- shutdown -----------------------------------------------------------------------
+    def close(self) -> None:
+        """Send end-of-stream on every advertised topic, remove the node file, close sockets."""
+        if self._closed:
+            return
+        if self.info.publishes and not self._graph_ready:
+            self.wait_for_graph()   # subscribers must be connected to hear the end-of-stream
+        for topic in self.info.publishes:
+            self.pub.send(topic, bus.EOS.decode(), self.name.encode())
+        self._stop.set()
+        with self._file_lock:
+            self._closed = True
+            try:
+                (self.dir / f"{self.name}.json").unlink()
+            except FileNotFoundError:
+                pass
+        self.pub.close()
+        self.sub.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def run(main) -> None:
+    """Entry point wrapper for node modules: one clear error line instead of a traceback wall
+    for the expected failures (bad parameter, missing file, device that can't be opened)."""
+    try:
+        main()
+    except KeyboardInterrupt:
+        pass
+    except (FileNotFoundError, ValueError, RuntimeError, OSError) as e:
+        logging.getLogger().error("%s", e)
+        sys.exit(2)
