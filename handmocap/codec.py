@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import os
 import time
 from importlib import resources
 
@@ -16,7 +17,8 @@ import fastjsonschema
 import msgpack
 import numpy as np
 
-MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+# Larger payloads are dropped unread; a 4K BGR frame is 25 MB.
+MAX_MESSAGE_BYTES = int(os.environ.get("HANDMOCAP_MAX_MESSAGE_BYTES", 64 * 1024 * 1024))
 _ARRAY_KEYS = frozenset(("dtype", "shape", "data"))
 
 

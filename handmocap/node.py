@@ -351,8 +351,10 @@ class Node:
                 (self.dir / f"{self.name}.json").unlink()
             except FileNotFoundError:
                 pass
-        self.pub.close()
         self.sub.close()
+        self.pub.close()
+        # Without term() the process may exit with its last messages still queued.
+        self.ctx.term()
 
     def __enter__(self):
         return self

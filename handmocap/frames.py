@@ -1,0 +1,93 @@
+"""Frame sources that know nothing of the bus: a video file or a folder of images.
+
+Each yields (index, BGR image (H,W,3) uint8) and says its nominal frame rate; errors that a
+user can cause (missing file, corrupt video, empty folder) raise ValueError naming the cause.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".webp", ".tif", ".tiff"}
+VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".flv"}
+
+
+class VideoFrames:
+    """Frames of a video file, decoded by OpenCV (which also applies the container's rotation tag)."""
+
+    def __init__(self, path: str | Path, start_s: float = 0.0):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ValueError(f"video {self.path}: no such file")
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            raise ValueError(f"video {self.path}: cannot be opened (corrupt, or not a video OpenCV can decode)")
+        self.fps = cap.get(cv2.CAP_PROP_FPS) or 30.0
+        if not 1.0 <= self.fps <= 1000.0:
+            self.fps = 30.0
+        self.frame_count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        cap.release()
+        self.start_frame = int(round(start_s * self.fps))
+
+    def __iter__(self):
+        cap = cv2.VideoCapture(str(self.path))
+        try:
+            i = 0
+            while i < self.start_frame and cap.grab():
+                i += 1
+            n = 0
+            while True:
+                ok, frame = cap.read()
+                if not ok:
+                    break
+                yield self.start_frame + n, frame
+                n += 1
+            if n == 0:
+                raise ValueError(f"video {self.path}: no frame could be decoded"
+                                 + (f" after {self.start_frame} skipped" if self.start_frame else
+                                    " (corrupt or unsupported)"))
+        finally:
+            cap.release()
+
+
+class ImageFolderFrames:
+    """Images of a folder, sorted by name; unreadable files are an error, not a silent skip."""
+
+    def __init__(self, path: str | Path, fps: float = 30.0, start_s: float = 0.0):
+        self.path = Path(path)
+        self.files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not self.files:
+            raise ValueError(f"image folder {self.path}: no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
+        self.fps = fps
+        self.frame_count = len(self.files)
+        self.start_frame = int(round(start_s * fps))
+
+    def __iter__(self):
+        for i, p in enumerate(self.files[self.start_frame:], self.start_frame):
+            frame = cv2.imread(str(p), cv2.IMREAD_COLOR)
+            if frame is None:
+                raise ValueError(f"image {p}: cannot be decoded")
+            yield i, frame
+
+
+def open_frames(path: str | Path, fps: float | None = None, start_s: float = 0.0):
+    """A VideoFrames or ImageFolderFrames for `path`, chosen by what it is."""
+    path = Path(path)
+    if path.is_dir():
+        return ImageFolderFrames(path, fps or 30.0, start_s)
+    if not path.exists():
+        raise ValueError(f"{path}: no such file or folder")
+    if path.suffix.lower() in IMAGE_SUFFIXES:
+        raise ValueError(f"{path}: a single image; give the folder that holds it")
+    src = VideoFrames(path, start_s)
+    if fps:
+        src.fps = fps
+    return src
+
+
+def image_message(frame: np.ndarray) -> dict:
+    """The Image body (without header) of one BGR frame (H,W,3) uint8."""
+    h, w = frame.shape[:2]
+    return {"encoding": "bgr8", "width": w, "height": h, "data": np.ascontiguousarray(frame)}

@@ -1,0 +1,90 @@
+"""replay: a camera from a recording. Publishes /camera/image and /camera/info.
+
+Source: a video file, a folder of images (sorted by name) or an MCAP bag (its /camera/image
+messages; their stamps are replaced by the replay time, as a camera would stamp them).
+`rate` is a speed factor over the source's frame rate (1 = real time, 0 = as fast as the
+graph takes them); `start` skips that many seconds; `loop` restarts at the end. /camera/info
+comes from `calibration` (a file, see handmocap.camera_info) or, failing that, from the
+bag's own /camera/info, or from a default field of view (camera_info.default_K) that the
+message marks with source "default-fov". It is sent with every frame, so late subscribers
+get it at once (a latched topic by repetition).
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from handmocap import camera_info, codec
+from handmocap.frames import image_message, open_frames
+from handmocap.node import Node, run
+
+PARAMS = {"source": None, "rate": 1.0, "fps": None, "start": 0.0, "loop": False,
+          "calibration": None, "frame_id": "camera"}
+
+
+def bag_frames(path: Path, start_s: float):
+    """(frame BGR, CameraInfo body or None) for each /camera/image of a bag."""
+    from handmocap.bag import iter_messages
+    info, t0 = None, None
+    for topic, type_name, payload, log_ns in iter_messages(path):
+        if type_name == "CameraInfo":
+            m = codec.decode(payload, type_name)
+            info = {k: v for k, v in m.items() if k != "header"}
+        elif type_name == "Image":
+            t0 = log_ns if t0 is None else t0
+            if (log_ns - t0) / 1e9 < start_s:
+                continue
+            m = codec.decode(payload, type_name)
+            if m["encoding"] != "bgr8":
+                raise ValueError(f"bag {path}: image encoding {m['encoding']} is not supported by replay")
+            yield log_ns, m["data"], info
+
+
+def main() -> None:
+    node = Node("replay", params=PARAMS)
+    p = node.params
+    if not p["source"]:
+        raise ValueError("replay needs a source: a video file, an image folder or a .mcap bag (source:=PATH)")
+    source = Path(p["source"]).expanduser()
+    node.advertise("/camera/image", "Image")
+    node.advertise("/camera/info", "CameraInfo")
+    calib = camera_info.load_calibration(p["calibration"]) if p["calibration"] else None
+    rate = float(p["rate"])
+    is_bag = source.suffix == ".mcap"
+    if not is_bag:
+        frames = open_frames(source, p["fps"], float(p["start"]))   # fails now on a bad source
+    sent = 0
+    while node.ok():
+        t_start = time.monotonic()
+        if is_bag:
+            seq = ((ns / 1e9, f, info) for ns, f, info in bag_frames(source, float(p["start"])))
+        else:
+            seq = ((i / frames.fps, f, None) for i, f in frames)
+        t_first = None
+        for t_src, frame, bag_info in seq:
+            if not node.ok():
+                break
+            t_first = t_src if t_first is None else t_first
+            if rate > 0:
+                delay = t_start + (t_src - t_first) / rate - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            h, w = frame.shape[:2]
+            if calib is not None:
+                info = camera_info.camera_info_message(*camera_info.scaled_K(calib, w, h), w, h, "calibration")
+            elif bag_info is not None:
+                info = bag_info
+            else:
+                info = camera_info.camera_info_message(camera_info.default_K(w, h), None, w, h, "default-fov")
+            stamp = time.time_ns()
+            node.publish("/camera/image", image_message(frame), stamp_ns=stamp, frame_id=p["frame_id"])
+            node.publish("/camera/info", info, stamp_ns=stamp, frame_id=p["frame_id"])
+            sent += 1
+        if not p["loop"] or t_first is None:
+            break
+    node.log.info("replayed %d frame(s) from %s", sent, source)
+    node.close()
+
+
+if __name__ == "__main__":
+    run(main)

@@ -1,0 +1,27 @@
+"""Test node: publishes `count` Blob messages of `size` bytes on `topic` at `hz` (0: flat out)."""
+import time
+
+import numpy as np
+
+from handmocap.node import Node, run
+
+PARAMS = {"topic": "/test/blob", "count": 100, "size": 16, "hz": 0.0}
+
+
+def main():
+    node = Node("ticker", params=PARAMS)
+    p = node.params
+    node.advertise(p["topic"], "Blob")
+    payload = np.zeros(p["size"], np.uint8)
+    t0 = time.monotonic()
+    for i in range(p["count"]):
+        if not node.ok():
+            break
+        if p["hz"]:
+            time.sleep(max(0.0, t0 + i / p["hz"] - time.monotonic()))
+        node.publish(p["topic"], {"data": payload})
+    node.close()
+
+
+if __name__ == "__main__":
+    run(main)
