@@ -3,7 +3,7 @@
     python scripts/render_hand_model.py [--out docs/hand_model.png] [--model PATH]
 
 Row 1: the average hand (beta = 0) and beta_k = -2 / +2 on two coefficients.
-Row 2: three poses of the average hand (fist, pointing, spread) from a three-quarter view.
+Row 2: three poses of the average hand (fist, pointing, spread) and the back of the hand.
 Needs moderngl with EGL (see handmocap/render.py).
 """
 import argparse
@@ -20,7 +20,7 @@ from handmocap.rotations import axis_angle_to_matrix
 TILE = 360
 
 
-def place(vertices, joints, view_rotation, depth=0.42):
+def place(vertices, joints, view_rotation, depth=0.6):
     """Rotate the model about the middle of the hand and put it in front of the camera."""
     center = joints[[0, 9, 12]].mean(0) * np.array([1.0, 1.0, 0.0]) + np.array([0.0, 0.03, 0.0])
     return (vertices - center) @ view_rotation.T + np.array([0.0, 0.0, depth])
@@ -50,10 +50,10 @@ def main():
     for label, beta in shapes:
         v, j = model.forward(None, beta)
         tiles.append((label, place(v, j, front)))
-    for name in ("fist", "pointing", "spread"):
-        v, j = model.forward(named_pose(name))
-        tiles.append((name, place(v, model.rest_joints(), three_quarter)))
-    tiles.append(("palm side, rest", place(model.forward()[0], model.rest_joints(),
+    for name, view in (("fist", three_quarter), ("pointing", three_quarter), ("spread", front)):
+        v, j = model.forward(named_pose(name, model))
+        tiles.append((name, place(v, model.rest_joints(), view)))
+    tiles.append(("back, rest", place(model.forward()[0], model.rest_joints(),
                                            axis_angle_to_matrix(np.array([0.0, np.pi, 0.0])))))
 
     images = []
