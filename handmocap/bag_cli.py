@@ -1,0 +1,223 @@
+"""`handbag`: record, play, inspect and export MCAP bags of the graph (like `ros2 bag`).
+
+  handbag record -o OUT.mcap [TOPIC ...] [--overwrite]   until Ctrl-C or the graph ends
+  handbag play FILE [--rate R] [--loop] [--topics T ...] payloads as recorded, paced by log time
+  handbag info FILE [--json]                             topics, counts, time span, truncated?
+  handbag export FILE -o OUT.mcap --foxglove             a copy Foxglove Studio decodes
+
+The graph is the one of the current run dir (`bus.run_dir()`: $HANDMOCAP_RUN_DIR, or
+$HANDMOCAP_GRAPH / "default"). Errors are one line, `handbag: error: ...`, exit status 1.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from . import bus, codec
+from .bag import MESSAGE_ENCODING, NotABag, bag_info, iter_messages
+
+SUBSCRIBER_WAIT_S = 5.0   # how long play waits for the graph's subscribers to connect
+
+
+class CliError(Exception):
+    """An expected failure, reported as one `handbag: error:` line."""
+
+
+# -- record ----------------------------------------------------------------------------------
+def cmd_record(args) -> None:
+    from .nodes import recorder
+    argv = [f"output:={json.dumps(str(args.output))}", f"topics:={json.dumps(args.topics)}",
+            f"overwrite:={'true' if args.overwrite else 'false'}"]
+    out = Path(args.output).expanduser()
+    if out.exists() and not args.overwrite:
+        raise CliError(f"{out} already exists (remove it, choose another -o, or pass --overwrite)")
+    recorder.main(argv=argv, name=f"bagrec{os.getpid()}")
+
+
+# -- play ------------------------------------------------------------------------------------
+def _checked_info(path: str, topics: list[str] | None) -> dict:
+    info = bag_info(path)
+    if topics:
+        unknown = [t for t in topics if t not in info["topics"]]
+        if unknown:
+            raise CliError(f"{path}: no topic(s) {', '.join(unknown)} in this bag "
+                           f"(it has {', '.join(info['topics']) or 'none'})")
+    return info
+
+
+def wait_for_subscribers(node, timeout_s: float = SUBSCRIBER_WAIT_S) -> dict:
+    """Block until every node of the graph that subscribes to one of `node`'s topics (or to every
+    topic) is connected to it, at most `timeout_s`; returns {topic: "have/want"} still missing."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        nodes = bus.read_node_files(node.dir)
+        missing = {}
+        for topic in node.info.publishes:
+            want = sum(1 for n in nodes.values() if n.name != node.name and not n.observer
+                       for t in n.subscribes if t in (topic, "*"))
+            have = node.pub.subscriber_count(topic)
+            if have < want:
+                missing[topic] = f"{have}/{want}"
+        if not missing or time.monotonic() > deadline or not node.ok():
+            return missing
+        time.sleep(0.01)
+
+
+def _sleep_until(node, t: float) -> None:
+    while node.ok():
+        left = t - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(left, 0.1))
+
+
+def cmd_play(args) -> None:
+    from .node import Node
+    info = _checked_info(args.file, args.topics)
+    chosen = {t: v for t, v in info["topics"].items() if not args.topics or t in args.topics}
+    for topic, v in chosen.items():
+        if v["encoding"] != MESSAGE_ENCODING:
+            raise CliError(f"{args.file}: topic {topic} holds {v['encoding']} messages; only bags "
+                           f"recorded by handbag/recorder ({MESSAGE_ENCODING}) can be played")
+        if v["type"] not in codec.message_types():
+            raise CliError(f"{args.file}: topic {topic} has unknown message type {v['type']!r}")
+    if args.rate < 0:
+        raise CliError(f"--rate must be >= 0, not {args.rate}")
+    node = Node(f"bagplay{os.getpid()}", argv=[])
+    try:
+        for topic, v in chosen.items():
+            node.advertise(topic, v["type"])
+        if "HANDMOCAP_LAUNCH_ID" in os.environ:
+            node.wait_for_graph()
+        else:
+            missing = wait_for_subscribers(node)
+            if missing:
+                node.log.warning("playing without all subscribers connected: %s", missing)
+        sent = 0
+        while node.ok():
+            t_start, t_first = time.monotonic(), None
+            for topic, type_name, payload, log_ns in iter_messages(args.file, list(chosen)):
+                if not node.ok():
+                    break
+                t_first = log_ns if t_first is None else t_first
+                if args.rate > 0:
+                    _sleep_until(node, t_start + (log_ns - t_first) / 1e9 / args.rate)
+                node.publish_raw(topic, type_name, payload)
+                sent += 1
+            if not args.loop or t_first is None:
+                break
+        node.log.info("played %d message(s) from %s", sent, args.file)
+    finally:
+        node.close()
+
+
+# -- info ------------------------------------------------------------------------------------
+def _fmt_time(ns: int | None) -> str:
+    if ns is None:
+        return "-"
+    return datetime.datetime.fromtimestamp(ns / 1e9).isoformat(sep=" ", timespec="milliseconds")
+
+
+def _fmt_bytes(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n} B"
+
+
+def format_info(info: dict) -> str:
+    """The human-readable `handbag info` table."""
+    trunc = (f"yes: the writer did not finish; {info['unreadable_bytes']} byte(s) at the end unreadable"
+             if info["truncated"] else "no")
+    lines = [f"path:       {info['path']}",
+             f"size:       {_fmt_bytes(info['size_bytes'])}",
+             f"messages:   {info['message_count']}",
+             f"start:      {_fmt_time(info['start_ns'])}",
+             f"end:        {_fmt_time(info['end_ns'])}",
+             f"duration:   {info['duration_s']:.3f} s",
+             f"truncated:  {trunc}"]
+    if info["topics"]:
+        rows = [("topic", "type", "count", "encoding")]
+        rows += [(topic, v["type"], str(v["count"]), v["encoding"]) for topic, v in info["topics"].items()]
+        widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+        lines.append("")
+        lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    return "\n".join(lines)
+
+
+def cmd_info(args) -> None:
+    info = bag_info(args.file)
+    print(json.dumps(info, indent=2) if args.json else format_info(info))
+
+
+# -- export ----------------------------------------------------------------------------------
+def cmd_export(args) -> None:
+    from .foxglove_export import export_foxglove
+    if not args.foxglove:
+        raise CliError("export needs a target format: --foxglove")
+    src, dst = Path(args.file), Path(args.output)
+    _checked_info(args.file, args.topics)
+    if dst.exists() and dst.resolve() == src.resolve():
+        raise CliError(f"{dst}: the output would overwrite the input bag")
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    result = export_foxglove(src, dst, args.topics)
+    for topic, v in result["topics"].items():
+        print(f"{topic}: {v['count']} message(s) as {v['schema']}")
+    for topic, n in result["skipped"].items():
+        print(f"{topic}: skipped {n} malformed message(s)", file=sys.stderr)
+    print(f"wrote {dst}")
+
+
+# -- entry point -----------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="handbag", description="Record, play, inspect and export MCAP bags.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("record", help="record topics of the running graph until Ctrl-C or its end")
+    r.add_argument("-o", "--output", required=True, help="bag file to write (.mcap)")
+    r.add_argument("topics", nargs="*", help="topics to record (default: every topic)")
+    r.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    r.set_defaults(func=cmd_record)
+
+    pl = sub.add_parser("play", help="publish a bag's messages unchanged, paced by their log times")
+    pl.add_argument("file")
+    pl.add_argument("--rate", type=float, default=1.0, help="speed factor; 0 = as fast as possible")
+    pl.add_argument("--loop", action="store_true", help="start over at the end, until Ctrl-C")
+    pl.add_argument("--topics", nargs="+", help="play only these topics")
+    pl.set_defaults(func=cmd_play)
+
+    i = sub.add_parser("info", help="topics, message counts, time span, truncation")
+    i.add_argument("file")
+    i.add_argument("--json", action="store_true", help="machine-readable output")
+    i.set_defaults(func=cmd_info)
+
+    e = sub.add_parser("export", help="write a copy in another encoding")
+    e.add_argument("file")
+    e.add_argument("-o", "--output", required=True, help="file to write (.mcap)")
+    e.add_argument("--foxglove", action="store_true",
+                   help="JSON messages with Foxglove well-known schemas (images as JPEG)")
+    e.add_argument("--topics", nargs="+", help="export only these topics")
+    e.set_defaults(func=cmd_export)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except KeyboardInterrupt:
+        pass
+    except (CliError, NotABag, FileNotFoundError, FileExistsError, ValueError, OSError) as e:
+        print(f"handbag: error: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
