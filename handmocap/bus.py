@@ -68,6 +68,7 @@ class NodeInfo:
     subscribes: dict = field(default_factory=dict)   # topic -> "latest" | "all"
     ready: bool = False
     observer: bool = False   # tools (handtopic) that must not hold a graph's start
+    ended: bool = False      # set by the launcher on a node that died for good: its streams are over
     heartbeat_ns: int = 0
     stats: dict = field(default_factory=dict)
 

@@ -76,7 +76,7 @@ def _load_yaml_with_lines(path: Path) -> tuple[object, dict]:
     lines: dict[tuple, int] = {}
 
     def build(node, key_path):
-        lines[key_path] = node.start_mark.line + 1
+        lines.setdefault(key_path, node.start_mark.line + 1)   # a key's own line wins
         if isinstance(node, yaml.MappingNode):
             out = {}
             for k, v in node.value:
@@ -200,7 +200,11 @@ def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
         params = entry.get("params") or {}
         if not isinstance(params, dict):
             raise err(kp + ("params",), f"node {name!r}: 'params' must be a mapping")
-        known = getattr(importlib.import_module(module), "PARAMS", None)
+        try:
+            known = getattr(importlib.import_module(module), "PARAMS", None)
+        except Exception as e:   # a node whose module cannot even be imported cannot run
+            raise err(kp + ("node",), f"node {name!r}: module {module} fails to import: "
+                      f"{type(e).__name__}: {e}") from None
         if known is not None:
             for p in params:
                 if p not in known:
@@ -341,7 +345,6 @@ class Launcher:
             c.exit_code = c.proc.returncode
             if c.exit_code == 0:
                 continue
-            (self.dir / f"{c.spec.name}.json").unlink(missing_ok=True)
             how = f"killed by signal {-c.exit_code}" if c.exit_code < 0 else f"exit code {c.exit_code}"
             if c.spec.respawn:
                 if now - c.started > 10:
@@ -349,12 +352,20 @@ class Launcher:
                 self.print("handlaunch", f"node {c.spec.name} died ({how}); respawn in {c.backoff:.1f} s")
                 c.restart_at = now + c.backoff
                 c.backoff = min(c.backoff * 2, MAX_BACKOFF_S)
-            elif c.spec.required:
+                continue
+            self._mark_ended(c.spec.name)
+            if c.spec.required:
                 self.print("handlaunch", f"error: required node {c.spec.name} failed ({how}); stopping the graph")
                 return c.spec.name
-            else:
-                self.print("handlaunch", f"warning: node {c.spec.name} failed ({how})")
+            self.print("handlaunch", f"warning: node {c.spec.name} failed ({how})")
         return None
+
+    def _mark_ended(self, name: str) -> None:
+        """Tell subscribers that a node which died without end-of-stream is gone for good."""
+        info = bus.read_node_files(self.dir, alive_only=False).get(name)
+        if info is not None:
+            info.ended = True
+            bus.write_node_file(self.dir, info)
 
     def _stop_all(self) -> None:
         for c in self.children:

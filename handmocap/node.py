@@ -38,7 +38,6 @@ import zmq
 from . import bus, codec
 
 SCAN_S = 0.2          # how often subscribers look for new publishers
-GONE_GRACE_S = 1.0    # a publisher gone without end-of-stream counts as ended after this
 READY_TIMEOUT_S = 60  # how long a publisher waits for its graph to start
 
 
@@ -99,7 +98,6 @@ class Node:
         self._publishers: dict[str, set[str]] = defaultdict(set)   # topic -> node names seen
         self._pub_pids: dict[str, int] = {}
         self._ended: dict[str, set[str]] = defaultdict(set)        # topic -> names that sent EOS
-        self._gone_since: dict[str, float] = {}                    # publisher -> when first seen gone
         self._file_lock = threading.Lock()
         self._next_scan = 0.0
         self._graph_ready = "HANDMOCAP_LAUNCH_ID" not in os.environ
@@ -297,9 +295,13 @@ class Node:
         for info in files.values():
             if info.name == self.name or not info.publishes:
                 continue
-            if not info.alive:
+            if info.ended:   # died for good (the launcher says so): as if it had sent end-of-stream
+                for topic in self.info.subscribes:
+                    if topic == "*" or topic in info.publishes:
+                        self._ended[topic].add(info.name)
                 continue
-            self._gone_since.pop(info.name, None)
+            if not info.alive:   # crashed, maybe to be respawned: its stream is not over
+                continue
             if self._pub_pids.get(info.name) != info.pid:   # new, or respawned: its stream reopens
                 self._pub_pids[info.name] = info.pid
                 for ended in self._ended.values():
@@ -308,17 +310,12 @@ class Node:
                 if topic == "*" or topic in info.publishes:
                     self.sub.connect(info.endpoint, mode)
                     self._publishers[topic].add(info.name)
-        alive = {n for n, i in files.items() if i.alive}
-        for name in set(self._pub_pids) - alive:
-            self._gone_since.setdefault(name, now)
 
     def _inputs_ended(self) -> bool:
-        """Every input that has publishers has heard end-of-stream from all of them (a publisher
-        that vanished without one counts after GONE_GRACE_S, time for its last frames to land)."""
-        now = time.monotonic()
-        gone = {n for n, t in self._gone_since.items() if now - t > GONE_GRACE_S}
+        """Every input that has publishers has heard end-of-stream from all of them (or the
+        launcher marked the publisher as dead for good)."""
         topics = [t for t in self.info.subscribes if self._publishers.get(t)]
-        return bool(topics) and all(self._publishers[t] <= (self._ended[t] | gone) for t in topics)
+        return bool(topics) and all(self._publishers[t] <= self._ended[t] for t in topics)
 
     # -- status -------------------------------------------------------------------------
     def _announce(self) -> None:

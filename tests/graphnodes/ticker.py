@@ -1,11 +1,12 @@
-"""Test node: publishes `count` Blob messages of `size` bytes on `topic` at `hz` (0: flat out)."""
+"""Test node: publishes `count` Blob messages of `size` bytes on `topic` at `hz` (0: flat out);
+with `fail_after` >= 0 it fails (exit 2) after that many."""
 import time
 
 import numpy as np
 
 from handmocap.node import Node, run
 
-PARAMS = {"topic": "/test/blob", "count": 100, "size": 16, "hz": 0.0}
+PARAMS = {"topic": "/test/blob", "count": 100, "size": 16, "hz": 0.0, "fail_after": -1}
 
 
 def main():
@@ -19,6 +20,8 @@ def main():
             break
         if p["hz"]:
             time.sleep(max(0.0, t0 + i / p["hz"] - time.monotonic()))
+        if i == p["fail_after"]:
+            raise RuntimeError(f"failing on purpose after {i} messages")
         node.publish(p["topic"], {"data": payload})
     node.close()
 

@@ -1,0 +1,101 @@
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from handmocap import codec
+
+
+def keypoints_msg(n_hands=1):
+    rng = np.random.default_rng(0)
+    hand = {"track_id": 3, "handedness": "left", "score": 0.75, "bbox": np.array([1, 2, 30, 40], np.float32),
+            "uv": rng.random((21, 2), dtype=np.float32), "confidence": np.ones(21, np.float32),
+            "xyz_rel": rng.random((21, 3), dtype=np.float32)}
+    return {"header": codec.header(7, "camera"), "width": 640, "height": 480, "hands": [hand] * n_hands}
+
+
+def test_round_trip_keeps_arrays_exactly():
+    msg = keypoints_msg(2)
+    out = codec.decode(codec.encode(msg, "HandKeypoints"), "HandKeypoints")
+    assert out["header"] == msg["header"]
+    for a, b in zip(out["hands"], msg["hands"]):
+        for k in ("bbox", "uv", "confidence", "xyz_rel"):
+            assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape
+            np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_arrays_travel_as_raw_bytes_not_lists():
+    raw = msgpack.unpackb(codec.encode(keypoints_msg()))
+    uv = raw["hands"][0]["uv"]
+    assert set(uv) == {"dtype", "shape", "data"} and isinstance(uv["data"], bytes)
+    assert uv["shape"] == [21, 2] and len(uv["data"]) == 21 * 2 * 4
+
+
+def test_non_contiguous_and_big_endian_arrays_are_encoded_right():
+    a = np.arange(42, dtype=">f4").reshape(21, 2)
+    msg = keypoints_msg()
+    msg["hands"][0]["uv"] = a
+    msg["hands"][0]["xyz_rel"] = np.arange(126, dtype=np.float32).reshape(21, 6)[:, ::2]
+    out = codec.decode(codec.encode(msg), "HandKeypoints")["hands"][0]
+    np.testing.assert_array_equal(out["uv"], a)
+    np.testing.assert_array_equal(out["xyz_rel"], msg["hands"][0]["xyz_rel"])
+
+
+@pytest.mark.parametrize("mutate, reason", [
+    (lambda m: m["hands"][0].pop("uv"), "schema"),
+    (lambda m: m["hands"][0].update(uv=np.zeros((20, 2), np.float32)), "schema"),
+    (lambda m: m["hands"][0].update(uv=np.zeros((21, 2), np.float64)), "schema"),
+    (lambda m: m["hands"][0].update(handedness="both"), "schema"),
+    (lambda m: m["header"].update(stamp_ns=-1), "schema"),
+    (lambda m: m.pop("header"), "schema"),
+])
+def test_schema_violations_are_malformed(mutate, reason):
+    msg = keypoints_msg()
+    mutate(msg)
+    with pytest.raises(codec.MalformedMessage) as e:
+        codec.decode(codec.encode(msg), "HandKeypoints")
+    assert e.value.reason == reason
+
+
+def test_array_with_wrong_byte_count_is_malformed():
+    raw = msgpack.unpackb(codec.encode(keypoints_msg()))
+    raw["hands"][0]["uv"]["data"] = raw["hands"][0]["uv"]["data"][:-4]
+    with pytest.raises(codec.MalformedMessage) as e:
+        codec.decode(msgpack.packb(raw), "HandKeypoints")
+    assert e.value.reason == "array-size"
+
+
+def test_oversized_and_unknown_type():
+    with pytest.raises(codec.MalformedMessage) as e:
+        codec.decode(b"\x80" * 100, "Blob", max_bytes=10)
+    assert e.value.reason == "oversized"
+    with pytest.raises(codec.MalformedMessage) as e:
+        codec.decode(codec.encode(keypoints_msg()), "NoSuchType")
+    assert e.value.reason == "unknown-type"
+
+
+def test_every_schema_compiles_and_names_its_type():
+    for t in codec.message_types():
+        assert codec.schema(t)["title"] == t
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=2000), st.sampled_from(["Image", "HandKeypoints", "HandPose", "CameraInfo", "Blob"]))
+def test_fuzzed_payloads_only_ever_raise_malformed(payload, type_name):
+    try:
+        codec.decode(payload, type_name)
+    except codec.MalformedMessage:
+        pass
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.recursive(st.none() | st.booleans() | st.integers(-2**63, 2**64 - 1) | st.floats() | st.text(max_size=8)
+                    | st.binary(max_size=16),
+                    lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=6), c, max_size=4),
+                    max_leaves=30))
+def test_fuzzed_structures_only_ever_raise_malformed(obj):
+    for type_name in ("HandKeypoints", "Image"):
+        try:
+            codec.decode(msgpack.packb(obj), type_name)
+        except codec.MalformedMessage:
+            pass

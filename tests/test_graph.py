@@ -1,0 +1,139 @@
+"""Graph tests: real node processes started by handlaunch, talking over real ZeroMQ sockets."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from conftest import graph_env, handlaunch
+
+
+def write(tmp_path, name, text):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def sink_result(path):
+    return json.loads(path.read_text())
+
+
+def test_keep_all_delivers_10000_messages_in_order(tmp_path, run_dir):
+    out = tmp_path / "sink.json"
+    lf = write(tmp_path, "g.yaml", f"""
+nodes:
+  ticker: {{node: graphnodes.ticker, params: {{count: 10000, size: 64}}, required: true}}
+  sink: {{node: graphnodes.sink, params: {{mode: all, out: {out}}}}}
+""")
+    r = handlaunch([lf], run_dir)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert sink_result(out)["seqs"] == list(range(10000))
+
+
+def test_latest_only_slow_subscriber_sees_only_fresh_frames(tmp_path, run_dir):
+    """100 Hz of 640x480 BGR-sized messages to a fast and a slow (100 ms/message) latest-only
+    subscriber and a keep-all one: the fast one keeps up, the slow one skips to fresh frames
+    instead of building a backlog, the keep-all one loses nothing."""
+    lf = write(tmp_path, "g.yaml", f"""
+nodes:
+  ticker: {{node: graphnodes.ticker, params: {{count: 200, size: 921600, hz: 100}}}}
+  fast: {{node: graphnodes.sink, params: {{mode: latest, out: {tmp_path}/fast.json}}}}
+  slow: {{node: graphnodes.sink, params: {{mode: latest, work_s: 0.1, out: {tmp_path}/slow.json}}}}
+  all: {{node: graphnodes.sink, params: {{mode: all, out: {tmp_path}/all.json}}}}
+""")
+    r = handlaunch([lf], run_dir)
+    assert r.returncode == 0, r.stdout + r.stderr
+    fast, slow, keep = (sink_result(tmp_path / f"{n}.json") for n in ("fast", "slow", "all"))
+    assert keep["seqs"] == list(range(200))
+    assert len(fast["seqs"]) >= 150 and np.median(fast["ages_ms"]) < 20
+    # 2 s of frames at 100 ms each: about 20 frames, each fresh (a backlog would age by 90 ms a frame)
+    assert 10 <= len(slow["seqs"]) <= 30
+    # (the first frames can be late while the 2 cores are still busy starting 4 processes)
+    assert np.median(slow["ages_ms"]) < 40 and max(slow["ages_ms"][len(slow["ages_ms"]) // 2:]) < 150
+    assert slow["seqs"] == sorted(slow["seqs"]) and slow["seqs"][-1] == 199
+
+
+def test_malformed_messages_are_dropped_and_the_node_keeps_serving(tmp_path, run_dir):
+    out = tmp_path / "sink.json"
+    lf = write(tmp_path, "g.yaml", f"""
+env: {{HANDMOCAP_MAX_MESSAGE_BYTES: "1000000"}}
+nodes:
+  fuzzer: {{node: graphnodes.fuzzer, params: {{valid: 40}}}}
+  sink: {{node: graphnodes.sink, params: {{mode: all, out: {out}}}}}
+""")
+    r = handlaunch([lf], run_dir)
+    assert r.returncode == 0, r.stdout + r.stderr
+    res = sink_result(out)
+    assert res["seqs"] == list(range(40))
+    assert res["dropped"] == 39 * 8
+    warnings = [line for line in r.stdout.splitlines() if line.startswith("[sink] WARNING dropped")]
+    # one line per (topic, cause), not one per message
+    causes = ["(msgpack:", "(schema:", "(array-size:", "(unknown-type:", "(oversized:", "(2 frames, expected 3)"]
+    assert len(warnings) == len(causes)
+    assert all(any(c in w for w in warnings) for c in causes)
+    assert "Traceback" not in r.stdout
+
+
+def test_killed_node_respawns_and_a_failed_required_node_stops_the_graph(tmp_path, run_dir):
+    lf = write(tmp_path, "g.yaml", f"""
+nodes:
+  ticker: {{node: graphnodes.ticker, params: {{count: 100000, hz: 50}}, respawn: true, respawn_delay: 0.2}}
+  sink: {{node: graphnodes.sink, params: {{mode: all, out: {tmp_path}/sink.json}}}}
+""")
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        first = wait_for_node(run_dir, "ticker")
+        wait_for_count(run_dir / "ticker.json", 20)
+        os.kill(first, signal.SIGKILL)
+        second = wait_for_node(run_dir, "ticker", not_pid=first)
+        assert second != first
+        wait_for_count(run_dir / "ticker.json", 20)
+        time.sleep(0.3)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=20)
+    assert "node ticker died (killed by signal 9); respawn in 0.2 s" in out
+    assert "respawning ticker" in out
+    seqs = sink_result(tmp_path / "sink.json")["seqs"]
+    restart = [i for i in range(1, len(seqs)) if seqs[i] < seqs[i - 1]]
+    assert len(restart) == 1 and seqs[restart[0]] == 0   # the new process's stream reached the sink
+
+    lf2 = write(tmp_path, "g2.yaml", f"""
+nodes:
+  ticker: {{node: graphnodes.ticker, params: {{count: 1000, hz: 100, fail_after: 20}}, required: true}}
+  sink: {{node: graphnodes.sink, params: {{mode: all, out: {tmp_path}/sink2.json}}}}
+""")
+    r = handlaunch([lf2], run_dir)
+    assert r.returncode == 1
+    assert "error: required node ticker failed (exit code 2); stopping the graph" in r.stdout
+    assert "failing on purpose after 20 messages" in r.stdout
+
+
+def wait_for_node(run_dir, name, not_pid=None, timeout=20):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            info = json.loads((run_dir / f"{name}.json").read_text())
+            if info["ready"] and info["pid"] != not_pid:
+                return info["pid"]
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.05)
+    raise AssertionError(f"node {name} did not come up")
+
+
+def wait_for_count(node_file, n, timeout=10):
+    """Wait until a node's status says it published n messages on /test/blob."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            if json.loads(node_file.read_text())["stats"]["published"].get("/test/blob", 0) >= n:
+                return
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.05)
+    raise AssertionError(f"{node_file.stem} did not publish {n} messages")

@@ -1,0 +1,70 @@
+"""Launch files are checked completely before any process starts; errors name file and line."""
+import subprocess
+import sys
+
+import pytest
+
+from handmocap.launch import LaunchError, load_launch_file
+
+GOOD = """\
+args:
+  input: {help: a video}
+  rate: {default: 1.0}
+nodes:
+  replay:
+    node: replay
+    params: {source: $(var input), rate: $(var rate)}
+    required: true
+  recorder:
+    node: recorder
+    params: {output: out-$(var rate).mcap}
+"""
+
+
+def write(tmp_path, text):
+    p = tmp_path / "g.yaml"
+    p.write_text(text)
+    return p
+
+
+def test_good_file_substitutes_arguments_keeping_types(tmp_path):
+    lf = load_launch_file(write(tmp_path, GOOD), {"input": "clip.mp4", "rate": 2})
+    replay, recorder = lf.nodes
+    assert replay.module == "handmocap.nodes.replay" and replay.required
+    assert replay.params == {"source": "clip.mp4", "rate": 2}
+    assert recorder.params == {"output": "out-2.mcap"}
+
+
+@pytest.mark.parametrize("text, args, line, words", [
+    (GOOD, {}, 2, "argument 'input' is required"),
+    (GOOD, {"input": "x", "speed": 3}, 1, "unknown argument 'speed'"),
+    (GOOD.replace("node: recorder", "node: recorderz"), {"input": "x"}, 10, "unknown node type 'recorderz'"),
+    (GOOD.replace("required: true", "requird: true"), {"input": "x"}, 8, "unknown key 'requird'"),
+    (GOOD.replace("$(var rate)}", "$(var speed)}"), {"input": "x"}, 7, "$(var speed) is not declared"),
+    (GOOD.replace("rate: $(var rate)}", "rat: 1}"), {"input": "x"}, 7, "has no parameter 'rat'"),
+    (GOOD.replace("  replay:\n", "  replay:\n   - [\n"), {"input": "x"}, 8, "malformed YAML"),
+    ("nodes: []\n", {}, 1, "'nodes:' must map"),
+    ("nodez: {}\n", {}, 1, "unknown key 'nodez'"),
+])
+def test_bad_files_are_rejected_with_file_and_line(tmp_path, text, args, line, words):
+    path = write(tmp_path, text)
+    with pytest.raises(LaunchError) as e:
+        load_launch_file(path, args)
+    assert str(e.value).startswith(f"{path}:{line}:"), str(e.value)
+    assert words in str(e.value)
+
+
+def test_missing_file_and_cli_exit_code(tmp_path, run_dir):
+    r = subprocess.run([sys.executable, "-m", "handmocap.launch", str(tmp_path / "nope.yaml")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.strip() == f"handlaunch: error: {tmp_path / 'nope.yaml'}: no such launch file"
+    assert not list(run_dir.iterdir())   # nothing was started
+
+
+def test_bad_file_starts_no_process(tmp_path, run_dir):
+    path = write(tmp_path, GOOD.replace("node: recorder", "node: nope"))
+    r = subprocess.run([sys.executable, "-m", "handmocap.launch", str(path), "input:=x"],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "unknown node type 'nope'" in r.stderr
+    assert "Traceback" not in r.stderr and not list(run_dir.iterdir())
