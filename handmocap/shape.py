@@ -1,0 +1,158 @@
+"""Hand shape from bone lengths (paper Eq. 8), per frame and over a track.
+
+    E(beta) = sum_b ( l_b(beta) / l_ref(beta) - r_b )^2 + lambda |beta|^2
+
+r_b are the bone-length ratios of the predicted joints to the reference bone 0 -> 9
+(scale-normalized predictions fix only ratios, so shape is relative: a coefficient that
+scales the whole hand uniformly, or thickens fingers, cannot be seen and stays at 0).
+The model's rest joints are linear in beta, so the ratios are nearly linear in beta:
+ShapeFitter solves the damped linear least squares at beta = 0 in closed form (one
+precomputed (B, n_bones) matrix), then takes Gauss-Newton steps with the exact ratios and
+Jacobian at the current beta (a B x B solve each).
+"""
+from collections import deque
+
+import numpy as np
+
+from .skeleton import BONES, FINGER_TIPS, REF_BONE
+
+_REF_INDEX = BONES.index(REF_BONE)
+BONES_WITH_TIPS = tuple(i for i in range(len(BONES)) if i != _REF_INDEX)                     # 19
+BONES_WITHOUT_TIPS = tuple(i for i in BONES_WITH_TIPS if BONES[i][1] not in FINGER_TIPS)    # 14
+_PARENT = np.array([p for p, _ in BONES])
+_CHILD = np.array([c for _, c in BONES])
+
+
+def bone_lengths(xyz):
+    """(..., 21, 3) joints -> (..., 20) lengths of BONES, same unit."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    return np.linalg.norm(xyz[..., _CHILD, :] - xyz[..., _PARENT, :], axis=-1)
+
+
+def bone_ratios(xyz):
+    """(..., 21, 3) joints -> (..., 20) bone lengths divided by the reference bone 0 -> 9."""
+    lengths = bone_lengths(xyz)
+    return lengths / np.maximum(lengths[..., _REF_INDEX:_REF_INDEX + 1], 1e-12)
+
+
+class ShapeFitter:
+    """Fits beta to bone ratios of one hand model.
+
+    model: a HandModel (uses rest_joints' linear form j_template + j_shapedirs beta).
+    prior: lambda of Eq. 8 (in squared-ratio units per unit beta^2).
+    include_tips: fit the 19 non-reference bones (True) or the 14 without fingertips.
+    steps: Gauss-Newton refinements after the closed-form linear solve.
+    """
+
+    def __init__(self, model, prior=1e-6, include_tips=True, steps=2):
+        self.j_template = np.asarray(model.j_template, dtype=np.float64)       # (21,3)
+        self.j_shapedirs = np.asarray(model.j_shapedirs, dtype=np.float64)     # (21,3,B)
+        self.num_betas = self.j_shapedirs.shape[-1]
+        self.prior = float(prior)
+        self.bones = np.array(BONES_WITH_TIPS if include_tips else BONES_WITHOUT_TIPS)
+        self.steps = steps
+        r0, jac0 = self.ratios_and_jacobian(np.zeros(self.num_betas))
+        self.r0 = r0
+        self.jac0 = jac0[self.bones]
+        self.normal0 = self.jac0.T @ self.jac0
+        # beta = (JᵀJ + λI)⁻¹ Jᵀ (r - r0): the first Gauss-Newton step from beta = 0
+        self.linear_solve = np.linalg.solve(self.normal0 + self.prior * np.eye(self.num_betas), self.jac0.T)
+
+    def ratios_and_jacobian(self, beta):
+        """Model bone ratios (20,) at beta and their derivative (20, B)."""
+        joints = self.j_template + self.j_shapedirs @ beta                      # (21,3)
+        vec = joints[_CHILD] - joints[_PARENT]                                  # (20,3)
+        length = np.linalg.norm(vec, axis=-1)
+        dvec = self.j_shapedirs[_CHILD] - self.j_shapedirs[_PARENT]             # (20,3,B)
+        dlength = np.einsum("bc,bck->bk", vec / length[:, None], dvec)          # (20,B)
+        ref, dref = length[_REF_INDEX], dlength[_REF_INDEX]
+        ratios = length / ref
+        jac = (dlength * ref - length[:, None] * dref[None]) / ref ** 2
+        return ratios, jac
+
+    def fit_ratios(self, ratios, prior=None):
+        """beta (B,) minimising Eq. 8 for observed ratios (20,) (BONES order); prior
+        overrides lambda (e.g. a tracker's, shrinking as frames accumulate)."""
+        target = np.asarray(ratios, dtype=np.float64)[self.bones]
+        prior = self.prior if prior is None else float(prior)
+        eye = prior * np.eye(self.num_betas)
+        if prior == self.prior:
+            beta = self.linear_solve @ (target - self.r0[self.bones])
+        else:
+            beta = np.linalg.solve(self.normal0 + eye, self.jac0.T @ (target - self.r0[self.bones]))
+        for _ in range(self.steps):
+            r, jac = self.ratios_and_jacobian(beta)
+            jac = jac[self.bones]
+            beta = beta + np.linalg.solve(jac.T @ jac + eye, jac.T @ (target - r[self.bones]) - prior * beta)
+        return beta
+
+    def fit(self, xyz):
+        """beta (B,) from predicted joints (21,3) in any unit (e.g. root-relative, normalized)."""
+        return self.fit_ratios(bone_ratios(xyz))
+
+    def model_ratios(self, beta):
+        """(20,) bone ratios of the model at beta."""
+        return self.ratios_and_jacobian(np.asarray(beta, dtype=np.float64))[0]
+
+
+class ShapeTracker:
+    """Running shape estimate for one tracked hand (shape is constant per person).
+
+    Each update adds a frame's squared bone lengths. The estimate uses, per bone, a
+    trimmed mean of squared lengths (frames further than `trim` robust SDs from the
+    median are dropped: outlier frames), minus the bias that joint noise adds to squared
+    lengths (3 sigma_d^2, sigma_d^2 estimated from how much rigid bones' lengths vary over
+    frames), then fits beta to the ratios of those lengths. Frames are kept in a window
+    of `window` (a deque), so a re-identified track recovers.
+
+    >>> tracker = ShapeTracker(ShapeFitter(HandModel.load()))
+    >>> beta, n = tracker.update(xyz_rel)     # per frame
+    """
+
+    def __init__(self, fitter, window=600, trim=3.0, min_frames_for_noise=8, prior_until_noise_known=1e-3):
+        self.fitter = fitter
+        self.prior_until_noise_known = prior_until_noise_known   # strong shrinkage for the first frames
+        self.sq_lengths = deque(maxlen=window)
+        self.trim = trim
+        self.min_frames_for_noise = min_frames_for_noise
+        self.beta = np.zeros(fitter.num_betas)
+
+    @property
+    def n_samples(self):
+        return len(self.sq_lengths)
+
+    def reset(self):
+        self.sq_lengths.clear()
+        self.beta = np.zeros(self.fitter.num_betas)
+
+    def update(self, xyz):
+        """Add one frame's joints (21,3) (frames with non-finite or degenerate joints are
+        skipped). Returns (beta (B,), number of frames in the estimate)."""
+        sq = bone_lengths(xyz) ** 2
+        if np.all(np.isfinite(sq)) and sq[_REF_INDEX] > 0:
+            # not rescaled per frame: rescaling by a noisy reference bone would spread its
+            # noise over every bone; bones are rigid in any fixed unit (normalized or metres)
+            self.sq_lengths.append(sq)
+            ratios, ratio_var = self.ratios()
+            # MAP weight of the N(0, I) prior on beta: variance of the averaged ratios
+            self.beta = self.fitter.fit_ratios(ratios, prior=max(self.fitter.prior, ratio_var / self.n_samples))
+        return self.beta.copy(), self.n_samples
+
+    def ratios(self):
+        """Current robust bone-ratio estimate (20,) and the per-frame ratio noise variance."""
+        sq = np.asarray(self.sq_lengths)                                       # (n,20)
+        if len(sq) < self.min_frames_for_noise:
+            ratios = np.sqrt(np.median(sq, axis=0) / np.median(sq[:, _REF_INDEX]))
+            return ratios, self.prior_until_noise_known
+        med = np.median(sq, axis=0)
+        spread = 1.4826 * np.median(np.abs(sq - med), axis=0) + 1e-12
+        keep = np.abs(sq - med) <= self.trim * spread
+        mean_sq = np.sum(sq * keep, axis=0) / np.maximum(keep.sum(0), 1)
+        # noise per bone-vector coordinate from the spread of lengths of rigid bones
+        lengths = np.sqrt(sq)
+        lmed = np.median(lengths, axis=0)
+        noise_var = np.median((1.4826 * np.median(np.abs(lengths - lmed), axis=0)) ** 2)
+        corrected = np.maximum(mean_sq - 3.0 * noise_var, 0.05 * mean_sq)
+        # a ratio l/l_ref carries the noise of both lengths: var ≈ sigma_d^2 (1 + r^2) / l_ref^2
+        ratio_var = 2.0 * noise_var / corrected[_REF_INDEX]
+        return np.sqrt(corrected / corrected[_REF_INDEX]), ratio_var

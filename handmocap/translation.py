@@ -1,0 +1,124 @@
+"""Global translation of the hand from 2D keypoints, root-relative 3D and camera intrinsics.
+
+Paper Eq. 5: with a = K⁻¹ [u_r, v_r, 1] (root, joint 9), b = K⁻¹ [u_w, v_w, 1] (wrist,
+joint 0), the wrist's depth z_w = z_r + c where c = l_ref * d_w (d_w: normalized
+root-relative depth of the wrist, l_ref: reference bone 0 -> 9 in metres), the root depth
+z_r solves
+    | z_r a - (z_r + c) b | = l_ref
+    <=> A z^2 + B z + C = 0,  A = |a - b|^2,  B = -2 c (a - b)·b,  C = c^2 |b|^2 - l_ref^2.
+When C < 0 the roots have opposite signs and the positive one is the answer; when C >= 0
+both have the same sign and the one nearer the fallback estimate below is taken.
+
+Degenerate cases give valid = False and a finite fallback depth, never NaN:
+* the 2D bone is (nearly) zero (hand seen along the reference bone): A ~ 0;
+* the quadratic has no real root (noisy keypoints: the 2D bone is too long for l_ref);
+* the root would be behind or almost at the camera (z < MIN_DEPTH_M).
+Fallback: z = f * (3D spread of all joints across the image plane) / (2D spread), the
+size ratio of the whole hand (pinhole: size in pixels = f * size in metres / depth); if
+that is degenerate too (non-finite or collapsed input), DEFAULT_DEPTH_M.
+"""
+import numpy as np
+
+from .skeleton import REF_BONE, ROOT
+
+# Reference bone (wrist -> middle MCP) of an average adult hand, metres: the bundled
+# model at beta = 0 measures 0.102 m; adult palm length (wrist crease to MCP3) is about
+# 0.095-0.11 m. Pass the person's own length where it is known.
+DEFAULT_REF_BONE_M = 0.10
+MIN_DEPTH_M = 0.05      # nearer than this is not a hand in front of a camera
+DEFAULT_DEPTH_M = 0.5   # arm's length, when nothing can be measured
+
+
+def _k_matrix(K):
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape[-2:] == (3, 3):
+        return K
+    fx, fy, cx, cy = np.moveaxis(K, -1, 0)
+    zero, one = np.zeros_like(fx), np.ones_like(fx)
+    return np.stack([np.stack([fx, zero, cx], -1), np.stack([zero, fy, cy], -1),
+                     np.stack([zero, zero, one], -1)], -2)
+
+
+def back_project(K, uv):
+    """(..., 2) pixels -> (..., 3) rays K⁻¹ [u, v, 1] (z = 1)."""
+    K = _k_matrix(K)
+    uv = np.asarray(uv, dtype=np.float64)
+    x = (uv[..., 0] - K[..., 0, 2] - K[..., 0, 1] * (uv[..., 1] - K[..., 1, 2]) / K[..., 1, 1]) / K[..., 0, 0]
+    y = (uv[..., 1] - K[..., 1, 2]) / K[..., 1, 1]
+    return np.stack([x, y, np.ones_like(x)], axis=-1)
+
+
+def root_depth_from_intrinsics(K, uv_root, uv_wrist, d_wrist, ref_bone_m=DEFAULT_REF_BONE_M, near_depth=None):
+    """Root depth by Eq. 5.
+
+    K: (3,3) or (4,) fx,fy,cx,cy (or batched); uv_root, uv_wrist: (..., 2) pixels;
+    d_wrist: (...,) wrist depth minus root depth in reference-bone units;
+    ref_bone_m: reference bone length in metres (scalar or (...,));
+    near_depth: (...,) depth used to choose between two positive roots (default: the
+    larger root).
+    Returns z_root (...,) metres (NaN where invalid) and valid (...,) bool.
+    """
+    a = back_project(K, uv_root)
+    b = back_project(K, uv_wrist)
+    c = np.asarray(ref_bone_m, dtype=np.float64) * np.asarray(d_wrist, dtype=np.float64)
+    ab = a - b
+    A = np.sum(ab * ab, axis=-1)
+    B = -2.0 * c * np.sum(ab * b, axis=-1)
+    C = c * c * np.sum(b * b, axis=-1) - np.asarray(ref_bone_m, dtype=np.float64) ** 2
+    disc = B * B - 4.0 * A * C
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        far = (-B + sq) / (2.0 * A)
+        near = (-B - sq) / (2.0 * A)
+        if near_depth is None:
+            z = far
+        else:
+            pick_near = (C >= 0) & (np.abs(near - near_depth) < np.abs(far - near_depth))
+            z = np.where(pick_near, near, far)
+    valid = np.isfinite(z) & (A > 1e-10) & (disc >= 0) & (z > MIN_DEPTH_M)
+    return np.where(valid, z, np.nan), valid
+
+
+def depth_from_hand_size(K, uv, xyz_rel, ref_bone_m=DEFAULT_REF_BONE_M):
+    """Fallback root depth (...,) from the ratio of the hand's 3D and 2D spreads.
+
+    uv (..., 21, 2) pixels, xyz_rel (..., 21, 3) root-relative normalized joints.
+    Uses the x-y spread of the 3D joints (metres) and the 2D spread (pixels) with the
+    mean focal length; ignores the small perspective differences across the hand.
+    Returns (...,) depth, DEFAULT_DEPTH_M where not measurable.
+    """
+    K = _k_matrix(K)
+    f = 0.5 * (K[..., 0, 0] + K[..., 1, 1])
+    uv = np.asarray(uv, dtype=np.float64)
+    xy = np.asarray(xyz_rel, dtype=np.float64)[..., :2] * np.asarray(ref_bone_m, dtype=np.float64)[..., None, None]
+    spread_2d = np.sqrt(np.sum(np.var(uv, axis=-2), axis=-1))
+    spread_3d = np.sqrt(np.sum(np.var(xy, axis=-2), axis=-1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = f * spread_3d / spread_2d
+    ok = np.isfinite(z) & (z > MIN_DEPTH_M)
+    return np.where(ok, z, DEFAULT_DEPTH_M)
+
+
+def camera_joints_from_keypoints(K, uv, xyz_rel, ref_bone_m=DEFAULT_REF_BONE_M):
+    """All 21 joints in camera metres from 2D keypoints and root-relative 3D.
+
+    K: (3,3) or (4,); uv: (..., 21, 2) pixels; xyz_rel: (..., 21, 3) root-relative
+    (joint 9 at the origin), scale-normalized (|joint 0 - joint 9| = 1), camera axes.
+    Returns xyz (..., 21, 3) metres, root (..., 3), valid (...,) bool. Where Eq. 5 fails
+    the root depth is the hand-size fallback and valid is False; the root's x, y always
+    come from back-projecting its pixel at that depth.
+    """
+    uv = np.asarray(uv, dtype=np.float64)
+    xyz_rel = np.asarray(xyz_rel, dtype=np.float64)
+    ref = np.asarray(ref_bone_m, dtype=np.float64)
+    wrist, root = REF_BONE[0], ROOT
+    d_wrist = xyz_rel[..., wrist, 2] - xyz_rel[..., root, 2]
+    fallback = depth_from_hand_size(K, uv, xyz_rel, ref)
+    z, valid = root_depth_from_intrinsics(K, uv[..., root, :], uv[..., wrist, :], d_wrist, ref, near_depth=fallback)
+    z = np.where(valid, z, fallback)
+    ray = back_project(K, uv[..., root, :])
+    ray = np.where(np.isfinite(ray), ray, np.array([0.0, 0.0, 1.0]))   # a NaN pixel must not spread
+    root_xyz = ray * z[..., None]
+    rel = np.where(np.isfinite(xyz_rel), xyz_rel, 0.0)
+    xyz = root_xyz[..., None, :] + ref[..., None, None] * (rel - rel[..., root:root + 1, :])
+    return xyz, root_xyz, valid
