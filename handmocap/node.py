@@ -263,7 +263,10 @@ class Node:
         topic = frames[0].rstrip(b"\0").decode(errors="replace")
         type_name = frames[1].decode(errors="replace")
         if type_name == bus.EOS.decode():
-            self._ended[topic].add(frames[2].decode(errors="replace"))
+            sender = frames[2].decode(errors="replace")
+            self._ended[topic].add(sender)
+            if "*" in self.info.subscribes:   # an every-topic subscription hears the end per topic
+                self._ended["*"].add(sender)
             return None
         want = self.types.get(topic, self.types.get("*"))
         if want is not None and want != type_name:
