@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .kinematics import (
-    POSE16_TO_MANO, as_matrices, bone_rotations_to_frames, forward_kinematics,
+    POSE16_FROM_MANO, POSE16_TO_MANO, as_matrices, bone_rotations_to_frames, forward_kinematics,
     frames_to_bone_rotations, frames_to_relative, relative_to_frames,
 )
 from .rotations import mirror_points
@@ -105,10 +105,10 @@ class HandModel:
         mean_pose = None
         if "hands_mean" in arr:                                 # 15 finger joints, MANO order
             mean_mano = np.concatenate([np.zeros(3), arr["hands_mean"].ravel()]).reshape(16, 3)
-            mean_pose = mean_mano[np.argsort(POSE16_TO_MANO)]
+            mean_pose = mean_mano[POSE16_FROM_MANO]
         return cls(
             v_template=v_template, shapedirs=shapedirs, faces=arr["f"].astype(np.int64),
-            weights=arr["weights"][:, POSE16_TO_MANO],          # columns to project frame order
+            weights=arr["weights"][:, POSE16_FROM_MANO],        # columns to project frame order
             j_template=j_mano[FROM_MANO_ORDER], j_shapedirs=js_mano[FROM_MANO_ORDER],
             tip_vertex_ids=np.array(tips), posedirs=posedirs,
             mean_pose=mean_pose, name=Path(path).stem,

@@ -1,0 +1,60 @@
+import numpy as np
+from hypothesis import given, settings, strategies as st
+
+from handmocap.hand_model import HandModel
+from handmocap.joint_limits import JointLimits
+from handmocap.shape import ShapeFitter, ShapeTracker, bone_ratios
+
+MODEL = HandModel.load()
+FITTER = ShapeFitter(MODEL)
+LIMITS = JointLimits.for_model(MODEL)
+
+
+def test_jacobian_matches_finite_differences():
+    beta = np.random.default_rng(0).normal(size=10)
+    r, jac = FITTER.ratios_and_jacobian(beta)
+    eps = 1e-6
+    numeric = np.stack([(FITTER.model_ratios(beta + eps * e) - FITTER.model_ratios(beta - eps * e)) / (2 * eps)
+                        for e in np.eye(10)], -1)
+    assert np.allclose(jac, numeric, atol=1e-7)
+    assert np.allclose(r, bone_ratios(MODEL.rest_joints(beta)))
+
+
+@settings(deadline=None, max_examples=25)
+@given(st.integers(0, 2 ** 31))
+def test_fit_reproduces_bone_ratios_of_posed_hands(seed):
+    rng = np.random.default_rng(seed)
+    beta = rng.normal(size=10)
+    _, joints = MODEL.forward(LIMITS.sample(1, rng)[0], beta)
+    xyz = (joints - joints[9]) / MODEL.ref_bone_length(beta) * rng.uniform(0.5, 2.0)   # any scale
+    fitted = FITTER.fit(xyz)
+    err = np.abs(FITTER.model_ratios(fitted) / bone_ratios(xyz) - 1)[FITTER.bones]
+    assert err.mean() < 0.01
+    # well-observed coefficients come back (finger lengths)
+    for name in ("finger_length", "thumb_length", "index_length", "ring_length"):
+        k = MODEL.beta_names.index(name)
+        assert abs(fitted[k] - beta[k]) < 0.2
+
+
+def test_average_hand_gives_zero_beta():
+    assert np.allclose(FITTER.fit(MODEL.rest_joints()), 0, atol=1e-6)
+    assert np.allclose(ShapeFitter(MODEL, include_tips=False).fit(MODEL.rest_joints()), 0, atol=1e-6)
+
+
+def test_tracker_converges_and_ignores_outliers():
+    rng = np.random.default_rng(5)
+    beta = np.zeros(10)
+    beta[MODEL.beta_names.index("finger_length")] = 1.5
+    beta[MODEL.beta_names.index("thumb_length")] = -1.5
+    _, joints = MODEL.forward(LIMITS.sample(300, rng), beta)
+    xyz = (joints - joints[:, 9:10]) / MODEL.ref_bone_length(beta) + rng.normal(0, 0.02, joints.shape)
+    xyz[::10] = rng.normal(0, 1.0, (30, 21, 3))        # every 10th frame is garbage
+    tracker = ShapeTracker(FITTER)
+    errors = []
+    for frame in xyz:
+        est, n = tracker.update(frame)
+        errors.append(np.abs(est - beta)[[1, 2]].max())
+    assert n == 300
+    assert errors[-1] < 0.35 and errors[-1] < errors[20]
+    before = n
+    assert tracker.update(np.full((21, 3), np.nan))[1] == before       # non-finite frames are skipped

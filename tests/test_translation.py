@@ -1,0 +1,87 @@
+import numpy as np
+from hypothesis import given, settings, strategies as st
+
+from handmocap.hand_model import HandModel
+from handmocap.joint_limits import JointLimits
+from handmocap.rotations import axis_angle_to_matrix
+from handmocap.translation import (
+    DEFAULT_DEPTH_M, camera_joints_from_keypoints, depth_from_hand_size, root_depth_from_intrinsics,
+)
+
+MODEL = HandModel.load()
+LIMITS = JointLimits.for_model(MODEL)
+K = np.array([[620.0, 0, 318.0], [0, 615.0, 242.0], [0, 0, 1]])
+
+
+def project(xyz):
+    p = xyz @ K.T
+    return p[..., :2] / p[..., 2:]
+
+
+def hand_in_camera(rng, depth):
+    pose = LIMITS.sample(1, rng, wrist=rng.normal(0, 1.0, 3))[0]
+    _, joints = MODEL.forward(pose)
+    return joints - joints[9] + np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), depth])
+
+
+@settings(deadline=None, max_examples=40)
+@given(st.integers(0, 2 ** 31), st.floats(0.25, 2.0))
+def test_root_recovered_exactly_without_noise(seed, depth):
+    rng = np.random.default_rng(seed)
+    xyz = hand_in_camera(rng, depth)
+    ref = np.linalg.norm(xyz[0] - xyz[9])
+    rel = (xyz - xyz[9]) / ref
+    out, root, valid = camera_joints_from_keypoints(K, project(xyz), rel, ref)
+    if valid:        # Eq. 5 is exact unless the reference bone is nearly along the viewing ray
+        assert np.linalg.norm(root - xyz[9]) / depth < 1e-6
+        assert np.allclose(out, xyz, atol=1e-6 * depth)
+    assert np.all(np.isfinite(out))
+
+
+def test_k_as_four_numbers_and_batch():
+    rng = np.random.default_rng(1)
+    xyz = np.stack([hand_in_camera(rng, d) for d in (0.4, 0.8, 1.2)])
+    ref = np.linalg.norm(xyz[:, 0] - xyz[:, 9], axis=-1)
+    rel = (xyz - xyz[:, 9:10]) / ref[:, None, None]
+    out, root, valid = camera_joints_from_keypoints(np.array([620.0, 615.0, 318.0, 242.0]), project(xyz), rel, ref)
+    assert out.shape == (3, 21, 3) and valid.all()
+    assert np.allclose(root, xyz[:, 9], rtol=1e-6)
+
+
+def test_edge_on_bone_is_flagged_with_finite_fallback():
+    # wrist straight behind the root along the viewing ray: 2D bone length zero
+    uv = np.tile([318.0, 242.0], (21, 1)) + np.random.default_rng(0).normal(0, 20, (21, 2))
+    uv[0] = uv[9]
+    z, valid = root_depth_from_intrinsics(K, uv[9], uv[0], 1.0, 0.1)
+    assert not valid and np.isnan(z)
+    rel = np.random.default_rng(1).normal(0, 0.5, (21, 3))
+    rel[9] = 0
+    rel[0] = [0, 0, 1.0]
+    out, root, valid = camera_joints_from_keypoints(K, uv, rel, 0.1)
+    assert not valid and np.all(np.isfinite(out)) and root[2] > 0
+
+
+def test_no_real_root_and_behind_camera():
+    z, valid = root_depth_from_intrinsics(K, [318.0, 242.0], [318.0, 243.0], 0.9, 0.1)
+    assert valid and z > 10      # a one-pixel 2D bone: far away, still valid
+    # the wrist 2.5 bone lengths deeper than the root: no real root or one behind the camera
+    z, valid = root_depth_from_intrinsics(K, [0.0, 0.0], [640.0, 480.0], 2.5, 0.1)
+    assert not valid and np.isnan(z)
+    z, valid = root_depth_from_intrinsics(K, [300.0, 200.0], [340.0, 260.0], -5.0, 0.1)
+    assert not valid and np.isnan(z)
+
+
+def test_nan_keypoints_do_not_spread():
+    uv = np.full((21, 2), np.nan)
+    rel = np.zeros((21, 3))
+    out, root, valid = camera_joints_from_keypoints(K, uv, rel, 0.1)
+    assert not valid and np.all(np.isfinite(out)) and np.isclose(root[2], DEFAULT_DEPTH_M)
+    assert np.isclose(depth_from_hand_size(K, uv, rel), DEFAULT_DEPTH_M)
+
+
+def test_fallback_depth_is_close_for_a_fronto_parallel_hand():
+    _, joints = MODEL.forward()
+    xyz = joints @ axis_angle_to_matrix(np.array([0.0, 0.0, 0.3])).T - joints[9] + [0, 0, 0.6]
+    ref = np.linalg.norm(xyz[0] - xyz[9])
+    z = depth_from_hand_size(K, project(xyz), (xyz - xyz[9]) / ref, ref)
+    assert abs(z - 0.6) < 0.03
