@@ -11,12 +11,14 @@ filling; the file then has no summary or footer. `iter_messages` and `bag_info` 
 such file front to back, record by record, and stop cleanly at the first record that is
 incomplete or damaged.
 
-Chunk size, measured (tests/bench of 640x480 bgr8 frames plus small keypoint messages):
-every record costs ~100 bytes of chunk, message-index and chunk-index overhead, so even 64
-KiB chunks of 2 KB messages cost < 1 %; writing runs at disk speed for any size from 64 KiB
-up. 256 KiB keeps that overhead negligible while bounding the loss on a crash to ~0.25 s
-of 1 MB/s keypoint traffic; a raw frame (> 256 KiB) always closes its own chunk, so frames
-are never lost once written.
+Chunk size, measured on this project's messages (640x480 bgr8 Image 922 kB, HandKeypoints
+with two hands 1.5 kB; 2-core VM, page cache): every message costs ~48 bytes of record and
+message-index overhead whatever the chunk size; chunking adds on top of that for 1.5 kB
+messages 0.9 % at 16 KiB, 0.2 % at 64 KiB, 0.04 % at 256 KiB and ~0 at 1 MiB. Writing runs
+at 180-900 MB/s and reading at 0.3-1.5 GB/s for every size from 64 KiB to 4 MiB (a camera is
+~27 MB/s), so the size only trades overhead against loss on a crash: 256 KiB is past the
+knee and bounds the loss to ~0.25 MB of small messages; a raw frame (> 256 KiB) always
+closes its own chunk, so a frame once written survives a SIGKILL.
 """
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ from typing import Iterator
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Footer, Message, Schema
+from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
@@ -94,14 +96,18 @@ class BagWriter:
         """Store one payload unchanged. log time: when it was received (ns, CLOCK_REALTIME);
         publish time: its header stamp (ns)."""
         channel_id = self._channel(topic, type_name)
+        written_before = self._file.tell()
         self._mcap.add_message(channel_id, log_time=int(log_time_ns), data=payload,
                                publish_time=int(publish_time_ns), sequence=self.counts[topic])
         self.counts[topic] += 1
-        self._file.flush()   # a chunk the size limit just closed goes to the OS now (no-op otherwise)
+        if self._file.tell() != written_before:   # the size limit closed the chunk: to the OS now
+            self._file.flush()
+            self._chunk_opened = None
+            return
         now = time.monotonic()
         if self._chunk_opened is None:
             self._chunk_opened = now
-        if now - self._chunk_opened >= self.chunk_seconds:
+        elif now - self._chunk_opened >= self.chunk_seconds:
             self.flush()
 
     def tick(self) -> None:

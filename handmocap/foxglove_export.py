@@ -81,11 +81,11 @@ def keypoints_to_annotations(msg: dict) -> dict:
     for hand in msg["hands"]:
         uv = np.asarray(hand["uv"], dtype=np.float64)
         color = _color(hand["handedness"])
-        bone_pts = [{"x": uv[j, 0], "y": uv[j, 1]}
+        bone_pts = [{"x": float(uv[j, 0]), "y": float(uv[j, 1])}
                     for a, b in BONES if _finite_point(uv[a]) and _finite_point(uv[b]) for j in (a, b)]
         joint_pts = [{"x": x, "y": y} for x, y in uv.tolist() if _finite_point((x, y))]
         points.append({"timestamp": t, "type": fs.POINTS_ANNOTATION_TYPE["LINE_LIST"],
-                       "points": [{"x": float(p["x"]), "y": float(p["y"])} for p in bone_pts],
+                       "points": bone_pts,
                        "outline_color": color, "thickness": 2.0})
         points.append({"timestamp": t, "type": fs.POINTS_ANNOTATION_TYPE["POINTS"],
                        "points": joint_pts, "outline_color": color, "fill_color": color,

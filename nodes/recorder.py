@@ -53,11 +53,17 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
         else:
             node.subscribe(None, None, mode="all")
         node.log.info("recording %s to %s", ", ".join(topics) or "every topic", bag.path)
+        refused: set[str] = set()   # topics seen with a second message type (a graph bug)
         for msg in node.events(timeout=IDLE_TICK_S):
             if msg is None:
                 bag.tick()
                 continue
-            bag.write(msg.topic, msg.type, msg.raw, msg.recv_ns, msg.stamp_ns)
+            try:
+                bag.write(msg.topic, msg.type, msg.raw, msg.recv_ns, msg.stamp_ns)
+            except ValueError as e:   # one channel holds one type: keep the first, skip the rest
+                if msg.topic not in refused:
+                    refused.add(msg.topic)
+                    node.log.warning("not recording some messages: %s", e)
     finally:
         bag.close()
         node.log.info("%s", summary_line(bag.counts, bag.path))
