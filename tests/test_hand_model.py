@@ -187,3 +187,22 @@ def test_mano_pickle_is_read_without_chumpy(tmp_path, monkeypatch):
 def test_rejects_bad_pose_shape():
     with pytest.raises(ValueError):
         MODEL.forward(np.zeros((15, 3)))
+
+
+def test_renderer_projects_like_the_camera_model():
+    pytest.importorskip("moderngl")
+    from handmocap.render import MeshRenderer
+    try:
+        renderer = MeshRenderer(160, 120)
+    except Exception as exc:     # no EGL driver on this machine
+        pytest.skip(f"no EGL context: {exc}")
+    K = np.array([[150.0, 0, 80.0], [0, 150.0, 60.0], [0, 0, 1]])
+    v, j = MODEL.forward()
+    offset = np.array([0.0, 0.1, 0.6])
+    rgb, depth = renderer.render([(v + offset, MODEL.faces)], K)
+    assert rgb.shape == (120, 160, 3) and depth.shape == (120, 160)
+    palm = j[[0, 5, 9, 13, 17]].mean(0) + offset            # a point inside the palm
+    u, w = (K @ palm)[:2] / palm[2]
+    assert abs(depth[int(round(w)), int(round(u))] - palm[2]) < 0.03
+    assert depth[0, 0] == 0 and (rgb[0, 0] == 255).all()      # background
+    assert 0.05 < (depth > 0).mean() < 0.6
