@@ -76,6 +76,9 @@ def open_camera(device: int | str, width: int, height: int, fps: float) -> tuple
             raise RuntimeError(f"camera {device!r} can't be opened (in use by another program, no permission "
                                f"to the device, or not a video source OpenCV can read)")
         if not is_file(device):
+            # MJPG first: many USB cameras do 720p and up at full rate only compressed (V4L2
+            # keeps its current format when the camera can't)
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*"MJPG"))
             cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
             cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
             cap.set(cv2.CAP_PROP_FPS, fps)
@@ -185,7 +188,7 @@ def _chain_first(stamp_ns: int, first: np.ndarray, rest: Iterator) -> Iterator[t
 
 def _camera_info(size: tuple[int, int], p: dict, node: Node) -> dict:
     w, h = size
-    if (w, h) != (p["width"], p["height"]):
+    if (w, h) != (p["width"], p["height"]) and not is_file(parse_device(p["device"])):
         node.log.info("camera delivers %dx%d (asked for %dx%d)", w, h, p["width"], p["height"])
     intr = intrinsics_for_frames(w, h, p["calibration"])
     if intr.source == "default-fov":

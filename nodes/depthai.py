@@ -53,7 +53,8 @@ def import_depthai():
     try:
         import depthai
     except ImportError as e:
-        raise RuntimeError(f"the depthai node needs the depthai package (pip install 'handmocap[depthai]'): {e}") from None
+        raise RuntimeError(f"the depthai node needs the depthai package "
+                           f"(pip install 'handmocap[depthai]'): {e}") from None
     if not hasattr(depthai.node, "Camera") or not hasattr(depthai.node, "ReplayVideo"):
         raise RuntimeError(f"the depthai node needs depthai 3.x, found {getattr(depthai, '__version__', '?')}")
     return depthai

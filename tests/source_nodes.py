@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -37,7 +38,8 @@ def run_source(module: str, params: dict, timeout_s: float = 30.0) -> SourceRun:
     ends (or `timeout_s`), return its exit code, stderr and the decoded messages in order."""
     run_dir = tempfile.mkdtemp(prefix="hm")
     env = {k: v for k, v in os.environ.items() if not k.startswith("HANDMOCAP_")}
-    env.update(HANDMOCAP_RUN_DIR=run_dir, HANDMOCAP_PARAMS=json.dumps(params), HANDMOCAP_LAUNCH_ID="t")
+    env.update(HANDMOCAP_RUN_DIR=run_dir, HANDMOCAP_PARAMS=json.dumps(params), HANDMOCAP_LAUNCH_ID="t",
+               HANDMOCAP_VALIDATE_SEND="1")   # the source checks every message against its schema
     saved_env = os.environ.get("HANDMOCAP_RUN_DIR")
     saved_signals = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     os.environ["HANDMOCAP_RUN_DIR"] = run_dir
@@ -78,11 +80,16 @@ def run_source(module: str, params: dict, timeout_s: float = 30.0) -> SourceRun:
             os.environ["HANDMOCAP_RUN_DIR"] = saved_env
         for s, handler in saved_signals.items():
             signal.signal(s, handler)
+        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def run_failing(module: str, params: dict, timeout_s: float = 60.0) -> subprocess.CompletedProcess:
     """Run a node that is expected to fail before publishing; stdout+stderr as text."""
+    run_dir = tempfile.mkdtemp(prefix="hm")
     env = {k: v for k, v in os.environ.items() if not k.startswith("HANDMOCAP_")}
-    env.update(HANDMOCAP_RUN_DIR=tempfile.mkdtemp(prefix="hm"), HANDMOCAP_PARAMS=json.dumps(params))
-    return subprocess.run([sys.executable, "-m", module], env=env, capture_output=True, text=True,
-                          timeout=timeout_s)
+    env.update(HANDMOCAP_RUN_DIR=run_dir, HANDMOCAP_PARAMS=json.dumps(params))
+    try:
+        return subprocess.run([sys.executable, "-m", module], env=env, capture_output=True, text=True,
+                              timeout=timeout_s)
+    finally:
+        shutil.rmtree(run_dir, ignore_errors=True)
