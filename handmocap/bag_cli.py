@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from . import bus, codec
+from . import codec
 from .bag import MESSAGE_ENCODING, NotABag, bag_info, iter_messages
 
 SUBSCRIBER_WAIT_S = 5.0   # how long play waits for the graph's subscribers to connect
@@ -50,24 +50,6 @@ def _checked_info(path: str, topics: list[str] | None) -> dict:
     return info
 
 
-def wait_for_subscribers(node, timeout_s: float = SUBSCRIBER_WAIT_S) -> dict:
-    """Block until every node of the graph that subscribes to one of `node`'s topics (or to every
-    topic) is connected to it, at most `timeout_s`; returns {topic: "have/want"} still missing."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        nodes = bus.read_node_files(node.dir)
-        missing = {}
-        for topic in node.info.publishes:
-            want = sum(1 for n in nodes.values() if n.name != node.name and not n.observer
-                       for t in n.subscribes if t in (topic, "*"))
-            have = node.pub.subscriber_count(topic)
-            if have < want:
-                missing[topic] = f"{have}/{want}"
-        if not missing or time.monotonic() > deadline or not node.ok():
-            return missing
-        time.sleep(0.01)
-
-
 def _sleep_until(node, t: float) -> None:
     while node.ok():
         left = t - time.monotonic()
@@ -95,7 +77,7 @@ def cmd_play(args) -> None:
         if "HANDMOCAP_LAUNCH_ID" in os.environ:
             node.wait_for_graph()
         else:
-            missing = wait_for_subscribers(node)
+            missing = node.wait_for_subscribers(SUBSCRIBER_WAIT_S)
             if missing:
                 node.log.warning("playing without all subscribers connected: %s", missing)
         sent = 0

@@ -159,33 +159,34 @@ class Node:
         """Hold the first message until the launcher says every node is up and every node
         that subscribes to our topics is connected, so a finite source loses no frame."""
         self.ready()
-        launch_id = os.environ["HANDMOCAP_LAUNCH_ID"]
+        launch_id = os.environ.get("HANDMOCAP_LAUNCH_ID")
         deadline = time.monotonic() + READY_TIMEOUT_S
-        while not (self.dir / f"{launch_id}.ready").exists():
+        while launch_id and not (self.dir / f"{launch_id}.ready").exists():
             if self._stop.is_set() or time.monotonic() > deadline:
                 break
             time.sleep(0.01)
-        deadline = time.monotonic() + 10
-        while not self._stop.is_set():
-            missing = self._missing_subscribers()
-            if not missing:
-                break
-            if time.monotonic() > deadline:
-                self.log.warning("starting without all subscribers connected: %s", missing)
-                break
-            time.sleep(0.005)
+        missing = self.wait_for_subscribers(10.0)
+        if missing:
+            self.log.warning("starting without all subscribers connected: %s", missing)
         self._graph_ready = True
 
-    def _missing_subscribers(self) -> dict:
-        nodes = bus.read_node_files(self.dir)
-        missing = {}
-        for topic in self.info.publishes:
-            want = sum(1 for n in nodes.values() if n.name != self.name and not n.observer
-                       for t in n.subscribes if t in (topic, "*"))
-            have = self.pub.subscriber_count(topic)
-            if have < want:
-                missing[topic] = f"{have}/{want}"
-        return missing
+    def wait_for_subscribers(self, timeout_s: float) -> dict:
+        """Block until every node of the graph that subscribes to one of our topics (or to
+        every topic) is connected to us, at most `timeout_s`; returns {topic: "have/want"}
+        still missing. Observers (handtopic) are not waited for."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            nodes = bus.read_node_files(self.dir)
+            missing = {}
+            for topic in self.info.publishes:
+                want = sum(1 for n in nodes.values() if n.name != self.name and not n.observer
+                           for t in n.subscribes if t in (topic, "*"))
+                have = self.pub.subscriber_count(topic)
+                if have < want:
+                    missing[topic] = f"{have}/{want}"
+            if not missing or time.monotonic() > deadline or self._stop.is_set():
+                return missing
+            time.sleep(0.005)
 
     # -- receiving ----------------------------------------------------------------------
     def ok(self) -> bool:
@@ -355,6 +356,8 @@ class Node:
         self.pub.close()
         # Without term() the process may exit with its last messages still queued.
         self.ctx.term()
+        if self.pub.endpoint.startswith("ipc://"):
+            Path(self.pub.endpoint[len("ipc://"):]).unlink(missing_ok=True)
 
     def __enter__(self):
         return self

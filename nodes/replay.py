@@ -5,8 +5,8 @@ messages; their stamps are replaced by the replay time, as a camera would stamp 
 `rate` is a speed factor over the source's frame rate (1 = real time, 0 = as fast as the
 graph takes them); `start` skips that many seconds; `loop` restarts at the end. /camera/info
 comes from `calibration` (a file, see handmocap.camera_info) or, failing that, from the
-bag's own /camera/info, or from a default field of view (camera_info.default_K) that the
-message marks with source "default-fov". It is sent with every frame, so late subscribers
+bag's own /camera/info, or from a default field of view (camera_info.DEFAULT_HFOV_DEG) that
+the message marks with source "default-fov". It is sent with every frame, so late subscribers
 get it at once (a latched topic by repetition).
 """
 from __future__ import annotations
@@ -70,12 +70,11 @@ def main() -> None:
                 if delay > 0:
                     time.sleep(delay)
             h, w = frame.shape[:2]
-            if calib is not None:
-                info = camera_info.camera_info_message(*camera_info.scaled_K(calib, w, h), w, h, "calibration")
-            elif bag_info is not None:
+            if calib is None and bag_info is not None:
                 info = bag_info
             else:
-                info = camera_info.camera_info_message(camera_info.default_K(w, h), None, w, h, "default-fov")
+                intr = calib.for_size(w, h) if calib is not None else camera_info.default_intrinsics(w, h)
+                info = camera_info.camera_info_message(intr.K, intr.distortion, w, h, intr.source)
             stamp = time.time_ns()
             node.publish("/camera/image", image_message(frame), stamp_ns=stamp, frame_id=p["frame_id"])
             node.publish("/camera/info", info, stamp_ns=stamp, frame_id=p["frame_id"])
