@@ -1,0 +1,1 @@
+"""The synthetic hand image engine (handsynth)."""
