@@ -394,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         launch = load_launch_file(argv[0], parse_cli_params(argv[1:]))
         return Launcher(launch).run()
-    except LaunchError as e:
+    except (LaunchError, ValueError) as e:
         print(f"handlaunch: error: {e}", file=sys.stderr)
         return 2
 

@@ -59,7 +59,7 @@ def parse_cli_params(argv: list[str]) -> dict:
     out = {}
     for arg in argv:
         if ":=" not in arg:
-            raise SystemExit(f"error: expected name:=value, got {arg!r}")
+            raise ValueError(f"expected name:=value, got {arg!r}")
         k, v = arg.split(":=", 1)
         out[k] = yaml.safe_load(v) if v else ""
     return out
@@ -79,12 +79,12 @@ class Node:
         defaults = params or {}
         unknown = sorted(set(given) - set(defaults))
         if params is not None and unknown:
-            raise SystemExit(f"error: node {self.name!r} has no parameter(s) {', '.join(unknown)}; "
+            raise ValueError(f"error: node {self.name!r} has no parameter(s) {', '.join(unknown)}; "
                              f"known: {', '.join(sorted(defaults)) or 'none'}")
         self.params = {**defaults, **given}
         self.remap = json.loads(os.environ.get("HANDMOCAP_REMAP", "{}"))
         self.dir = bus.run_dir()
-        self.ctx = zmq.Context.instance()
+        self.ctx = zmq.Context()   # its own: close() terms it without waiting on other nodes' sockets
         bind = os.environ.get("HANDMOCAP_BIND") or f"ipc://{self.dir}/{self.name}.pub"
         self.pub = bus.Publisher(self.ctx, bind)
         self.sub = bus.Subscriber(self.ctx)
@@ -103,8 +103,10 @@ class Node:
         self._graph_ready = "HANDMOCAP_LAUNCH_ID" not in os.environ
         self._stop = threading.Event()
         self._closed = False
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: self._stop.set())
+        self._old_handlers = {}
+        if threading.current_thread() is threading.main_thread():   # signals reach the main thread only
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._old_handlers[sig] = signal.signal(sig, lambda *_: self._stop.set())
         self._announce()
         threading.Thread(target=self._heartbeat, daemon=True).start()
 
@@ -341,8 +343,8 @@ class Node:
         """Send end-of-stream on every advertised topic, remove the node file, close sockets."""
         if self._closed:
             return
-        if self.info.publishes and not self._graph_ready:
-            self.wait_for_graph()   # subscribers must be connected to hear the end-of-stream
+        if self.info.publishes and not self._graph_ready and not self._stop.is_set():
+            self.wait_for_subscribers(2.0)   # they must be connected to hear the end-of-stream
         for topic in self.info.publishes:
             self.pub.send(topic, bus.EOS.decode(), self.name.encode())
         self._stop.set()
@@ -356,6 +358,8 @@ class Node:
         self.pub.close()
         # Without term() the process may exit with its last messages still queued.
         self.ctx.term()
+        for sig, handler in self._old_handlers.items():
+            signal.signal(sig, handler)
         if self.pub.endpoint.startswith("ipc://"):
             Path(self.pub.endpoint[len("ipc://"):]).unlink(missing_ok=True)
 

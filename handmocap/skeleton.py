@@ -36,3 +36,15 @@ NON_TIP_JOINTS = tuple(j for j in range(NUM_JOINTS) if j not in FINGER_TIPS)
 # and xyz = xyz_mano[..., FROM_MANO_ORDER, :].
 MANO_ORDER = np.array([0, 5, 6, 7, 9, 10, 11, 17, 18, 19, 13, 14, 15, 1, 2, 3, 4, 8, 12, 16, 20])
 FROM_MANO_ORDER = np.argsort(MANO_ORDER)
+
+
+def normalize_joints(xyz):
+    """(..., 21, 3) joints -> root-relative (joint 9 at 0), scale-normalized (|0-9| = 1).
+
+    Degenerate hands (zero reference bone) come back as NaN, which callers must reject.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    rel = xyz - xyz[..., ROOT:ROOT + 1, :]
+    ref = np.linalg.norm(rel[..., REF_BONE[0], :], axis=-1)[..., None, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return rel / np.where(ref > 0, ref, np.nan)
