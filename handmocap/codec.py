@@ -53,6 +53,8 @@ def _validator(type_name: str):
     return fastjsonschema.compile(schema(type_name))
 
 
+_DTYPE_NAMES = {np.dtype(n): n for n in  # dtype.name is slow: a lookup table for the wire types
+                ("uint8", "uint16", "int8", "int16", "int32", "int64", "float16", "float32", "float64", "bool")}
 _SMALL_ARRAY_BYTES = 4096  # below this a copy (tobytes) is cheaper than a memoryview cast
 
 
@@ -62,7 +64,7 @@ def _to_wire(obj):
         if a.dtype.byteorder == ">":
             a = a.astype(a.dtype.newbyteorder("<"))
         data = a.tobytes() if a.nbytes <= _SMALL_ARRAY_BYTES else memoryview(a).cast("B")
-        return {"dtype": a.dtype.name, "shape": list(a.shape), "data": data}
+        return {"dtype": _DTYPE_NAMES.get(a.dtype) or a.dtype.name, "shape": list(a.shape), "data": data}
     if isinstance(obj, np.generic):
         return obj.item()
     raise TypeError(f"cannot encode {type(obj).__name__}")
@@ -76,8 +78,7 @@ def encode(msg: dict, type_name: str | None = None) -> bytes:
     return payload
 
 
-_DTYPES = {name: np.dtype(name) for name in
-           ("uint8", "uint16", "int8", "int16", "int32", "int64", "float16", "float32", "float64", "bool")}
+_DTYPES = {name: dt for dt, name in _DTYPE_NAMES.items()}
 
 
 def _arrays_from_wire(obj):

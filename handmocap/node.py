@@ -100,6 +100,7 @@ class Node:
         self._ended: dict[str, set[str]] = defaultdict(set)        # topic -> names that sent EOS
         self._file_lock = threading.Lock()
         self._next_scan = 0.0
+        self._eos_seen = False
         self._graph_ready = "HANDMOCAP_LAUNCH_ID" not in os.environ
         self._stop = threading.Event()
         self._closed = False
@@ -214,15 +215,13 @@ class Node:
             poller.register(s, zmq.POLLIN)
         last = time.monotonic()
         while not self._stop.is_set():
-            self._scan()
-            if not self.info.observer and self._inputs_ended():
-                break
-            ready = dict(poller.poll(timeout=100))
+            if self._scan() or self._eos_seen:
+                self._eos_seen = False
+                if not self.info.observer and self._inputs_ended():
+                    break
             got = False
-            for s, mode in socks.items():
-                if s not in ready:
-                    continue
-                batch = self._drain_latest(s) if mode == "latest" else self._recv_some(s)
+            for s, _ in poller.poll(timeout=100):
+                batch = self._drain_latest(s) if socks[s] == "latest" else self._pending(s)
                 for frames in batch:
                     msg = self._decode(frames)
                     if msg is not None:
@@ -234,24 +233,20 @@ class Node:
                 last = time.monotonic()
                 yield None
 
-    def _recv_some(self, s: zmq.Socket, limit: int = 256) -> list:
-        out = []
+    @staticmethod
+    def _pending(s: zmq.Socket, limit: int = 256):
+        """Queued messages one by one (keep-all), at most `limit` before polling again."""
         for _ in range(limit):
-            try:
-                out.append(s.recv_multipart(zmq.NOBLOCK))
-            except zmq.Again:
-                break
-        return out
+            if not s.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+                return
+            yield s.recv_multipart()
 
     def _drain_latest(self, s: zmq.Socket) -> list:
         """Read everything queued, keep the freshest message per topic (end-of-stream marks are
         kept, after the data they follow)."""
         latest, eos = {}, []
-        while True:
-            try:
-                frames = s.recv_multipart(zmq.NOBLOCK)
-            except zmq.Again:
-                break
+        while s.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+            frames = s.recv_multipart()
             if len(frames) == 3 and frames[1] == bus.EOS:
                 eos.append(frames)
             else:
@@ -268,6 +263,7 @@ class Node:
         if type_name == bus.EOS.decode():
             sender = frames[2].decode(errors="replace")
             self._ended[topic].add(sender)
+            self._eos_seen = True
             if "*" in self.info.subscribes:   # an every-topic subscription hears the end per topic
                 self._ended["*"].add(sender)
             return None
@@ -290,13 +286,14 @@ class Node:
         return None
 
     # -- discovery and end of stream --------------------------------------------------------
-    def _scan(self, force: bool = False) -> None:
+    def _scan(self, force: bool = False) -> bool:
+        """Connect to new publishers (every SCAN_S); returns whether it looked."""
         now = time.monotonic()
         if not force and now < self._next_scan:
-            return
+            return False
         self._next_scan = now + SCAN_S
         if not self.info.subscribes:
-            return
+            return True
         files = bus.read_node_files(self.dir, alive_only=False)
         for info in files.values():
             if info.name == self.name or not info.publishes:
@@ -316,6 +313,7 @@ class Node:
                 if topic == "*" or topic in info.publishes:
                     self.sub.connect(info.endpoint, mode)
                     self._publishers[topic].add(info.name)
+        return True
 
     def _inputs_ended(self) -> bool:
         """Every input that has publishers has heard end-of-stream from all of them (or the
