@@ -1,0 +1,165 @@
+"""Inverse kinematics: global joint rotations from 3D joints (paper Sec. 3.3), no torch.
+
+IKSolver runs IKNet (models/iknet.onnx, made by `handtrain iknet`) in onnxruntime:
+
+    solver = IKSolver.load()
+    quats = solver.solve(xyz_rel)            # (N,21,3) -> (N,21,4), w >= 0
+    _, joints = HandModel.load().forward(quats[0], beta)
+
+Input encoding (the paper's I = [X, D, X_ref, D_ref], 4 x 21 x 3 = 252 values):
+X joints and X_ref rest joints, both root-relative (joint 9) and scale-normalized
+(|x0 - x9| = 1); D, D_ref their bone vectors x_j - x_parent(j) (root row zero).
+
+One step beyond the paper (iknet_inputs / iknet_outputs): X is first turned into a
+canonical palm frame measured from the joints themselves (canonical_frame: y along the
+reference bone, x across the knuckles), and the network's rotations are turned back.
+The network then never sees the global orientation, which is exact geometry, not something
+to learn: the same 6 x 1024 MLP spends its capacity on the fingers, and the quaternion
+sign ambiguity (q and -q) no longer cuts through the training data at w = 0.
+
+analytic_ik is the baseline for the evaluation table: the wrist from the palm joints
+(Kabsch), then each finger bone the smallest rotation (no twist) that turns its rest
+direction into the observed one, in its parent's frame.
+"""
+from pathlib import Path
+
+import numpy as np
+
+from .kinematics import PARENTS
+from .rotations import matrix_to_quat, quat_normalize, quat_to_matrix
+from .skeleton import NON_TIP_JOINTS, NUM_JOINTS, REF_BONE, ROOT
+
+MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+DEFAULT_MODEL = MODELS_DIR / "iknet.onnx"
+PALM_JOINTS = [0, 1, 5, 9, 13, 17]          # rigid with the wrist frame (q_1 = q_5 = ... = q_0)
+BONE_PARENT_FRAME = np.maximum(PARENTS, 0)  # q_0 = G_0, q_j = G_parent(j)
+NUM_INPUTS = 4 * NUM_JOINTS * 3
+
+
+def normalize_joints(xyz):
+    """(..., 21, 3) -> root-relative (joint 9 at 0), scale-normalized (|x0 - x9| = 1)."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    rel = xyz - xyz[..., ROOT:ROOT + 1, :]
+    ref = np.linalg.norm(xyz[..., REF_BONE[1], :] - xyz[..., REF_BONE[0], :], axis=-1)
+    return rel / np.maximum(ref, 1e-12)[..., None, None]
+
+
+def bone_vectors(xyz):
+    """(..., 21, 3) joints -> (..., 21, 3) bones x_j - x_parent(j); row 0 is zero."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    return xyz - xyz[..., np.maximum(PARENTS, 0), :]
+
+
+def canonical_frame(xyz):
+    """(..., 3, 3) palm frames, columns (e_x, e_y, e_z) in camera axes: e_y along 9 -> 0
+    (the reference bone, toward the wrist), e_x across the knuckles 17 -> 5 made
+    orthogonal to it, e_z = e_x x e_y. For the hand model at rest this is about identity."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    e_y = xyz[..., 0, :] - xyz[..., 9, :]
+    e_y = e_y / np.maximum(np.linalg.norm(e_y, axis=-1, keepdims=True), 1e-12)
+    across = xyz[..., 5, :] - xyz[..., 17, :]
+    e_x = across - np.sum(across * e_y, axis=-1, keepdims=True) * e_y
+    e_x = e_x / np.maximum(np.linalg.norm(e_x, axis=-1, keepdims=True), 1e-12)
+    return np.stack([e_x, e_y, np.cross(e_x, e_y)], axis=-1)
+
+
+def iknet_inputs(xyz, rest):
+    """Network input (N, 252) float32 and palm frames F (N, 3, 3).
+
+    xyz (N,21,3) joints (normalized here); rest (N,21,3) or (21,3) normalized rest joints.
+    The joints enter in the palm frame: x_c = Fᵀ x.
+    """
+    xyz = normalize_joints(xyz)
+    frame = canonical_frame(xyz)
+    xyz_c = xyz @ frame                                                      # rows: (Fᵀ x)ᵀ
+    rest = np.broadcast_to(np.asarray(rest, dtype=np.float64), xyz.shape)
+    features = np.concatenate([xyz_c, bone_vectors(xyz_c), rest, bone_vectors(rest)], axis=-2)
+    return features.reshape(len(xyz), NUM_INPUTS).astype(np.float32), frame
+
+
+def iknet_outputs(raw, frame):
+    """Raw network output (N, 84) in the palm frame -> (N,21,4) unit quaternions in camera
+    axes (R = F R_c), w >= 0."""
+    rot_c = quat_to_matrix(np.asarray(raw, dtype=np.float64).reshape(-1, NUM_JOINTS, 4))
+    return matrix_to_quat(frame[:, None] @ rot_c)
+
+
+class IKSolver:
+    """IKNet in onnxruntime. threads: intra-op threads (1 leaves the second core of a
+    2-core CPU to the detector; the network is small enough that 2 gain little)."""
+
+    def __init__(self, session, rest):
+        self.session = session
+        self.input_name = session.get_inputs()[0].name
+        self.rest = normalize_joints(rest)
+
+    @classmethod
+    def load(cls, path=None, threads=1, model=None):
+        """IKNet from `path` (default models/iknet.onnx); the default rest pose is the hand
+        model's (model, default the bundled one) at beta = 0."""
+        import onnxruntime as ort
+        path = DEFAULT_MODEL if path is None else Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"IKNet model {path} not found; train and export it with "
+                                    f"`handtrain iknet` (or pass the path of an exported iknet.onnx)")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        if model is None:
+            from .hand_model import HandModel
+            model = HandModel.load()
+        return cls(session, model.rest_joints())
+
+    def solve(self, xyz_rel, rest=None):
+        """Global bone quaternions (N,21,4) (w,x,y,z), w >= 0, for joints xyz_rel (N,21,3)
+        or (21,3) (root-relative, scale-normalized, camera axes, right hand); rest (21,3)
+        or (N,21,3): the person's rest joints (any scale/origin; default the average hand).
+        A (21,3) input gives a (1,21,4) output."""
+        xyz = np.asarray(xyz_rel, dtype=np.float64).reshape(-1, NUM_JOINTS, 3)
+        rest = self.rest if rest is None else normalize_joints(rest)
+        features, frame = iknet_inputs(xyz, rest)
+        raw = self.session.run(None, {self.input_name: features})[0]
+        return iknet_outputs(raw, frame)
+
+
+# -------------------------------------------------------------------- analytic baseline
+def _kabsch(src, dst):
+    """(..., K, 3) point sets -> (..., 3, 3) rotation R minimising |R src - dst| (centred)."""
+    src = src - src.mean(axis=-2, keepdims=True)
+    dst = dst - dst.mean(axis=-2, keepdims=True)
+    u, _, vt = np.linalg.svd(np.swapaxes(dst, -1, -2) @ src)
+    d = np.sign(np.linalg.det(u @ vt))
+    u = np.concatenate([u[..., :2], u[..., 2:] * d[..., None, None]], axis=-1)
+    return u @ vt
+
+
+def _swing(a, b):
+    """(..., 3, 3) smallest rotation turning directions a into b (..., 3)."""
+    a = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
+    b = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-12)
+    q = np.concatenate([1.0 + np.sum(a * b, axis=-1, keepdims=True), np.cross(a, b)], axis=-1)
+    # opposite directions: any half turn about an axis orthogonal to a
+    ortho = np.cross(a, np.where(np.abs(a[..., :1]) < 0.9, [1.0, 0, 0], [0, 1.0, 0]))
+    q = np.where(q[..., :1] < 1e-9, np.concatenate([np.zeros_like(q[..., :1]), ortho], axis=-1), q)
+    return quat_to_matrix(quat_normalize(q))
+
+
+def analytic_ik(xyz_rel, rest):
+    """Baseline IK: (N,21,3) joints, (21,3) or (N,21,3) rest -> (N,21,4) global bone quaternions.
+
+    Wrist frame G_0: Kabsch fit of the rest palm joints onto the observed ones. Each finger
+    joint frame G_i = swing(G_parent (rest_(i+1) - rest_i) -> x_(i+1) - x_i) G_parent; bone
+    rotations q_j = G_parent(j).
+    """
+    xyz = normalize_joints(np.asarray(xyz_rel, dtype=np.float64).reshape(-1, NUM_JOINTS, 3))
+    rest = np.broadcast_to(normalize_joints(rest), xyz.shape)
+    frames = np.empty(xyz.shape[:1] + (NUM_JOINTS, 3, 3))
+    frames[:, 0] = _kabsch(rest[:, PALM_JOINTS], xyz[:, PALM_JOINTS])
+    for i in NON_TIP_JOINTS[1:]:                  # parents first
+        G = frames[:, PARENTS[i]]
+        rest_dir = (G @ (rest[:, i + 1] - rest[:, i])[..., None])[..., 0]
+        frames[:, i] = _swing(rest_dir, xyz[:, i + 1] - xyz[:, i]) @ G
+    return matrix_to_quat(frames[:, BONE_PARENT_FRAME])

@@ -1,0 +1,29 @@
+"""`handtrain`: train the project's networks on this machine (needs the `train` extra: torch, tqdm, onnx).
+
+    handtrain iknet [--resume] [--iters N] [--export-only] ...    (handmocap/train_iknet.py)
+
+Each network is one subcommand: a module with add_arguments(parser) and main(args).
+"""
+import argparse
+import importlib
+
+SUBCOMMANDS = {
+    "iknet": ("handmocap.train_iknet", "IKNet: joint rotations from 3D joints"),
+}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="handtrain", description=__doc__.splitlines()[0])
+    subparsers = parser.add_subparsers(dest="network", required=True)
+    for name, (module_name, help_text) in SUBCOMMANDS.items():
+        module = importlib.import_module(module_name)
+        sub = subparsers.add_parser(name, help=help_text, description=module.__doc__,
+                                    formatter_class=argparse.RawDescriptionHelpFormatter)
+        module.add_arguments(sub)
+        sub.set_defaults(run=module.main)
+    args = parser.parse_args(argv)
+    args.run(args)
+
+
+if __name__ == "__main__":
+    main()
