@@ -27,21 +27,13 @@ import numpy as np
 
 from .kinematics import PARENTS
 from .rotations import matrix_to_quat, quat_normalize, quat_to_matrix
-from .skeleton import NON_TIP_JOINTS, NUM_JOINTS, REF_BONE, ROOT
+from .skeleton import NON_TIP_JOINTS, NUM_JOINTS, normalize_joints
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 DEFAULT_MODEL = MODELS_DIR / "iknet.onnx"
 PALM_JOINTS = [0, 1, 5, 9, 13, 17]          # rigid with the wrist frame (q_1 = q_5 = ... = q_0)
 BONE_PARENT_FRAME = np.maximum(PARENTS, 0)  # q_0 = G_0, q_j = G_parent(j)
 NUM_INPUTS = 4 * NUM_JOINTS * 3
-
-
-def normalize_joints(xyz):
-    """(..., 21, 3) -> root-relative (joint 9 at 0), scale-normalized (|x0 - x9| = 1)."""
-    xyz = np.asarray(xyz, dtype=np.float64)
-    rel = xyz - xyz[..., ROOT:ROOT + 1, :]
-    ref = np.linalg.norm(xyz[..., REF_BONE[1], :] - xyz[..., REF_BONE[0], :], axis=-1)
-    return rel / np.maximum(ref, 1e-12)[..., None, None]
 
 
 def bone_vectors(xyz):
@@ -79,8 +71,10 @@ def iknet_inputs(xyz, rest):
 
 def iknet_outputs(raw, frame):
     """Raw network output (N, 84) in the palm frame -> (N,21,4) unit quaternions in camera
-    axes (R = F R_c), w >= 0."""
+    axes (R = F R_c), w >= 0. The palm bones 0 -> 1, 5, 9, 13, 17 get the wrist's rotation,
+    as the hand model's rigid palm has it (HandModel.forward uses q_0 for them)."""
     rot_c = quat_to_matrix(np.asarray(raw, dtype=np.float64).reshape(-1, NUM_JOINTS, 4))
+    rot_c[:, PALM_JOINTS[1:]] = rot_c[:, :1]
     return matrix_to_quat(frame[:, None] @ rot_c)
 
 

@@ -1,0 +1,161 @@
+"""IKNet: torch FK and losses (need torch), export, IKSolver on the committed model, the
+analytic baseline, the palm frame and the One Euro filter."""
+import numpy as np
+import pytest
+
+from handmocap.hand_model import HandModel
+from handmocap.ik_solver import DEFAULT_MODEL, IKSolver, analytic_ik, canonical_frame, iknet_inputs, iknet_outputs
+from handmocap.kinematics import forward_kinematics
+from handmocap.one_euro import OneEuroFilter
+from handmocap.pose_data import PoseSampler, corrupt_joints
+from handmocap.rotations import matrix_to_quat, quat_angle_between, quat_to_matrix
+from handmocap.skeleton import normalize_joints
+
+MODEL = HandModel.load()
+REF_MM = 95.0        # reference bone 0 -> 9 in mm for reporting errors
+
+
+def samples(n, seed):
+    return PoseSampler(MODEL).sample(n, np.random.default_rng(seed))
+
+
+def fk_error_mm(quats, d):
+    return np.linalg.norm(normalize_joints(forward_kinematics(quats, d["rest"])) - d["xyz"], axis=-1) * REF_MM
+
+
+# ------------------------------------------------------------------ torch (training extra)
+def test_torch_fk_equals_numpy_fk_and_hand_model():
+    torch = pytest.importorskip("torch", reason="torch is the training extra")
+    from handmocap.iknet import forward_kinematics as fk_torch
+    d = samples(64, 0)
+    ours = fk_torch(torch.tensor(d["quats"]), torch.tensor(d["rest"])).numpy()
+    np.testing.assert_allclose(ours, forward_kinematics(d["quats"], d["rest"]), atol=1e-12)
+    # any quaternions, palm bones included: the rigid palm of HandModel.forward
+    q = np.random.default_rng(1).normal(size=(16, 21, 4))
+    ours = fk_torch(torch.tensor(q), torch.tensor(MODEL.rest_joints(d["beta"][:16]))).numpy()
+    _, joints = MODEL.forward(q, d["beta"][:16])
+    np.testing.assert_allclose(ours, joints, atol=1e-12)
+    assert not np.allclose(fk_torch(torch.tensor(q), torch.tensor(d["rest"][:16]), rigid_palm=False).numpy(),
+                           fk_torch(torch.tensor(q), torch.tensor(d["rest"][:16])).numpy())
+
+
+def test_losses_vanish_at_the_target_and_ignore_the_quaternion_sign():
+    torch = pytest.importorskip("torch", reason="torch is the training extra")
+    from handmocap.iknet import iknet_losses
+    d = samples(32, 2)
+    q, xyz, rest = (torch.tensor(d[k]) for k in ("quats", "xyz", "rest"))
+    has = torch.ones(32, dtype=torch.bool)
+    flipped = q * torch.where(torch.rand(32, 21, 1) < 0.5, -1.0, 1.0).double()
+    for raw in (q, flipped):
+        losses = iknet_losses(raw, xyz, rest, q, has)
+        assert all(v.item() < 1e-12 for v in losses.values()), losses
+    wrong = iknet_losses(2 * torch.roll(q, 1, dims=0), xyz, rest, q, has)
+    assert all(v.item() > 0.1 for v in wrong.values()), wrong
+    no_rot = iknet_losses(torch.roll(q, 1, dims=0), xyz, rest, q, torch.zeros(32, dtype=torch.bool))
+    assert no_rot["cos"].item() == 0 and no_rot["l2"].item() == 0 and no_rot["xyz"].item() > 0.1
+
+
+def test_export_folds_batchnorm_and_matches_torch(tmp_path):
+    torch = pytest.importorskip("torch", reason="torch is the training extra")
+    pytest.importorskip("onnx", reason="onnx is the training extra")
+    from handmocap.iknet import IKNet, export_onnx
+    torch.manual_seed(0)
+    net = IKNet(width=64, depth=2)
+    for m in net.modules():               # BatchNorm with non-trivial statistics
+        if isinstance(m, torch.nn.BatchNorm1d):
+            m.running_mean.uniform_(-1, 1)
+            m.running_var.uniform_(0.5, 2)
+            m.weight.data.uniform_(0.5, 2)
+            m.bias.data.uniform_(-1, 1)
+    net.eval()
+    d = samples(8, 3)
+    features, frame = iknet_inputs(d["xyz"], d["rest"])
+    with torch.no_grad():
+        expected = net(torch.from_numpy(features)).numpy().reshape(8, 84)
+    for half in (False, True):
+        path = tmp_path / f"net{int(half)}.onnx"
+        export_onnx(net, path, float16=half)
+        import onnxruntime as ort
+        got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"features": features})[0]
+        np.testing.assert_allclose(got, expected, atol=2e-2 if half else 1e-4)
+
+
+# ------------------------------------------------------------------ onnxruntime, committed model
+def test_solver_round_trip_through_the_hand_model():
+    solver = IKSolver.load()
+    d = samples(64, 4)
+    quats = solver.solve(d["xyz"])                  # default rest: the average hand
+    assert quats.shape == (64, 21, 4) and quats.dtype == np.float64
+    np.testing.assert_allclose(np.linalg.norm(quats, axis=-1), 1, atol=1e-9)
+    assert quats[..., 0].min() >= 0
+    # per-person rest pose: HandModel.forward at the sample's beta reproduces the joints
+    quats = solver.solve(d["xyz"], d["rest"])
+    _, joints = MODEL.forward(quats, d["beta"])
+    err = np.linalg.norm(normalize_joints(joints) - d["xyz"], axis=-1) * REF_MM
+    assert err.mean() < 8.0, err.mean()
+    angle = np.degrees(quat_angle_between(quats, d["quats"]))[:, 1:]
+    assert angle.mean() < 12.0, angle.mean()
+    one = solver.solve(d["xyz"][0], d["rest"][0])
+    np.testing.assert_allclose(one, quats[:1], atol=1e-5)
+
+
+def test_solver_is_equivariant_to_camera_rotation():
+    """Turning the input turns the output: the palm frame makes this hold by construction."""
+    solver = IKSolver.load()
+    d = samples(16, 5)
+    R = quat_to_matrix(np.random.default_rng(6).normal(size=4))
+    turned = solver.solve(d["xyz"] @ R.T, d["rest"])
+    expected = matrix_to_quat(R @ quat_to_matrix(solver.solve(d["xyz"], d["rest"])))
+    assert np.degrees(quat_angle_between(turned, expected)).max() < 0.05
+
+
+def test_missing_model_names_the_path_and_the_command(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"nothere\.onnx.*handtrain iknet"):
+        IKSolver.load(tmp_path / "nothere.onnx")
+    assert DEFAULT_MODEL.name == "iknet.onnx" and DEFAULT_MODEL.parent.name == "models"
+
+
+# ------------------------------------------------------------------ numpy pieces
+def test_analytic_ik_reproduces_clean_bone_directions():
+    d = samples(200, 7)
+    quats = analytic_ik(d["xyz"], d["rest"])
+    assert fk_error_mm(quats, d).max() < 1e-6
+    # rotations are right up to the twist about each bone (which joints cannot show)
+    assert np.degrees(quat_angle_between(quats, d["quats"]))[:, 0].max() < 1e-4
+    noisy = corrupt_joints(d["xyz"], np.random.default_rng(8))
+    assert np.isfinite(analytic_ik(noisy, d["rest"])).all()
+
+
+def test_palm_frame_is_a_rotation_that_follows_the_hand():
+    d = samples(50, 9)
+    F = canonical_frame(d["xyz"])
+    np.testing.assert_allclose(np.swapaxes(F, -1, -2) @ F, np.broadcast_to(np.eye(3), F.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(F), 1, atol=1e-12)
+    R = quat_to_matrix(np.random.default_rng(10).normal(size=4))
+    np.testing.assert_allclose(canonical_frame(d["xyz"] @ R.T), R @ F, atol=1e-12)
+    # features do not change when the camera turns; outputs map back
+    f0, frame0 = iknet_inputs(d["xyz"], d["rest"])
+    f1, frame1 = iknet_inputs(d["xyz"] @ R.T, d["rest"])
+    np.testing.assert_allclose(f0, f1, atol=1e-5)
+    raw = np.random.default_rng(11).normal(size=(50, 84))
+    np.testing.assert_allclose(quat_to_matrix(iknet_outputs(raw, frame1)), R @ quat_to_matrix(iknet_outputs(raw, frame0)),
+                               atol=1e-12)
+
+
+def test_one_euro_smooths_still_signals_and_follows_fast_ones():
+    rng = np.random.default_rng(12)
+    t = np.arange(300) / 30.0
+    still = OneEuroFilter(min_cutoff=1.0, beta=1.0)
+    noisy = 0.5 + 0.01 * rng.normal(size=(300, 3))
+    out = np.array([still(x, ti) for x, ti in zip(noisy, t)])
+    assert out[30:].std() < 0.4 * noisy[30:].std()
+    assert np.allclose(out[30:].mean(), 0.5, atol=0.005)
+    ramp = OneEuroFilter(min_cutoff=1.0, beta=1.0)
+    lazy = OneEuroFilter(min_cutoff=1.0, beta=0.0)
+    x = 2.0 * t                               # 2 units/s
+    lag_fast = x[-1] - [ramp(v, ti) for v, ti in zip(x, t)][-1]
+    lag_lazy = x[-1] - [lazy(v, ti) for v, ti in zip(x, t)][-1]
+    assert 0 < lag_fast < 0.5 * lag_lazy      # speed raises the cut-off: less lag
+    assert ramp(5.0, t[-1]) == pytest.approx(ramp.x)   # a repeated stamp changes nothing
+    ramp.reset()
+    assert ramp(7.0, 100.0) == 7.0            # after a reset the first value passes through
