@@ -15,7 +15,8 @@ over hands and the 21 bones (and over the 15 finger bones that carry a joint lim
 FK error = mean distance of the model posed by the rotations (at the sample's rest pose)
 to the true clean joints, mm with the reference bone scaled to 95 mm; limits = share of the
 15 finger joints within the anatomical limits (JointLimits of the average hand, 0.5 deg
-tolerance).
+tolerance). "clamped to limits" clips IKNet's finger angles into those limits
+(ik_solver.clamp_to_limits), as the ik node does by default.
 """
 import argparse
 import time
@@ -23,7 +24,7 @@ import time
 import numpy as np
 
 from .hand_model import HandModel
-from .ik_solver import DEFAULT_MODEL, IKSolver, analytic_ik
+from .ik_solver import DEFAULT_MODEL, IKSolver, analytic_ik, clamp_to_limits
 from .joint_limits import JointLimits
 from .kinematics import bone_rotations_to_frames, forward_kinematics, frames_to_bone_rotations
 from .pose_data import REAL_EVAL, SHARED_DATA, PositionPairs, PoseSampler, corrupt_joints, load_real_sequences
@@ -58,9 +59,12 @@ def evaluate(solver, n=10000, data_root=SHARED_DATA, batch=1000):
     rng = np.random.default_rng(EVAL_SEED)
     poses = PoseSampler(model).sample(n, rng)
     noisy = corrupt_joints(poses["xyz"], rng)
-    methods = {"IKNet": lambda x, r: np.concatenate([solver.solve(x[i:i + batch], r[i:i + batch])
-                                                     for i in range(0, len(x), batch)]),
-               "analytic": analytic_ik}
+    def iknet(x, r):
+        return np.concatenate([solver.solve(x[i:i + batch], r[i:i + batch]) for i in range(0, len(x), batch)])
+
+    methods = {"IKNet": iknet,
+               "IKNet, clamped to limits": lambda x, r: clamp_to_limits(iknet(x, r), limits),
+               "analytic (swing, no twist)": analytic_ik}
     results = {}
     for method, solve in methods.items():
         results["synthetic clean", method] = metrics(solve(poses["xyz"], poses["rest"]), poses["rest"],

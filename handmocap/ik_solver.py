@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .kinematics import PARENTS
-from .rotations import matrix_to_quat, quat_normalize, quat_to_matrix
+from .rotations import matrix_to_quat, quat_multiply, quat_normalize, quat_to_matrix
 from .skeleton import NON_TIP_JOINTS, NUM_JOINTS, normalize_joints
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
@@ -73,9 +73,9 @@ def iknet_outputs(raw, frame):
     """Raw network output (N, 84) in the palm frame -> (N,21,4) unit quaternions in camera
     axes (R = F R_c), w >= 0. The palm bones 0 -> 1, 5, 9, 13, 17 get the wrist's rotation,
     as the hand model's rigid palm has it (HandModel.forward uses q_0 for them)."""
-    rot_c = quat_to_matrix(np.asarray(raw, dtype=np.float64).reshape(-1, NUM_JOINTS, 4))
-    rot_c[:, PALM_JOINTS[1:]] = rot_c[:, :1]
-    return matrix_to_quat(frame[:, None] @ rot_c)
+    q_c = np.asarray(raw, dtype=np.float64).reshape(-1, NUM_JOINTS, 4).copy()
+    q_c[:, PALM_JOINTS[1:]] = q_c[:, :1]
+    return quat_normalize(quat_multiply(matrix_to_quat(frame)[:, None], q_c))
 
 
 class IKSolver:
@@ -157,3 +157,14 @@ def analytic_ik(xyz_rel, rest):
         rest_dir = (G @ (rest[:, i + 1] - rest[:, i])[..., None])[..., 0]
         frames[:, i] = _swing(rest_dir, xyz[:, i + 1] - xyz[:, i]) @ G
     return matrix_to_quat(frames[:, BONE_PARENT_FRAME])
+
+
+def clamp_to_limits(quats, limits):
+    """(N,21,4) global bone quaternions -> the same with every finger joint's (flexion,
+    abduction, twist) clipped into `limits` (a JointLimits); the wrist is kept. Joints already
+    inside come back unchanged (to rounding)."""
+    from .kinematics import global_quats_to_relative, relative_to_global_quats
+    quats = np.asarray(quats, dtype=np.float64)
+    angles = np.clip(limits.angles(quats), limits.limits[..., 0], limits.limits[..., 1])
+    wrist = global_quats_to_relative(quats)[..., 0, :]
+    return relative_to_global_quats(limits.pose_from_angles(angles, wrist))

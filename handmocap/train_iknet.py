@@ -49,6 +49,7 @@ def add_arguments(p):
     p.add_argument("--run-dir", type=Path, default=RUN_DIR)
     p.add_argument("--export", type=Path, default=DEFAULT_MODEL, help="ONNX output (default %(default)s)")
     p.add_argument("--float16", action="store_true", help="store the ONNX weights in float16")
+    p.add_argument("--int8", action="store_true", help="export with int8 dynamic quantization")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
     p.add_argument("--export-only", action="store_true", help="export RUN_DIR/last.pt and stop")
 
@@ -159,7 +160,7 @@ def main(args):
         print(f"resumed {ckpt_path} at iteration {start}")
     if args.export_only:
         net.eval()
-        export_onnx(net, args.export, float16=args.float16)
+        export_onnx(net, args.export, float16=args.float16, int8=args.int8)
         print(f"exported {args.export}")
         return
 
@@ -207,5 +208,5 @@ def main(args):
             save(done)
     net.eval()
     args.export.parent.mkdir(parents=True, exist_ok=True)
-    export_onnx(net, args.export, float16=args.float16)
+    export_onnx(net, args.export, float16=args.float16, int8=args.int8)
     print(f"exported {args.export} ({args.export.stat().st_size / 1e6:.1f} MB) after {args.iters} iterations")

@@ -5,7 +5,9 @@ Per hand (pose_from_keypoints, plain functions, no bus):
 1. A left hand's xyz_rel (the hand as seen) is mirrored (x -> -x) into the right-hand model.
 2. IKNet (IKSolver) turns the joints into 21 global bone quaternions, given the rest pose
    of the person: /hand/shape's rest_xyz for the track (the paper's X_ref, D_ref), the
-   bundled average hand until a shape is known.
+   bundled average hand until a shape is known. With clamp_to_limits (default) the finger
+   angles are then clipped into the anatomical limits of the average hand
+   (ik_solver.clamp_to_limits; see the IKNet section of models/README.md for what it costs).
 3. Optional One Euro smoothing per track of the quaternions (sign-aligned with the last
    output, renormalized) and of the root translation; a track's filters are reset when
    the track is missing from a keypoints message or unseen for `reset_after_s`.
@@ -18,7 +20,7 @@ Per hand (pose_from_keypoints, plain functions, no bus):
 handedness="left") draws the left hand); `xyz` and `root` are the hand as seen.
 
 Params: model (hand model path, default bundled), iknet (ONNX path, default
-models/iknet.onnx), threads (onnxruntime intra-op threads), smooth, and the filter
+models/iknet.onnx), threads (onnxruntime intra-op threads), clamp_to_limits, smooth, and the filter
 settings (handmocap/one_euro.py): rot_min_cutoff Hz / rot_beta on quaternion components,
 root_min_cutoff Hz / root_beta on metres, d_cutoff Hz. The defaults are starting points
 measured on synthetic jitter only; tune them on the detector's real output.
@@ -29,7 +31,8 @@ import numpy as np
 
 from handmocap import camera_info
 from handmocap.hand_model import HandModel
-from handmocap.ik_solver import IKSolver
+from handmocap.ik_solver import IKSolver, clamp_to_limits
+from handmocap.joint_limits import JointLimits
 from handmocap.kinematics import (as_matrices, bone_rotations_to_frames, forward_kinematics,
                                   frames_to_bone_rotations, global_quats_to_relative)
 from handmocap.node import Node, run
@@ -38,7 +41,7 @@ from handmocap.rotations import mirror_points, quat_normalize
 from handmocap.skeleton import ROOT, normalize_joints
 from handmocap.translation import camera_joints_from_keypoints
 
-PARAMS = {"model": None, "iknet": None, "threads": 1, "smooth": True,
+PARAMS = {"model": None, "iknet": None, "threads": 1, "clamp_to_limits": True, "smooth": True,
           "rot_min_cutoff": 1.0, "rot_beta": 1.5, "root_min_cutoff": 0.5, "root_beta": 2.0, "d_cutoff": 1.0,
           "reset_after_s": 0.5}
 
@@ -50,10 +53,12 @@ def posed_joints(quats, model, beta):
     return forward_kinematics(bones, model.rest_joints(beta))
 
 
-def solve_rotations(xyz_rel, handedness, rest, solver):
-    """Global bone quaternions (21,4) of the right-hand model for one hand's joints as seen."""
+def solve_rotations(xyz_rel, handedness, rest, solver, limits=None):
+    """Global bone quaternions (21,4) of the right-hand model for one hand's joints as seen;
+    with limits (a JointLimits), finger angles are clipped into them."""
     xyz = mirror_points(xyz_rel) if handedness == "left" else np.asarray(xyz_rel, dtype=np.float64)
-    return solver.solve(xyz, rest)[0]
+    quats = solver.solve(xyz, rest)
+    return (quats if limits is None else clamp_to_limits(quats, limits))[0]
 
 
 def pose_fields(hand, quats, beta, K, model):
@@ -73,12 +78,14 @@ def pose_fields(hand, quats, beta, K, model):
             "translation_valid": bool(valid)}
 
 
-def pose_from_keypoints(hand, K, rest, solver, model, beta=None):
+def pose_from_keypoints(hand, K, rest, solver, model, beta=None, limits=None):
     """One HandKeypoints hand -> one HandPose hand, unsmoothed. rest: (21,3) rest joints of
-    the person (None: the model's at beta); beta (10,) (None: the average hand)."""
+    the person (None: the model's at beta); beta (10,) (None: the average hand); limits: a
+    JointLimits to clip the finger angles into (None: IKNet's angles as they are)."""
     beta = np.zeros(model.num_betas) if beta is None else np.asarray(beta, dtype=np.float64)
     rest = model.rest_joints(beta) if rest is None else rest
-    return pose_fields(hand, solve_rotations(hand["xyz_rel"], hand["handedness"], rest, solver), beta, K, model)
+    quats = solve_rotations(hand["xyz_rel"], hand["handedness"], rest, solver, limits)
+    return pose_fields(hand, quats, beta, K, model)
 
 
 class TrackSmoother:
@@ -102,6 +109,7 @@ class PoseEstimator:
     def __init__(self, solver, model, params=PARAMS):
         self.solver, self.model, self.p = solver, model, {**PARAMS, **params}
         self.shapes = {}          # track id -> (beta (10,), rest_xyz (21,3))
+        self.limits = JointLimits.for_model(model) if self.p["clamp_to_limits"] else None
         self.tracks = {}          # track id -> TrackSmoother
 
     def set_shapes(self, shapes):
@@ -121,7 +129,7 @@ class PoseEstimator:
                 continue
             beta, rest = self.shapes.get(hand["track_id"], (np.zeros(self.model.num_betas), None))
             rest = self.model.rest_joints(beta) if rest is None else rest
-            q = solve_rotations(hand["xyz_rel"], hand["handedness"], rest, self.solver)
+            q = solve_rotations(hand["xyz_rel"], hand["handedness"], rest, self.solver, self.limits)
             if not self.p["smooth"]:
                 out.append(pose_fields(hand, q, beta, K, self.model))
                 continue

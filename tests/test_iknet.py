@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 
 from handmocap.hand_model import HandModel
-from handmocap.ik_solver import DEFAULT_MODEL, IKSolver, analytic_ik, canonical_frame, iknet_inputs, iknet_outputs
+from handmocap.ik_solver import (DEFAULT_MODEL, IKSolver, analytic_ik, canonical_frame, clamp_to_limits, iknet_inputs,
+                                 iknet_outputs)
+from handmocap.joint_limits import JointLimits
 from handmocap.kinematics import forward_kinematics
 from handmocap.one_euro import OneEuroFilter
 from handmocap.pose_data import PoseSampler, corrupt_joints
@@ -72,12 +74,12 @@ def test_export_folds_batchnorm_and_matches_torch(tmp_path):
     features, frame = iknet_inputs(d["xyz"], d["rest"])
     with torch.no_grad():
         expected = net(torch.from_numpy(features)).numpy().reshape(8, 84)
-    for half in (False, True):
-        path = tmp_path / f"net{int(half)}.onnx"
-        export_onnx(net, path, float16=half)
-        import onnxruntime as ort
+    import onnxruntime as ort
+    for kind, atol in (("float32", 1e-4), ("float16", 2e-2), ("int8", 0.1)):
+        path = tmp_path / f"{kind}.onnx"
+        export_onnx(net, path, float16=kind == "float16", int8=kind == "int8")
         got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"features": features})[0]
-        np.testing.assert_allclose(got, expected, atol=2e-2 if half else 1e-4)
+        np.testing.assert_allclose(got, expected, atol=atol, err_msg=kind)
 
 
 # ------------------------------------------------------------------ onnxruntime, committed model
@@ -124,6 +126,17 @@ def test_analytic_ik_reproduces_clean_bone_directions():
     assert np.degrees(quat_angle_between(quats, d["quats"]))[:, 0].max() < 1e-4
     noisy = corrupt_joints(d["xyz"], np.random.default_rng(8))
     assert np.isfinite(analytic_ik(noisy, d["rest"])).all()
+
+
+def test_clamp_to_limits_keeps_valid_joints_and_fixes_the_rest():
+    limits = JointLimits.for_model(MODEL)
+    d = samples(100, 13)
+    np.testing.assert_allclose(np.abs(np.sum(clamp_to_limits(d["quats"], limits) * d["quats"], -1)), 1, atol=1e-9)
+    bad = analytic_ik(corrupt_joints(d["xyz"], np.random.default_rng(14)), d["rest"])
+    assert limits.within(bad).mean() < 0.9
+    fixed = clamp_to_limits(bad, limits)
+    assert limits.within(fixed).all()
+    np.testing.assert_allclose(np.abs(np.sum(fixed[:, 0] * bad[:, 0], -1)), 1, atol=1e-9)   # wrist kept
 
 
 def test_palm_frame_is_a_rotation_that_follows_the_hand():
