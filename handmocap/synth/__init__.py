@@ -1,1 +1,1 @@
-"""The synthetic hand image engine (handsynth)."""
+"""Synthetic hand image engine."""
