@@ -1,14 +1,15 @@
 """Finger poses for the image engine.
 
-If `handmocap.pose_data` offers a sampler (`sample_poses(n, rng=..., model=...)` or a
-`PoseSampler` class with `.sample(n, rng)`), it is used. Otherwise a curl model over the
-anatomical angles of handmocap.joint_limits:
+When `handmocap.pose_data` is there (IKNet's pose sampler: uniform, per-finger templates
+and whole-hand gestures — fists, grasps, pinches, OK, counting), its `sample_angles`
+gives the anatomical finger angles (with a smaller uniform share, 20%: random-finger
+hands look odd in pictures), 30% of them moved toward rest. Otherwise a curl model over
+the anatomical angles of handmocap.joint_limits:
 * 25%: every joint uniform within its limits (coverage of odd poses);
 * 75%: per finger a curl c in [0,1] (often near 0 or 1, neighbours correlated), MCP, PIP
   and DIP flexion following c with their own jitter, a shared spread, the thumb between
-  open, resting and opposed, plus 5 degrees of noise — fists, pointing, pinches-ish,
-  open and relaxed hands.
-All poses are clipped to the joint limits. Wrist rotation is zero: the camera sampler
+  open, resting and opposed, plus 5 degrees of noise.
+All poses are within the joint limits. Wrist rotation is zero: the camera sampler
 orients the hand.
 """
 import numpy as np
@@ -24,19 +25,16 @@ _THUMB_OPPOSED = np.radians([[40, 40, 20], [20, 0, 0], [25, 0, 0]])
 
 
 def _external_sampler(model):
+    """pose_data.PoseSampler(model).sample_angles, or None where that module is absent."""
     try:
-        from .. import pose_data
+        from ..pose_data import PoseSampler as DataPoseSampler
     except ImportError:
         return None
-    if hasattr(pose_data, "PoseSampler"):
-        try:
-            sampler = pose_data.PoseSampler(model)
-        except TypeError:
-            sampler = pose_data.PoseSampler()
-        return lambda n, rng: np.asarray(sampler.sample(n, rng))
-    if hasattr(pose_data, "sample_poses"):
-        return lambda n, rng: np.asarray(pose_data.sample_poses(n, rng=rng, model=model))
-    return None
+    try:
+        sampler = DataPoseSampler(model, p_uniform=0.2)
+    except TypeError:
+        sampler = DataPoseSampler(model)
+    return getattr(sampler, "sample_angles", None)
 
 
 class PoseSampler:
@@ -49,12 +47,11 @@ class PoseSampler:
 
     def sample(self, n, rng):
         if self.external is not None:
-            pose = self.external(n, rng)
-            if pose.shape == (n, 16, 3):
-                pose = pose.copy()
-                pose[:, 0] = 0.0
-                return pose
-            self.external, self.source = None, "curl model"   # not the format we need: fall back
+            angles = self.external(n, rng)
+            pose = self.limits.pose_from_angles(angles)
+            toward_rest = np.where(rng.random(n) < 0.3, rng.random(n), 1.0)
+            pose[:, 1:] *= toward_rest[:, None, None]
+            return pose
         return self.limits.pose_from_angles(self.sample_angles(n, rng))
 
     def sample_angles(self, n, rng):

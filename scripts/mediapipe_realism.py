@@ -1,0 +1,102 @@
+"""Realism check of synthetic hand images: does MediaPipe Hands find the hand, and where?
+
+Run with a throwaway environment that has MediaPipe (never a project dependency):
+
+    python3.11 -m venv /tmp/mpenv
+    /tmp/mpenv/bin/pip install mediapipe==0.10.21 opencv-python-headless numpy
+    handsynth generate -n 500 -o /tmp/synth_crops
+    /tmp/mpenv/bin/python scripts/mediapipe_realism.py /tmp/synth_crops [--upscale 256] [-n 500]
+
+Reads the .npz shards directly (numpy only, no handmocap import). For each image it runs
+mediapipe.solutions.hands (static images, up to 2 hands, detection confidence 0.5) on the
+image resized to --upscale px (MediaPipe's palm detector wants more pixels and context
+than a 128 px crop; 0 keeps the size). Reports the share of images where a hand was
+found; for found hands, the pixel error against the labels (mean over the 21 joints of
+the detection closest to the labels, in the data set's pixels, and as a fraction of the
+labelled hand box side); and how often MediaPipe's handedness matches the label.
+--json writes the numbers and per-image results.
+"""
+import argparse
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+def load(root, n):
+    meta = json.loads((Path(root) / "meta.json").read_text())
+    parts = {k: [] for k in ("image", "uv", "box", "handedness", "visible")}
+    total = 0
+    for name in meta["shards"]:
+        with np.load(Path(root) / name) as data:
+            for k in parts:
+                parts[k].append(data[k])
+            total += len(data["image"])
+        if total >= n:
+            break
+    return {k: np.concatenate(v)[:n] for k, v in parts.items()}, meta
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("data", type=Path, help="a directory written by `handsynth generate`")
+    ap.add_argument("-n", type=int, default=500)
+    ap.add_argument("--upscale", type=int, default=256, help="side in px fed to MediaPipe (0: as stored)")
+    ap.add_argument("--min-confidence", type=float, default=0.5)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+
+    import mediapipe as mp
+    data, meta = load(args.data, args.n)
+    n, size = len(data["image"]), data["image"].shape[1]
+    side = args.upscale or size
+    found = np.zeros(n, bool)
+    err_px = np.full(n, np.nan)
+    hand_match = np.zeros(n, bool)
+    with mp.solutions.hands.Hands(static_image_mode=True, max_num_hands=2,
+                                  min_detection_confidence=args.min_confidence) as hands:
+        for i in range(n):
+            img = data["image"][i]
+            if side != size:
+                img = cv2.resize(img, (side, side), interpolation=cv2.INTER_CUBIC)
+            result = hands.process(np.ascontiguousarray(img))
+            if not result.multi_hand_landmarks:
+                continue
+            found[i] = True
+            best = None
+            for lm, hd in zip(result.multi_hand_landmarks, result.multi_handedness):
+                uv = np.array([(p.x, p.y) for p in lm.landmark]) * size      # back in data-set pixels
+                e = np.linalg.norm(uv - data["uv"][i], axis=1).mean()
+                if best is None or e < best[0]:
+                    best = (e, hd.classification[0].label)
+            err_px[i] = best[0]
+            hand_match[i] = (best[1] == "Left") == bool(data["handedness"][i])
+    box = data["box"]
+    box_side = np.maximum(box[:, 2] - box[:, 0], box[:, 3] - box[:, 1])
+    rel = err_px / box_side
+    ok = found
+    summary = {
+        "data": str(args.data), "images": n, "image_px": size, "fed_px": side,
+        "mode": meta["config"]["mode"], "backgrounds": meta.get("backgrounds"),
+        "found_rate": float(found.mean()),
+        "mean_error_px": float(np.nanmean(err_px)) if ok.any() else None,
+        "median_error_px": float(np.nanmedian(err_px)) if ok.any() else None,
+        "median_error_box_fraction": float(np.nanmedian(rel)) if ok.any() else None,
+        "within_10pct_box_rate": float(np.mean(rel[ok] < 0.1)) if ok.any() else None,
+        "handedness_agreement": float(hand_match[ok].mean()) if ok.any() else None,
+    }
+    print(f"MediaPipe Hands on {n} synthetic {summary['mode']} images ({size} px, fed at {side} px): "
+          f"found {100 * summary['found_rate']:.1f}%")
+    if ok.any():
+        print(f"  joint error of found hands: mean {summary['mean_error_px']:.2f} px, median "
+              f"{summary['median_error_px']:.2f} px ({100 * summary['median_error_box_fraction']:.1f}% of the hand "
+              f"box); {100 * summary['within_10pct_box_rate']:.1f}% of hands within 10% of the box; "
+              f"handedness agrees {100 * summary['handedness_agreement']:.1f}%")
+    if args.json:
+        args.json.write_text(json.dumps({**summary, "found": found.tolist(),
+                                         "error_px": [None if np.isnan(e) else float(e) for e in err_px]}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
