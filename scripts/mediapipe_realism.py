@@ -43,6 +43,8 @@ def main():
     ap.add_argument("data", type=Path, help="a directory written by `handsynth generate`")
     ap.add_argument("-n", type=int, default=500)
     ap.add_argument("--upscale", type=int, default=256, help="side in px fed to MediaPipe (0: as stored)")
+    ap.add_argument("--pad", type=float, default=0.0,
+                    help="add this fraction of the side as replicated border on each side (more context)")
     ap.add_argument("--min-confidence", type=float, default=0.5)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
@@ -56,9 +58,13 @@ def main():
     hand_match = np.zeros(n, bool)
     with mp.solutions.hands.Hands(static_image_mode=True, max_num_hands=2,
                                   min_detection_confidence=args.min_confidence) as hands:
+        pad = 0
         for i in range(n):
             img = data["image"][i]
-            if side != size:
+            pad = int(round(args.pad * size))
+            if pad:
+                img = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+            if side != img.shape[0]:
                 img = cv2.resize(img, (side, side), interpolation=cv2.INTER_CUBIC)
             result = hands.process(np.ascontiguousarray(img))
             if not result.multi_hand_landmarks:
@@ -66,7 +72,7 @@ def main():
             found[i] = True
             best = None
             for lm, hd in zip(result.multi_hand_landmarks, result.multi_handedness):
-                uv = np.array([(p.x, p.y) for p in lm.landmark]) * size      # back in data-set pixels
+                uv = np.array([(p.x, p.y) for p in lm.landmark]) * (size + 2 * pad) - pad   # data-set pixels
                 e = np.linalg.norm(uv - data["uv"][i], axis=1).mean()
                 if best is None or e < best[0]:
                     best = (e, hd.classification[0].label)

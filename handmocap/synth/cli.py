@@ -60,7 +60,8 @@ def contact_sheet(batch, count, cols=8, scale=1):
 
 def _config(args):
     return SynthConfig(mode="frame" if args.frames else "crop", size=args.size or (256 if args.frames else 128),
-                       backgrounds="procedural" if args.procedural else "auto")
+                       backgrounds="procedural" if args.procedural else "auto",
+                       occluder=args.occluder, second_hand=args.second_hand)
 
 
 def cmd_sheet(args):
@@ -68,6 +69,9 @@ def cmd_sheet(args):
     engine = SynthEngine(_config(args), seed=args.seed)
     batch = make_samples(engine, np.random.default_rng(args.seed), args.n)
     sheet = contact_sheet(batch, args.n, cols=args.cols, scale=args.scale)
+    if args.quantize > 1:       # fewer grey levels: a much smaller PNG (for docs/)
+        q = args.quantize
+        sheet = (sheet // q * q + q // 2).astype(np.uint8)
     cv2.imwrite(args.output, sheet, [cv2.IMWRITE_PNG_COMPRESSION, 9])
     print(f"wrote {args.output} ({sheet.shape[1]}x{sheet.shape[0]}, {args.n} samples, "
           f"backgrounds: {engine.backgrounds.kind}, poses: {engine.poses.source})")
@@ -130,12 +134,16 @@ def main(argv=None):
         p.add_argument("--frames", action="store_true", help="whole frames (hand finder) instead of crops")
         p.add_argument("--size", type=int, default=None, help="image side in px (128 crops, 256 frames)")
         p.add_argument("--procedural", action="store_true", help="procedural backgrounds only")
+        p.add_argument("--occluder", type=float, default=SynthConfig.occluder, help="probability of occluders")
+        p.add_argument("--second-hand", type=float, default=SynthConfig.second_hand,
+                       help="probability of a second hand")
 
     p = sub.add_parser("sheet", help="PNG grid of random samples with their labels")
     p.add_argument("-n", type=int, default=64)
     p.add_argument("-o", "--output", default="synth_sheet.png")
     p.add_argument("--cols", type=int, default=8)
     p.add_argument("--scale", type=int, default=1)
+    p.add_argument("--quantize", type=int, default=1, help="colour step (8: a PNG under 1 MB for 64 crops)")
     common(p)
     p.set_defaults(func=cmd_sheet)
     p = sub.add_parser("generate", help="write a data set of N samples as .npz shards")
