@@ -101,6 +101,7 @@ class Node:
         self._file_lock = threading.Lock()
         self._next_scan = 0.0
         self._eos_seen = False
+        self._graph_complete = False   # launched, and every node of the graph has announced itself
         self._graph_ready = "HANDMOCAP_LAUNCH_ID" not in os.environ
         self._stop = threading.Event()
         self._closed = False
@@ -294,6 +295,10 @@ class Node:
         self._next_scan = now + SCAN_S
         if not self.info.subscribes:
             return True
+        # checked before reading the node files: once the launcher wrote it, every node of the
+        # graph had announced itself, so this scan sees every publisher there will be
+        launch_id = os.environ.get("HANDMOCAP_LAUNCH_ID")
+        graph_complete = bool(launch_id) and (self.dir / f"{launch_id}.ready").exists()
         files = bus.read_node_files(self.dir, alive_only=False)
         for info in files.values():
             if info.name == self.name or not info.publishes:
@@ -313,13 +318,18 @@ class Node:
                 if topic == "*" or topic in info.publishes:
                     self.sub.connect(info.endpoint, mode)
                     self._publishers[topic].add(info.name)
+        self._graph_complete = self._graph_complete or graph_complete
         return True
 
     def _inputs_ended(self) -> bool:
         """Every input that has publishers has heard end-of-stream from all of them (or the
-        launcher marked the publisher as dead for good)."""
+        launcher marked the publisher as dead for good). In a launched graph, an input that no
+        node of the graph publishes will never get data and counts as ended; outside one, a
+        publisher may still come, so such a node waits."""
         topics = [t for t in self.info.subscribes if self._publishers.get(t)]
-        return bool(topics) and all(self._publishers[t] <= self._ended[t] for t in topics)
+        if not topics and not self._graph_complete:
+            return False
+        return all(self._publishers[t] <= self._ended[t] for t in topics)
 
     # -- status -------------------------------------------------------------------------
     def _announce(self) -> None:
