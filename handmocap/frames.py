@@ -5,9 +5,12 @@ user can cause (missing file, corrupt video, empty folder) raise ValueError nami
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-import cv2
+# FFmpeg's own log lines ("moov atom not found") would come before our one clear error line
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+import cv2  # noqa: E402  (reads the variable above when it first opens a video)
 import numpy as np
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".webp", ".tif", ".tiff"}
