@@ -327,8 +327,8 @@ class Node:
         node of the graph publishes will never get data and counts as ended; outside one, a
         publisher may still come, so such a node waits."""
         topics = [t for t in self.info.subscribes if self._publishers.get(t)]
-        if not topics and not self._graph_complete:
-            return False
+        if not topics and (not self._graph_complete or self.extra_endpoints):
+            return False   # a publisher may still come (or lives on another host: connect:)
         return all(self._publishers[t] <= self._ended[t] for t in topics)
 
     # -- status -------------------------------------------------------------------------
