@@ -79,7 +79,7 @@ class Node:
         defaults = params or {}
         unknown = sorted(set(given) - set(defaults))
         if params is not None and unknown:
-            raise ValueError(f"error: node {self.name!r} has no parameter(s) {', '.join(unknown)}; "
+            raise ValueError(f"node {self.name!r} has no parameter(s) {', '.join(unknown)}; "
                              f"known: {', '.join(sorted(defaults)) or 'none'}")
         self.params = {**defaults, **given}
         self.remap = json.loads(os.environ.get("HANDMOCAP_REMAP", "{}"))
