@@ -95,7 +95,9 @@ def test_visibility_agrees_with_an_independent_depth_test():
                 agree += 1                        # hidden by depth or by a non-adjacent segment
     renderer.release()
     assert checked > 50, "too few visible joints to test"
-    assert agree >= total - 2, f"{total - agree} of {total} visible joints fail the depth test"
+    # the engine draws a decimated mesh (silhouette IoU > 0.98 with the full one): a joint
+    # at a silhouette pixel may land on either side of it, so 1% may differ
+    assert agree >= total - max(2, total // 100), f"{total - agree} of {total} visible joints fail the depth test"
     hidden = total - checked
     assert hidden > 5, "the sample should contain self-occluded joints"
 
@@ -176,3 +178,35 @@ def test_sheet_command_writes_a_png(tmp_path):
     assert main(["sheet", "-n", "8", "-o", str(out), "--procedural", "--cols", "4"]) == 0
     img = cv2.imread(str(out))
     assert img.shape == (256, 512, 3)
+
+
+def test_decimated_draw_mesh_covers_the_full_silhouette():
+    """The draw mesh (~1500 triangles) is a closed mesh on a subset of the model's
+    vertices that skin exactly like them, and its silhouette matches the full mesh's."""
+    pytest.importorskip("moderngl")
+    from handmocap.render import MeshRenderer
+    from handmocap.synth.mesh import SynthHand
+    from handmocap.synth.poses import PoseSampler
+    full, draw = SynthHand(MODEL, draw_faces=0), SynthHand(MODEL)
+    assert len(draw.faces) <= 1500 < len(full.faces)
+    edges = np.sort(np.concatenate([draw.faces[:, [0, 1]], draw.faces[:, [1, 2]], draw.faces[:, [2, 0]]]), 1)
+    assert (np.unique(edges, axis=0, return_counts=True)[1] == 2).all(), "draw mesh is not closed and manifold"
+    rng = np.random.default_rng(5)
+    pose, beta = PoseSampler(MODEL).sample(8, rng), rng.normal(0, 1, (8, 10))
+    left = np.arange(8) % 2 == 1
+    v_full, _, joints_full = full.pose(pose, beta, left)
+    v_draw, n_draw, joints_draw = draw.pose(pose, beta, left)
+    np.testing.assert_allclose(v_draw, v_full[:, draw.kept], atol=1e-6)
+    np.testing.assert_allclose(joints_draw, joints_full)
+    try:
+        renderer = MeshRenderer(160, 160, samples=0)
+    except Exception as exc:
+        pytest.skip(f"no EGL context: {exc}")
+    K = np.array([[420.0, 0, 79.5], [0, 420.0, 79.5], [0, 0, 1]])
+    offset = np.array([0.0, 0.05, 0.5])
+    for i in range(8):
+        masks = [renderer.render([(v[i] + offset, faces)], K)[1] > 0
+                 for v, faces in ((v_full, full.faces), (v_draw, draw.faces))]
+        iou = (masks[0] & masks[1]).sum() / (masks[0] | masks[1]).sum()
+        assert iou > 0.98, f"pose {i}: silhouette IoU {iou:.3f}"
+    renderer.release()

@@ -91,10 +91,12 @@ def cmd_bench(args):
     rates = {}
     engine = SynthEngine(config, seed=0, log=lambda *a: None)
     make_samples(engine, np.random.default_rng(0), engine.capacity)           # warm-up
-    t = time.perf_counter()
+    print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs", flush=True)
+    t, cpu = time.perf_counter(), time.process_time()
     make_samples(engine, np.random.default_rng(1), args.n)
     rates["in-process, 1 worker"] = args.n / (time.perf_counter() - t)
-    print(f"engine, 1 process: {rates['in-process, 1 worker']:.0f} crops/s "
+    per_cpu_s = args.n / (time.process_time() - cpu)          # all threads of this process (llvmpipe's too)
+    print(f"engine, 1 process: {rates['in-process, 1 worker']:.0f} crops/s, {per_cpu_s:.0f} crops per CPU-second "
           f"({args.n} x {config.size} px, backgrounds {engine.backgrounds.kind})", flush=True)
     engine.release()
     best = rates["in-process, 1 worker"]
@@ -103,8 +105,8 @@ def cmd_bench(args):
             meta = generate(tmp, args.n * args.workers, seed=2, config=config, shard_size=args.n // 2,
                             workers=args.workers, progress=False)
             rate = meta["rate_per_s"]
-            print(f"generate to shards, {args.workers} worker processes (start-up included): {rate:.0f} crops/s",
-                  flush=True)
+            print(f"generate to shards, {args.workers} worker processes: {rate:.0f} crops/s "
+                  f"(after {meta['startup_seconds']:.1f} s start-up)", flush=True)
             best = max(best, rate)
         else:
             generate(tmp, args.n, seed=2, config=config, shard_size=args.n, workers=1, progress=False)
@@ -112,6 +114,7 @@ def cmd_bench(args):
         t = time.perf_counter()
         count = sum(len(b["image"]) for b in ds.batches(64, rng=np.random.default_rng(0)))
         print(f"read back from shards: {count / (time.perf_counter() - t):.0f} crops/s", flush=True)
+    print(f"load average after: {os.getloadavg()[0]:.2f}", flush=True)
     print(f"{best:.0f} crops/s")
 
 

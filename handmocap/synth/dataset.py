@@ -62,11 +62,13 @@ class Progress:
 _ENGINE = None
 
 
-def _init_worker(config, engine_seed, threads):
+def _init_worker(config, engine_seed, threads, ready=None):
     global _ENGINE
     if threads:
         os.environ["LP_NUM_THREADS"] = str(threads)       # before the GL context exists
     _ENGINE = SynthEngine(config, seed=engine_seed, log=lambda *a: None)
+    if ready is not None:
+        ready.wait()                                      # tell the parent this worker can start
 
 
 def make_samples(engine, rng, count):
@@ -91,10 +93,17 @@ def _shard_job(args):
     return count
 
 
-def _pool(config, engine_seed, workers):
+def _pool(config, engine_seed, workers, wait_ready=False):
+    """A pool of `workers` processes with one engine each (llvmpipe: 1 thread each).
+    wait_ready: return only once every worker has built its engine (start-up excluded
+    from timings)."""
     ctx = mp.get_context("spawn")
     threads = 1 if workers > 1 else 0
-    return ctx.Pool(workers, initializer=_init_worker, initargs=(config, engine_seed, threads))
+    ready = ctx.Barrier(workers + 1) if wait_ready else None
+    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(config, engine_seed, threads, ready))
+    if ready is not None:
+        ready.wait()
+    return pool
 
 
 def generate(out_dir, n, seed=0, config=None, shard_size=1024, workers=1, progress=True):
@@ -104,24 +113,30 @@ def generate(out_dir, n, seed=0, config=None, shard_size=1024, workers=1, progre
     out_dir.mkdir(parents=True, exist_ok=True)
     counts = [min(shard_size, n - s) for s in range(0, n, shard_size)]
     jobs = [(seed, k, c, out_dir / f"shard_{k:05d}.npz") for k, c in enumerate(counts)]
-    bar = Progress(n, desc="handsynth generate", enabled=progress)
-    start = time.time()
+    launch = time.time()
     if workers > 1:
-        with _pool(config, seed, workers) as pool:
+        with _pool(config, seed, workers, wait_ready=True) as pool:
+            bar = Progress(n, desc="handsynth generate", enabled=progress)
+            start = time.time()
             for done in pool.imap_unordered(_shard_job, jobs):
                 bar.update(done)
+            elapsed = time.time() - start
     else:
         _init_worker(config, seed, 0)
+        bar = Progress(n, desc="handsynth generate", enabled=progress)
+        start = time.time()
         for job in jobs:
             bar.update(_shard_job(job))
+        elapsed = time.time() - start
     bar.close()
-    elapsed = time.time() - start
+    startup = start - launch
     meta = {
         "format": FORMAT_VERSION, "n": n, "seed": seed, "shard_size": shard_size,
         "shards": [job[3].name for job in jobs], "counts": counts, "config": asdict(config),
         "backgrounds": _ENGINE.backgrounds.kind if _ENGINE is not None else "see workers",
         "pose_source": _ENGINE.poses.source if _ENGINE is not None else "see workers",
-        "seconds": round(elapsed, 2), "rate_per_s": round(n / max(elapsed, 1e-9), 1),
+        "seconds": round(elapsed, 2), "startup_seconds": round(startup, 2),
+        "rate_per_s": round(n / max(elapsed, 1e-9), 1),
         "schema": "see handmocap/synth/engine.py (module docstring)",
     }
     (out_dir / "meta.json").write_text(json.dumps(meta, indent=1))

@@ -17,10 +17,12 @@ from ..joint_limits import FINGER_JOINTS, local_frames
 from ..kinematics import forward_kinematics, frames_to_bone_rotations, frames_to_relative, POSE16_TO_MANO
 from ..render import vertex_normals
 from ..skeleton import FINGER_TIPS, NON_TIP_JOINTS
+from .decimate import decimate
 
 FOREARM_END_Y = 0.40         # metres from the wrist, along +y (model frame) where the arm ends
 HAND_REGION_Y = 0.02         # rest vertices with y below this count as "hand" (box, hand weight)
 _NAIL_LENGTH = 0.011         # metres along the distal phalanx, from its tip
+_FEATURE_COST = 3e-11      # m^4 (quadric units: area x distance^2) per unit of material difference^2
 _THUMB_DORSAL = np.array([0.75, 0.0, 0.66])    # model-frame direction the thumbnail faces (approx.)
 
 
@@ -52,7 +54,7 @@ class SynthHand:
     hand_vertex (V,) bool (hand and fingers, for the hand box).
     """
 
-    def __init__(self, model, rings=(0.22, 0.31, FOREARM_END_Y), widen=0.15):
+    def __init__(self, model, rings=(0.22, 0.31, FOREARM_END_Y), widen=0.15, draw_faces=1500):
         self.model = model
         v, faces = model.v_template, model.faces
         loop = boundary_loop(faces)
@@ -97,6 +99,25 @@ class SynthHand:
         self.hand_vertex = self.v_template[:, 1] < HAND_REGION_Y
         self.material = self._material().astype(np.float32)
         self.part = np.argmax(self.weights, axis=1).astype(np.int32)    # (V,) dominant joint frame
+        self.full_vertices, self.full_faces = self.v_template, self.faces
+        if draw_faces and draw_faces < len(self.faces):
+            self._decimate(draw_faces)
+
+    def _decimate(self, target_faces):
+        """Keep a subset of the vertices (decimate.py) and re-triangulate: every
+        per-vertex array is sliced, so kept vertices skin exactly as in the full mesh;
+        normals stay the full mesh's (smooth shading of the fine surface)."""
+        kept, self.faces = decimate(self.v_template, self.faces, target_faces, labels=self.part,
+                                    features=self.material, feature_cost=_FEATURE_COST)
+        self.kept = kept
+        self.v_template = self.v_template[kept]
+        b = self.num_betas
+        self.shapedirs = self.shapedirs.reshape(-1, 3, b)[kept].reshape(-1, b)
+        if self.posedirs is not None:
+            self.posedirs = self.posedirs[kept]
+        for name in ("weights", "rest_normals", "material", "part", "hand_vertex"):
+            setattr(self, name, getattr(self, name)[kept])
+        self.num_vertices = len(kept)
 
     # ------------------------------------------------------------ static attributes
     def _material(self):
@@ -148,7 +169,7 @@ class SynthHand:
         radius. A joint whose pixel shows its own hand no nearer than depth - radius is
         visible (scene.joint_visibility).
         """
-        v, joints = self.v_template, self.model.j_template
+        v, joints = self.full_vertices, self.model.j_template
         radii = np.zeros(len(joints))
         for j in range(len(joints)):
             child = j + 1 if j not in FINGER_TIPS and j != 0 else None
