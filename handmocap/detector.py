@@ -1,0 +1,303 @@
+"""From a whole camera frame to every hand's keypoints (no bus): finder + DetNet + tracking.
+
+Per frame (`HandDetector.process`):
+1. The hand finder (hand_finder.HandFinder) runs when there is no track, when a track was
+   lost on the previous frame, and every `redetect_every` frames while fewer than
+   `max_hands` hands are tracked. A found hand that overlaps a track (IoU >= 0.3 or its
+   centre inside the track's box) only informs that track's handedness; the others start
+   new tracks (stable integer ids, never reused).
+2. Every track is cropped the way DetNet was trained (handmocap/synth: square, the hand's
+   vertex box x 1.3, i.e. about its 21-joint box x CROP_SCALE, 128 px; `CropTransform`
+   records the crop <-> frame mapping). Tracks whose smoothed handedness is left are
+   flipped horizontally, so DetNet always sees a right hand; its 2D is un-flipped and its
+   3D mirrored back (x -> -x): HandKeypoints' xyz_rel is the hand as seen.
+3. One batched DetNet call for all crops; presence below `presence_threshold` ends the
+   track; a new track's crop is refined once from its own first 2D prediction.
+4. The next frame's crop of a track comes from this frame's 2D joints (their box, centre
+   moved on by half the last displacement), as MediaPipe and the paper's videos do.
+5. Handedness per track: a running mean in logit space of DetNet's handedness head
+   (mapped back through the flip) and, at detection, the finder's.
+6. Two tracks on one hand (box IoU >= 0.5): the lower-scoring one is dropped.
+
+>>> det = HandDetector.load()
+>>> hands = det.process(frame_bgr)      # HandKeypoints hands (track_id, handedness, score,
+...                                      # bbox, uv (21,2) frame px, confidence, xyz_rel)
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .hand_finder import HandFinder, box_iou
+from .rotations import mirror_points
+
+CROP = 128
+CROP_SCALE = 1.5            # crop side / side of the 21-joint box (synth: vertex box ~1.16x joint box, x 1.3)
+MIN_CROP_SIDE = 24.0        # px in the frame
+DETNET_PATH = Path(__file__).resolve().parent.parent / "models" / "detnet.onnx"
+
+
+@dataclass(frozen=True)
+class CropTransform:
+    """A square crop of the frame resized to `size` px, optionally flipped left-right.
+
+    The crop covers frame pixels x0 .. x0+side-1 (and y0 ..), integers; pixel centres are
+    at integer coordinates in both images (cv2.resize's convention):
+        u_crop = (u - x0 + 0.5) * size / side - 0.5, then u_crop -> size - 1 - u_crop if mirrored.
+    """
+    x0: int
+    y0: int
+    side: int
+    size: int = CROP
+    mirrored: bool = False
+
+    @classmethod
+    def around(cls, centre, side, size=CROP, mirrored=False):
+        """The crop of about `side` px (at least MIN_CROP_SIDE) centred on `centre` (2,) px."""
+        side = int(round(max(float(side), MIN_CROP_SIDE)))
+        x0 = int(math.floor(centre[0] - (side - 1) / 2 + 0.5))
+        y0 = int(math.floor(centre[1] - (side - 1) / 2 + 0.5))
+        return cls(x0, y0, side, size, bool(mirrored))
+
+    @property
+    def box(self):
+        """(4,) x0, y0, x1, y1 frame px of the crop's outer edges."""
+        return np.array([self.x0 - 0.5, self.y0 - 0.5, self.x0 + self.side - 0.5, self.y0 + self.side - 0.5])
+
+    def to_crop(self, uv):
+        """(..., 2) frame px -> crop px."""
+        uv = np.asarray(uv, dtype=np.float64)
+        s = self.size / self.side
+        u = (uv[..., 0] - self.x0 + 0.5) * s - 0.5
+        v = (uv[..., 1] - self.y0 + 0.5) * s - 0.5
+        if self.mirrored:
+            u = self.size - 1 - u
+        return np.stack([u, v], axis=-1)
+
+    def to_frame(self, uv_crop):
+        """(..., 2) crop px -> frame px."""
+        uv_crop = np.asarray(uv_crop, dtype=np.float64)
+        u = uv_crop[..., 0]
+        if self.mirrored:
+            u = self.size - 1 - u
+        s = self.side / self.size
+        return np.stack([(u + 0.5) * s - 0.5 + self.x0, (uv_crop[..., 1] + 0.5) * s - 0.5 + self.y0], axis=-1)
+
+    def cut(self, image):
+        """(size,size,C) uint8 crop of `image` (H,W,C); outside the frame the border
+        pixels are repeated."""
+        h, w = image.shape[:2]
+        x1, y1 = self.x0 + self.side, self.y0 + self.side
+        cx0, cy0, cx1, cy1 = max(self.x0, 0), max(self.y0, 0), min(x1, w), min(y1, h)
+        if cx0 >= cx1 or cy0 >= cy1:                       # wholly outside: a grey crop
+            return np.full((self.size, self.size) + image.shape[2:], 114, np.uint8)
+        roi = image[cy0:cy1, cx0:cx1]
+        if (cx0, cy0, cx1, cy1) != (self.x0, self.y0, x1, y1):
+            roi = cv2.copyMakeBorder(roi, cy0 - self.y0, y1 - cy1, cx0 - self.x0, x1 - cx1, cv2.BORDER_REPLICATE)
+        interp = cv2.INTER_AREA if self.side > self.size else cv2.INTER_LINEAR
+        crop = cv2.resize(roi, (self.size, self.size), interpolation=interp)
+        return crop[:, ::-1] if self.mirrored else crop
+
+
+def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE):
+    """The DetNet crop of a hand whose 2D joints are uv (21,2) frame px."""
+    lo, hi = np.nanmin(uv, axis=0), np.nanmax(uv, axis=0)
+    return CropTransform.around((lo + hi) / 2, float(np.max(hi - lo)) * scale, mirrored=mirrored)
+
+
+def crop_for_box(box, mirrored=False, scale=CROP_SCALE):
+    """The DetNet crop of a hand whose joint box is (4,) x0, y0, x1, y1 frame px."""
+    box = np.asarray(box, dtype=np.float64)
+    return CropTransform.around((box[:2] + box[2:]) / 2, float(np.max(box[2:] - box[:2])) * scale,
+                                mirrored=mirrored)
+
+
+class DetNetRunner:
+    """models/detnet.onnx on onnxruntime: (N,128,128,3) uint8 RGB crops -> dict of arrays
+    uv (N,21,2) crop px, xyz (N,21,3), confidence (N,21), presence (N,), handedness (N,)."""
+
+    def __init__(self, session):
+        self.session = session
+        self.outputs = [o.name for o in session.get_outputs()]
+
+    @classmethod
+    def load(cls, path=None, threads=1):
+        import onnxruntime as ort
+        path = Path(path) if path else DETNET_PATH
+        if not path.is_file():
+            raise FileNotFoundError(f"DetNet model {path} not found (train it: handtrain detnet)")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        return cls(ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"]))
+
+    def __call__(self, crops_rgb):
+        x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
+        return dict(zip(self.outputs, self.session.run(None, {"image": x})))
+
+
+def logit(p):
+    p = np.clip(np.asarray(p, dtype=np.float64), 1e-4, 1 - 1e-4)
+    return np.log(p / (1 - p))
+
+
+@dataclass
+class Track:
+    """One tracked hand: its next crop and what was last seen of it."""
+    track_id: int
+    crop: CropTransform
+    right_logit: float = 0.0          # running handedness evidence (> 0: right)
+    samples: int = 0
+    uv: np.ndarray | None = None
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    age: int = 0
+
+    @property
+    def is_right(self) -> bool:
+        return self.right_logit >= 0.0
+
+    def add_handedness(self, p_right, weight=1.0, memory=20):
+        """Running mean of logits over about the last `memory` observations."""
+        n = min(self.samples + weight, memory)
+        self.right_logit += (float(np.clip(logit(p_right), -6, 6)) - self.right_logit) * weight / n
+        self.samples = min(self.samples + weight, memory)
+
+
+class HandDetector:
+    """Hands of a frame sequence; see the module doc.
+
+    finder: a HandFinder (or None: the centre square crop of the frame is tried instead, as
+    the paper's release did); detnet: a DetNetRunner. presence_threshold: below it a track
+    is lost; redetect_every: frames between finder runs while fewer than max_hands hands
+    are tracked; crop_scale: crop side / joint-box side.
+    """
+
+    def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
+                 crop_scale=CROP_SCALE, finder_threshold=0.3):
+        self.detnet, self.finder = detnet, finder
+        self.max_hands, self.presence_threshold = max_hands, presence_threshold
+        self.redetect_every, self.crop_scale = redetect_every, crop_scale
+        self.finder_threshold = finder_threshold
+        self.tracks: list[Track] = []
+        self.next_id = 0
+        self.frames_since_find = 0
+        self.lost_last_frame = False
+        self.stats = {"frames": 0, "finder_runs": 0, "crops": 0}
+
+    @classmethod
+    def load(cls, detnet_path=None, finder_path=None, threads=1, **kwargs):
+        finder = HandFinder.load(finder_path, threads=threads) if finder_path != "none" else None
+        return cls(DetNetRunner.load(detnet_path, threads=threads), finder, **kwargs)
+
+    def reset(self):
+        self.tracks.clear()
+        self.frames_since_find = 0
+        self.lost_last_frame = False
+
+    # -------------------------------------------------------------- finding
+    def _should_find(self):
+        return (not self.tracks or self.lost_last_frame
+                or (len(self.tracks) < self.max_hands and self.frames_since_find >= self.redetect_every))
+
+    def _find(self, image):
+        """New tracks for found hands that no track covers."""
+        self.stats["finder_runs"] += 1
+        self.frames_since_find = 0
+        h, w = image.shape[:2]
+        if self.finder is None:
+            half = min(h, w) / 2 / self.crop_scale      # the joint box whose crop is the centre square
+            found = [(np.array([w / 2 - half, h / 2 - half, w / 2 + half, h / 2 + half]), 0.5, 0.5)]
+        else:
+            found = [(f.box, f.score, f.right_prob) for f in self.finder.find(image, self.finder_threshold,
+                                                                             self.max_hands)]
+        new = []
+        for box, score, right_prob in found:
+            covering = [t for t in self.tracks if self._covers(t.crop, box)]
+            if covering:
+                covering[0].add_handedness(right_prob, weight=0.5)
+                continue
+            if len(self.tracks) + len(new) >= self.max_hands:
+                break
+            track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale))
+            track.add_handedness(right_prob)
+            self.next_id += 1
+            new.append(track)
+        self.tracks.extend(new)
+        return new
+
+    @staticmethod
+    def _covers(crop, box):
+        centre = (box[:2] + box[2:]) / 2
+        cb = crop.box
+        inside = cb[0] <= centre[0] <= cb[2] and cb[1] <= centre[1] <= cb[3]
+        return inside or box_iou(cb, box)[0, 0] >= 0.3
+
+    # -------------------------------------------------------------- per frame
+    def _run(self, image_rgb, tracks):
+        crops = np.stack([t.crop.cut(image_rgb) for t in tracks])
+        self.stats["crops"] += len(tracks)
+        return self.detnet(crops)
+
+    def process(self, image_bgr):
+        """HandKeypoints hands of one BGR frame (H,W,3) uint8, sorted by track id."""
+        self.stats["frames"] += 1
+        self.frames_since_find += 1
+        new = self._find(image_bgr) if self._should_find() else []
+        self.lost_last_frame = False
+        if not self.tracks:
+            return []
+        image_rgb = image_bgr[..., ::-1]
+        out = self._run(image_rgb, self.tracks)
+        if new:   # refine a new track's crop from its own first prediction, once
+            idx = [i for i, t in enumerate(self.tracks) if t in new]
+            for i in idx:
+                t = self.tracks[i]
+                if out["presence"][i] >= self.presence_threshold:
+                    uv = t.crop.to_frame(out["uv"][i])
+                    t.crop = crop_for_joints(uv, t.crop.mirrored, self.crop_scale)
+            again = self._run(image_rgb, [self.tracks[i] for i in idx])
+            for k, i in enumerate(idx):
+                for key in out:
+                    out[key][i] = again[key][k]
+        hands, keep = [], []
+        for i, t in enumerate(self.tracks):
+            presence = float(out["presence"][i])
+            if presence < self.presence_threshold:
+                self.lost_last_frame = True
+                continue
+            uv = t.crop.to_frame(out["uv"][i])
+            xyz = np.asarray(out["xyz"][i], dtype=np.float64)
+            right_seen = float(out["handedness"][i])
+            if t.crop.mirrored:
+                xyz = mirror_points(xyz)
+                right_seen = 1.0 - right_seen
+            t.add_handedness(right_seen)
+            if t.uv is not None:
+                t.velocity = np.median(uv - t.uv, axis=0)
+            t.uv, t.age = uv, t.age + 1
+            hands.append({"track_id": t.track_id, "handedness": "right" if t.is_right else "left",
+                          "score": presence, "bbox": t.crop.box.astype(np.float32),
+                          "uv": uv.astype(np.float32), "confidence": np.asarray(out["confidence"][i], np.float32),
+                          "xyz_rel": xyz.astype(np.float32)})
+            t.crop = crop_for_joints(uv + 0.5 * t.velocity, not t.is_right, self.crop_scale)
+            keep.append(t)
+        self.tracks = keep
+        hands = self._drop_duplicates(hands)
+        return sorted(hands, key=lambda h: h["track_id"])
+
+    def _drop_duplicates(self, hands, iou=0.5):
+        """Two tracks on one hand: keep the higher score (ties: the older track)."""
+        order = sorted(hands, key=lambda h: (-h["score"], h["track_id"]))
+        kept = []
+        for h in order:
+            box = np.concatenate([h["uv"].min(0), h["uv"].max(0)])
+            if any(box_iou(box, np.concatenate([k["uv"].min(0), k["uv"].max(0)]))[0, 0] >= iou for k in kept):
+                continue
+            kept.append(h)
+        ids = {h["track_id"] for h in kept}
+        self.tracks = [t for t in self.tracks if t.track_id in ids]
+        return kept

@@ -1,0 +1,329 @@
+"""Train the hand finder on CPU and export it to models/finder.onnx (`handtrain finder`).
+
+    handsynth generate -n 6000 -o /tmp/finder/synth --frames --size 160 --second-hand 0.3
+    handtrain finder --synth /tmp/finder/synth            # from scratch (runs/finder/ replaced)
+    handtrain finder --synth /tmp/finder/synth --resume   # continue runs/finder/last.pt
+    handtrain finder --export-only
+
+Data (each batch half real, half synthetic):
+* real frames of shared/data/video (webcam, dex_retargeting, tfjs_asl_hand; every 2nd
+  frame where MediaPipe found a hand) with the boxes of MediaPipe's 2D pseudo-labels;
+  VAL_VIDEOS are held out for validation; temugeb_stereo (evaluation) is never read;
+* synthetic whole frames (handmocap.synth, `--frames`), both hands' joint boxes; the last
+  shard is held out;
+* 10% hand-free real background crops (the synth engine's cache, held-out videos excluded).
+Augmentation: random zoom/shift of the letterboxed frame, horizontal flip (handedness
+flips with it), brightness/contrast. Losses (CenterNet): focal loss on the centre heatmap,
+L1 on offset and log size, BCE on handedness at the centre cells.
+Validation: recall of hands (a peak whose box has IoU >= 0.3 with the true box) and false
+peaks per frame at the default threshold, on the held-out real video and synthetic shard.
+"""
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .hand_finder import BORDER_VALUE, GRID, INPUT_SIZE, STRIDE, box_iou, decode, letterbox
+
+RUN_DIR = Path("runs/finder")
+DEFAULT_EXPORT = Path(__file__).resolve().parent.parent / "models" / "finder.onnx"
+SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+TRAIN_VIDEOS = ("webcam/huytung228_1hand", "webcam/huytung228_hand", "webcam/huytung228_volctl",
+                "webcam/lujunwang_hand", "webcam/lujunwang_hand2", "webcam/sushensanthush_hand",
+                "dex_retargeting/human_hand_video", "tfjs_asl_hand/asl_hand.25fps")
+VAL_VIDEOS = ("webcam/alimostafa_hand",)
+REAL_SIZE = 224          # real frames are cached letterboxed at this size, zoomed at training
+MIN_SIDE_PX = 5.0        # hands smaller than this (input px) are not targets
+
+
+def add_arguments(p):
+    p.add_argument("--synth", type=Path, required=False, default=Path("/tmp/finder/synth"),
+                   help="handsynth generate --frames --size 160 output (default %(default)s)")
+    p.add_argument("--data", type=Path, default=SHARED_DATA, help="real data pack (default %(default)s)")
+    p.add_argument("--iters", type=int, default=1500)
+    p.add_argument("--batch", type=int, default=32)
+    p.add_argument("--lr", type=float, default=3e-3, help="AdamW, cosine decay to lr/50")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ckpt-every", type=int, default=200)
+    p.add_argument("--run-dir", type=Path, default=RUN_DIR)
+    p.add_argument("--export", type=Path, default=DEFAULT_EXPORT)
+    p.add_argument("--resume", action="store_true")
+    p.add_argument("--export-only", action="store_true")
+
+
+# ----------------------------------------------------------------------------- data
+def joint_box(uv):
+    """(..., 21, 2) -> (..., 4) x0 y0 x1 y1 of the joints."""
+    return np.concatenate([uv.min(-2), uv.max(-2)], -1)
+
+
+def load_real_frames(data_dir, videos, stride=2, size=REAL_SIZE):
+    """Letterboxed RGB frames (N,size,size,3) of the videos where MediaPipe found a hand,
+    their boxes (N,2,4) input px (NaN: none) and right-hand flags (N,2) (as MediaPipe labels
+    the hand as it appears)."""
+    images, boxes, right = [], [], []
+    for stem in videos:
+        video = data_dir / "video" / f"{stem}.mp4"
+        labels = np.load(data_dir / "video" / f"{stem}.mediapipe.npz")
+        cap = cv2.VideoCapture(str(video))
+        i = 0
+        while True:
+            ok, frame = cap.read()
+            if not ok or i >= len(labels["found"]):
+                break
+            found = labels["found"][i]
+            if i % stride == 0 and found.any():
+                boxed, lb = letterbox(frame, size)
+                b = np.full((2, 4), np.nan)
+                b[found] = joint_box(lb.to_input(labels["uv"][i][found]))
+                images.append(boxed[..., ::-1])
+                boxes.append(b)
+                right.append(labels["handedness"][i] == 0)
+            i += 1
+        cap.release()
+    return np.stack(images), np.stack(boxes), np.stack(right)
+
+
+def background_crops(repo_root, exclude=VAL_VIDEOS):
+    """The synth engine's hand-free real crops (M,160,160,3) RGB, minus those of `exclude`."""
+    cache = repo_root / ".cache" / "synth"
+    if not (cache / "backgrounds_v1.npy").is_file():
+        return np.zeros((0, INPUT_SIZE, INPUT_SIZE, 3), np.uint8)
+    crops = np.load(cache / "backgrounds_v1.npy")
+    meta = json.loads((cache / "backgrounds_v1.json").read_text())
+    keep, start = [], 0
+    for src in meta["sources"]:
+        if not any(v in src["video"] for v in exclude):
+            keep.extend(range(start, start + src["crops"]))
+        start += src["crops"]
+    return crops[keep]
+
+
+def load_synth(root, shards):
+    """Synthetic frames of the given shards: images (N,S,S,3) RGB, boxes (N,2,4), right (N,2)."""
+    meta = json.loads((root / "meta.json").read_text())
+    images, boxes, right = [], [], []
+    for k in shards:
+        with np.load(root / meta["shards"][k]) as d:
+            n = len(d["image"])
+            b = np.full((n, 2, 4), np.nan)
+            b[:, 0] = joint_box(d["uv"])
+            b[d["other_present"], 1] = joint_box(d["other_uv"][d["other_present"]])
+            images.append(d["image"])
+            boxes.append(b)
+            right.append(np.stack([d["handedness"] == 0, d["other_handedness"] == 0], 1))
+    return np.concatenate(images), np.concatenate(boxes), np.concatenate(right)
+
+
+def augment(rng, image, boxes, right, zoom=(0.55, 1.0)):
+    """Random zoom window of a square image into INPUT_SIZE, flip, photometric jitter.
+    boxes (2,4) in image px (NaN rows: none). Returns image, boxes, right in input px."""
+    s = image.shape[0]
+    side = s * rng.uniform(*zoom)
+    x0, y0 = rng.uniform(min(0, s - side), max(0, s - side), 2)
+    a = INPUT_SIZE / side
+    M = np.array([[a, 0, -a * x0], [0, a, -a * y0]])
+    out = cv2.warpAffine(image, M, (INPUT_SIZE, INPUT_SIZE), flags=cv2.INTER_AREA if a < 1 else cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=(BORDER_VALUE,) * 3)
+    b = boxes * a - np.array([a * x0, a * y0, a * x0, a * y0])
+    right = right.copy()
+    if rng.random() < 0.5:
+        out = out[:, ::-1]
+        b = np.stack([INPUT_SIZE - 1 - b[:, 2], b[:, 1], INPUT_SIZE - 1 - b[:, 0], b[:, 3]], 1)
+        right = ~right
+    gain, bias = rng.uniform(0.6, 1.4), rng.uniform(-30, 30)
+    out = np.clip(out.astype(np.float32) * gain + bias, 0, 255).astype(np.uint8)
+    return out, b, right
+
+
+def targets(boxes, right):
+    """Target maps of one image: heat (G,G), reg (4,G,G) offset x, offset y, log side,
+    right flag, and the mask (G,G) of centre cells."""
+    heat = np.zeros((GRID, GRID), np.float32)
+    reg = np.zeros((4, GRID, GRID), np.float32)
+    mask = np.zeros((GRID, GRID), np.float32)
+    gy, gx = np.mgrid[0:GRID, 0:GRID]
+    for box, r in zip(boxes, right):
+        if not np.all(np.isfinite(box)):
+            continue
+        cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+        side = max(box[2] - box[0], box[3] - box[1])
+        if side < MIN_SIDE_PX or not (0 <= cx < INPUT_SIZE - 0.5 and 0 <= cy < INPUT_SIZE - 0.5):
+            continue
+        fx, fy = (cx + 0.5) / STRIDE, (cy + 0.5) / STRIDE
+        ix, iy = int(fx), int(fy)
+        sigma = max(0.6, 0.12 * side / STRIDE)
+        heat = np.maximum(heat, np.exp(-((gx - ix) ** 2 + (gy - iy) ** 2) / (2 * sigma ** 2)))
+        reg[:, iy, ix] = (fx - ix, fy - iy, np.log(side / INPUT_SIZE), float(r))
+        mask[iy, ix] = 1.0
+    return heat, reg, mask
+
+
+class Batches:
+    """Training batches from real frames, synthetic frames and background crops."""
+
+    def __init__(self, real, synth, negatives):
+        self.real, self.synth, self.negatives = real, synth, negatives
+
+    def make(self, rng, n):
+        images, heats, regs, masks = [], [], [], []
+        n_neg = int(0.1 * n) if len(self.negatives) else 0
+        n_real = (n - n_neg) // 2 if len(self.real[0]) else 0
+        none = (np.full((2, 4), np.nan), np.zeros(2, bool))
+        picks = ([(self.real, i) for i in rng.integers(len(self.real[0]), size=n_real)] if n_real else []) + \
+                [(self.synth, i) for i in rng.integers(len(self.synth[0]), size=n - n_neg - n_real)] + \
+                [(None, i) for i in rng.integers(max(len(self.negatives), 1), size=n_neg)]
+        for source, i in picks:
+            if source is None:
+                img, b, r = augment(rng, self.negatives[i], *none, zoom=(0.6, 1.0))
+            else:
+                zoom = (0.5, 1.0) if source is self.real else (0.8, 1.0)
+                img, b, r = augment(rng, source[0][i], source[1][i], source[2][i], zoom)
+            h, g, m = targets(b, r)
+            images.append(img)
+            heats.append(h)
+            regs.append(g)
+            masks.append(m)
+        x = np.stack(images).transpose(0, 3, 1, 2).astype(np.float32) / 255.0
+        return x, np.stack(heats), np.stack(regs), np.stack(masks)
+
+
+# ----------------------------------------------------------------------------- model
+def build_model():
+    import torch
+    from torch import nn
+
+    def conv(cin, cout, stride=1, dilation=1):
+        return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, dilation, dilation, bias=False),
+                             nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+    class FinderNet(nn.Module):
+        """160 px RGB -> (5, 20, 20) maps (see hand_finder): 4 stride-2 stages, a 10x10
+        context branch added back at 20x20, a 3x3 + 1x1 head. About 40 M multiply-adds."""
+
+        def __init__(self):
+            super().__init__()
+            self.stem = nn.Sequential(conv(3, 16, 2), conv(16, 24, 2))                          # 40
+            self.s8 = nn.Sequential(conv(24, 48, 2), conv(48, 48), conv(48, 48, dilation=2))    # 20
+            self.s16 = nn.Sequential(conv(48, 64, 2), conv(64, 64), nn.Conv2d(64, 48, 1))       # 10
+            self.up = nn.Upsample(scale_factor=2, mode="nearest")
+            self.head = nn.Sequential(conv(48, 48), nn.Conv2d(48, 5, 1))
+            with torch.no_grad():
+                self.head[-1].bias.zero_()
+                self.head[-1].bias[0] = -4.0    # start with a low hand prior
+
+        def forward(self, image):
+            f8 = self.s8(self.stem(image))
+            return self.head(torch.relu(f8 + self.up(self.s16(f8))))
+
+    return FinderNet()
+
+
+def losses(out, heat, reg, mask):
+    """CenterNet focal loss + masked L1 (offset, log size) + BCE (handedness)."""
+    import torch
+    import torch.nn.functional as F
+    p = torch.sigmoid(out[:, 0]).clamp(1e-4, 1 - 1e-4)
+    pos = (heat > 0.999).float()
+    focal = -(pos * (1 - p) ** 2 * torch.log(p) + (1 - pos) * (1 - heat) ** 4 * p ** 2 * torch.log(1 - p))
+    n = mask.sum().clamp(min=1.0)
+    l_heat = focal.sum() / n
+    l_off = (F.l1_loss(out[:, 1:3], reg[:, 0:2], reduction="none").sum(1) * mask).sum() / n
+    l_size = (F.l1_loss(out[:, 3], reg[:, 2], reduction="none") * mask).sum() / n
+    l_hand = (F.binary_cross_entropy_with_logits(out[:, 4], reg[:, 3], reduction="none") * mask).sum() / n
+    return l_heat + l_off + l_size + 0.5 * l_hand, {"heat": l_heat.item(), "off": l_off.item(),
+                                                     "size": l_size.item(), "hand": l_hand.item()}
+
+
+def evaluate(model, images, boxes, right, threshold=0.3):
+    """Recall (IoU >= 0.3), false peaks per frame and handedness accuracy of found hands
+    on letterboxed INPUT_SIZE images with boxes (N,2,4) input px."""
+    import torch
+    model.eval()
+    hits = total = false = hand_ok = 0
+    with torch.no_grad():
+        for s in range(0, len(images), 64):
+            maps = model(torch.from_numpy(images[s:s + 64].transpose(0, 3, 1, 2).astype(np.float32) / 255)).numpy()
+            for m, b, r in zip(maps, boxes[s:s + 64], right[s:s + 64]):
+                found = decode(m, threshold)
+                valid = np.all(np.isfinite(b), 1) & (np.max(b[:, 2:] - b[:, :2], 1) >= MIN_SIDE_PX)
+                total += valid.sum()
+                used = set()
+                for box, _, pr in found:
+                    iou = box_iou(box, b[valid])[0] if valid.any() else np.zeros(0)
+                    j = int(np.argmax(iou)) if iou.size else -1
+                    if j >= 0 and iou[j] >= 0.3 and j not in used:
+                        used.add(j)
+                        hits += 1
+                        hand_ok += (pr > 0.5) == r[valid][j]
+                    else:
+                        false += 1
+    model.train()
+    return {"recall": hits / max(total, 1), "false_per_frame": false / max(len(images), 1),
+            "handedness_acc": hand_ok / max(hits, 1), "hands": int(total), "frames": len(images)}
+
+
+def export(model, path):
+    import torch
+    model.eval()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.onnx.export(model, torch.zeros(1, 3, INPUT_SIZE, INPUT_SIZE), str(path), input_names=["image"],
+                      output_names=["maps"], dynamic_axes={"image": {0: "n"}, "maps": {0: "n"}}, opset_version=17,
+                      dynamo=False)
+    print(f"exported {path} ({path.stat().st_size / 1e3:.0f} kB)")
+
+
+def main(args):
+    import torch
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    model = build_model()
+    args.run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt = args.run_dir / "last.pt"
+    if args.export_only:
+        model.load_state_dict(torch.load(ckpt)["model"])
+        export(model, args.export)
+        return
+    meta = json.loads((args.synth / "meta.json").read_text())
+    n_shards = len(meta["shards"])
+    synth = load_synth(args.synth, range(n_shards - 1))
+    synth_val = load_synth(args.synth, [n_shards - 1])
+    have_real = (args.data / "video").is_dir()
+    real = load_real_frames(args.data, TRAIN_VIDEOS) if have_real else (np.zeros((0,)), None, None)
+    negatives = background_crops(Path(__file__).resolve().parent.parent)
+    print(f"synthetic {len(synth[0])} (+{len(synth_val[0])} val), real {len(real[0])}, negatives {len(negatives)}")
+    val_sets = {"synth": synth_val}
+    if have_real:
+        imgs, boxes, right = load_real_frames(args.data, VAL_VIDEOS, stride=1, size=INPUT_SIZE)
+        val_sets["real"] = (imgs, boxes, right)
+    batches = Batches(real, synth, negatives)
+    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
+    start = 0
+    if args.resume and ckpt.is_file():
+        state = torch.load(ckpt)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["opt"])
+        start = state["iter"]
+    t0 = time.time()
+    for it in range(start, args.iters):
+        lr = args.lr / 50 + (args.lr - args.lr / 50) * 0.5 * (1 + np.cos(np.pi * it / args.iters))
+        for g in opt.param_groups:
+            g["lr"] = lr
+        x, heat, reg, mask = (torch.from_numpy(a) for a in batches.make(np.random.default_rng([args.seed, it]),
+                                                                        args.batch))
+        loss, parts = losses(model(x), heat, reg, mask)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if it % 25 == 0:
+            print(f"iter {it} loss {loss.item():.3f} " + " ".join(f"{k} {v:.3f}" for k, v in parts.items())
+                  + f" lr {lr:.2e} {(time.time() - t0) / (it - start + 1):.2f} s/it", flush=True)
+        if (it + 1) % args.ckpt_every == 0 or it + 1 == args.iters:
+            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "iter": it + 1}, ckpt)
+    results = {name: evaluate(model, *v) for name, v in val_sets.items()}
+    print(json.dumps(results, indent=1))
+    (args.run_dir / "val.json").write_text(json.dumps(results, indent=1))
+    export(model, args.export)

@@ -1,0 +1,64 @@
+"""detector: every hand's 2D and normalized 3D keypoints. /camera/image -> /hand/keypoints.
+
+A thin loop over handmocap.detector.HandDetector (hand finder when a track is lost or every
+`redetect_every` frames, DetNet on a 128 px crop per tracked hand, crops tracked from the
+previous 2D joints, left hands mirrored into the right-hand network, stable track ids).
+Takes the freshest image only (latest-only), publishes one HandKeypoints per processed
+image with its stamp; `hands` may be empty.
+
+Params: detnet (ONNX path, default models/detnet.onnx), finder (ONNX path, default
+models/finder.onnx; "none": try the centre square of the frame), threads (onnxruntime
+intra-op threads per network), max_hands, presence_threshold (a track ends below it),
+redetect_every (frames), crop_scale (crop side / joint-box side).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from handmocap.detector import CROP_SCALE, HandDetector
+from handmocap.node import Node, run
+
+PARAMS = {"detnet": None, "finder": None, "threads": 1, "max_hands": 2, "presence_threshold": 0.5,
+          "redetect_every": 10, "crop_scale": CROP_SCALE}
+
+
+def frame_bgr(image_msg):
+    """BGR (H,W,3) uint8 of an Image message (bgr8, rgb8, mono8 or jpeg)."""
+    import cv2
+    data, encoding = np.asarray(image_msg["data"]), image_msg["encoding"]
+    if encoding == "bgr8":
+        return data
+    if encoding == "rgb8":
+        return np.ascontiguousarray(data[..., ::-1])
+    if encoding == "mono8":
+        return cv2.cvtColor(data, cv2.COLOR_GRAY2BGR)
+    frame = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    if frame is None:
+        raise ValueError("undecodable JPEG image")
+    return frame
+
+
+def main() -> None:
+    node = Node("detector", params=PARAMS)
+    p = node.params
+    detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]), max_hands=int(p["max_hands"]),
+                                 presence_threshold=float(p["presence_threshold"]),
+                                 redetect_every=int(p["redetect_every"]), crop_scale=float(p["crop_scale"]))
+    node.subscribe("/camera/image", "Image", mode="latest")
+    node.advertise("/hand/keypoints", "HandKeypoints")
+    for msg in node:
+        try:
+            frame = frame_bgr(msg.data)
+        except ValueError as e:
+            node.log.warning("skipped an image: %s", e)
+            continue
+        hands = detector.process(frame)
+        node.publish("/hand/keypoints", {"width": int(frame.shape[1]), "height": int(frame.shape[0]), "hands": hands},
+                     stamp_ns=msg.stamp_ns, frame_id=msg.data["header"]["frame_id"])
+    node.log.info("%d frames, %d finder runs, %d crops", detector.stats["frames"], detector.stats["finder_runs"],
+                  detector.stats["crops"])
+    node.close()
+
+
+if __name__ == "__main__":
+    run(main)

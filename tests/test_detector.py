@@ -1,0 +1,254 @@
+"""The detector's geometry (crop <-> frame, mirroring of left hands, tracking, track ids)
+with dot-drawn hands and fake networks; then the real models, and the node in a graph."""
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import ROOT, graph_env
+from handmocap.hand_finder import FoundHand
+from handmocap.detector import CropTransform, HandDetector, crop_for_joints
+from handmocap.rotations import mirror_points
+from handmocap.skeleton import normalize_joints
+
+W, H = 640, 480
+DETNET = ROOT / "models" / "detnet.onnx"
+FINDER = ROOT / "models" / "finder.onnx"
+CLIP = ROOT / "data" / "demo" / "hand_clip.mp4"
+
+# ------------------------------------------------------------------ dot hands
+# Hands drawn as 21 coloured dots, and a fake DetNet and hand finder that read them back:
+# the fake DetNet finds each joint's colour in the crop it is given, so its 2D answer is
+# right only if the crop was cut where the detector says it was. A dot hand "appears
+# right" when its thumb tip is left of its little tip (image x).
+JOINT_COLOURS = np.array([(200, 240 - 11 * j, 20 + 11 * j) for j in range(21)], np.uint8)   # BGR
+RADIUS = 4
+
+
+def canonical_hand(centre, size, right=True):
+    """(21,2) px joints of an upright hand (fingers up) of joint-box height ~size."""
+    base_x = np.array([-0.45, -0.22, 0.0, 0.18, 0.34])
+    length = np.array([0.45, 0.6, 0.65, 0.6, 0.5])
+    uv = np.zeros((21, 2))
+    for f in range(5):
+        for k in range(4):
+            t = (k + 1) / 4
+            uv[1 + 4 * f + k] = (base_x[f] * (1 + 0.4 * t) - (0.25 * t if f == 0 else 0), -0.35 - length[f] * t)
+    uv[1:5, 1] += 0.3                                # thumb lower
+    uv *= size
+    if not right:
+        uv[:, 0] *= -1
+    return uv + np.asarray(centre, np.float64)
+
+
+def draw(frame, uv):
+    for j, (u, v) in enumerate(uv):
+        cv2.circle(frame, (int(round(u)), int(round(v))), RADIUS, tuple(int(c) for c in JOINT_COLOURS[j]), -1)
+    return frame
+
+
+def find_dots(image_bgr, tol=5):
+    """(21,2) centroids of each joint colour (NaN where absent)."""
+    img = image_bgr.astype(np.int16)
+    uv = np.full((21, 2), np.nan)
+    for j, c in enumerate(JOINT_COLOURS.astype(np.int16)):
+        ys, xs = np.nonzero(np.all(np.abs(img - c) <= tol, axis=-1))
+        if len(xs):
+            uv[j] = xs.mean(), ys.mean()
+    return uv
+
+
+def appears_right(uv):
+    return float(uv[4, 0] < uv[20, 0])
+
+
+class FakeDetNet:
+    """DetNetRunner's interface: crops (N,128,128,3) RGB -> uv, xyz, confidence, presence,
+    handedness. xyz: the 2D joints lifted to z = 0, normalized (or `xyz_right`, a fixed
+    right hand, when given)."""
+
+    def __init__(self, xyz_right=None):
+        self.xyz_right = xyz_right
+        self.calls = 0
+
+    def __call__(self, crops_rgb):
+        self.calls += 1
+        out = {k: [] for k in ("uv", "xyz", "confidence", "presence", "handedness")}
+        for crop in crops_rgb:
+            uv = find_dots(np.ascontiguousarray(crop[..., ::-1]))
+            seen = np.all(np.isfinite(uv), axis=1)
+            ok = seen.sum() >= 18
+            uv = np.where(seen[:, None], uv, np.nanmean(uv, axis=0) if seen.any() else 64.0)
+            xyz = normalize_joints(np.concatenate([uv, np.zeros((21, 1))], 1)) if self.xyz_right is None \
+                else self.xyz_right
+            out["uv"].append(uv)
+            out["xyz"].append(xyz)
+            out["confidence"].append(seen.astype(np.float32))
+            out["presence"].append(1.0 if ok else 0.0)
+            out["handedness"].append(appears_right(uv) if ok else 0.5)
+        return {k: np.asarray(v, np.float32) for k, v in out.items()}
+
+
+class FakeFinder:
+    """HandFinder's interface: blobs of dots -> FoundHand (joint box, score 1, right_prob)."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def find(self, image_bgr, threshold=None, max_hands=2):
+        self.calls += 1
+        mask = (image_bgr.max(axis=-1) > 30).astype(np.uint8)
+        mask = cv2.dilate(mask, np.ones((81, 81), np.uint8))
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask)
+        found = []
+        for k in np.argsort(-stats[1:, cv2.CC_STAT_AREA])[:max_hands] + 1:
+            sub = np.where((labels == k)[..., None], image_bgr, 0)
+            uv = find_dots(sub)
+            if np.isfinite(uv).all(axis=1).sum() < 18:
+                continue
+            box = np.concatenate([np.nanmin(uv, 0), np.nanmax(uv, 0)])
+            found.append(FoundHand(box, 1.0, appears_right(uv)))
+        return found
+
+
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_crop_round_trip_and_pixels_land_where_the_transform_says(mirrored):
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        crop = CropTransform.around(rng.uniform(-50, 700, 2), rng.uniform(30, 600), mirrored=mirrored)
+        uv = rng.uniform(-100, 700, (21, 2))
+        np.testing.assert_allclose(crop.to_frame(crop.to_crop(uv)), uv, atol=1e-9)
+    frame = np.zeros((H, W, 3), np.uint8)
+    for centre, side in (((300, 200), 257), ((20, 460), 200), ((600, 30), 90)):   # inside, past two edges
+        crop = CropTransform.around(centre, side, mirrored=mirrored)
+        dot = np.array(centre) + (17, -11)
+        frame[:] = 0
+        cv2.circle(frame, tuple(int(v) for v in dot), 6, (255, 255, 255), -1)
+        img = crop.cut(frame).astype(np.float64)[..., 0]
+        ys, xs = np.mgrid[:128, :128]
+        seen = np.array([(img * xs).sum(), (img * ys).sum()]) / img.sum()
+        np.testing.assert_allclose(seen, crop.to_crop(dot), atol=0.3)
+
+
+def test_crop_for_joints_is_the_square_around_the_joint_box_times_the_scale():
+    uv = canonical_hand((320, 240), 150)
+    crop = crop_for_joints(uv, scale=1.5)
+    side = np.max(uv.max(0) - uv.min(0))
+    assert abs(crop.side - 1.5 * side) <= 1
+    np.testing.assert_allclose((crop.box[:2] + crop.box[2:]) / 2, (uv.min(0) + uv.max(0)) / 2, atol=1)
+
+
+def detector(**kw):
+    return HandDetector(FakeDetNet(), FakeFinder(), **kw)
+
+
+def test_a_mirrored_hand_gives_back_the_mirrored_keypoints():
+    right = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160))
+    left = np.ascontiguousarray(right[:, ::-1])
+    out_r, out_l = detector().process(right), detector().process(left)
+    assert [h["handedness"] for h in out_r] == ["right"] and [h["handedness"] for h in out_l] == ["left"]
+    uv_r, uv_l = out_r[0]["uv"], out_l[0]["uv"]
+    np.testing.assert_allclose(uv_l[:, 0], W - 1 - uv_r[:, 0], atol=0.5)
+    np.testing.assert_allclose(uv_l[:, 1], uv_r[:, 1], atol=0.5)
+    np.testing.assert_allclose(uv_r, np.round(canonical_hand((250, 300), 160)), atol=1.2)   # dots are drawn at whole px
+    # xyz_rel is the hand as seen: the left one is the mirror image of the right one
+    np.testing.assert_allclose(out_l[0]["xyz_rel"], mirror_points(out_r[0]["xyz_rel"]), atol=0.02)
+
+
+def two_hand_frames(n, drop=()):
+    """A right hand moving right on the left, a left hand moving left on the right; the left
+    one is missing in frames `drop`. Returns frames and true uv per hand."""
+    frames, truth = [], []
+    for i in range(n):
+        frame = np.zeros((H, W, 3), np.uint8)
+        r = canonical_hand((150 + 1.5 * i, 330 - i), 130, right=True)
+        l_ = canonical_hand((500 - 1.5 * i, 320 + i), 120, right=False)
+        draw(frame, r)
+        if i not in drop:
+            draw(frame, l_)
+        frames.append(frame)
+        truth.append((np.round(r), None if i in drop else np.round(l_)))   # dots are drawn at whole px
+    return frames, truth
+
+
+def test_track_ids_are_stable_over_a_two_hand_sequence_and_never_reused():
+    det = detector(redetect_every=5)
+    frames, truth = two_hand_frames(40, drop=range(20, 25))
+    ids = []
+    for i, (frame, (r, l_)) in enumerate(zip(frames, truth)):
+        hands = {h["handedness"]: h for h in det.process(frame)}
+        # a returning hand is found by the next finder run, at most redetect_every frames later
+        want = {"right"} if l_ is None else {"right", "left"}
+        assert set(hands) == want or (25 <= i < 30 and set(hands) == {"right"}), i
+        np.testing.assert_allclose(hands["right"]["uv"], r, atol=1.2)
+        if "left" in hands:
+            np.testing.assert_allclose(hands["left"]["uv"], l_, atol=1.2)
+        ids.append({k: h["track_id"] for k, h in hands.items()})
+    assert all(d["right"] == ids[0]["right"] for d in ids)
+    assert all(d["left"] == ids[0]["left"] for d in ids[:20])
+    assert all(d["left"] == ids[30]["left"] for d in ids[30:])
+    assert ids[30]["left"] not in (ids[0]["left"], ids[0]["right"])   # a lost hand comes back as a new track
+    # the finder ran at the start, after the loss, then every 5 frames until the hand was back
+    assert det.stats["finder_runs"] <= 1 + 1 + 2
+
+
+def test_tracked_hands_do_not_run_the_finder():
+    det = detector(redetect_every=5)
+    frames, _ = two_hand_frames(30)
+    for f in frames:
+        det.process(f)
+    assert det.finder.calls == 1 and det.stats["crops"] == 2 * 30 + 2    # + the refinement of each new track
+
+
+def test_empty_frame_gives_no_hands():
+    assert detector().process(np.zeros((H, W, 3), np.uint8)) == []
+
+
+# ------------------------------------------------------------------ trained models
+needs_models = pytest.mark.skipif(not (DETNET.is_file() and FINDER.is_file()),
+                                  reason="models/detnet.onnx or models/finder.onnx not committed yet")
+
+
+@needs_models
+def test_real_models_follow_the_rendered_clip():
+    truth = np.load(ROOT / "data" / "demo" / "hand_clip.npz")
+    det = HandDetector.load()
+    cap = cv2.VideoCapture(str(CLIP))
+    errors, found = [], 0
+    for i in range(len(truth["uv"])):
+        ok, frame = cap.read()
+        hands = det.process(frame)
+        if hands:
+            found += 1
+            errors.append(np.linalg.norm(hands[0]["uv"] - truth["uv"][i], axis=-1).mean())
+    assert found >= 0.9 * len(truth["uv"]), found
+    assert np.median(errors) < 12.0, np.median(errors)
+
+
+@needs_models
+def test_detector_node_publishes_one_keypoints_message_per_frame(tmp_path, run_dir):
+    """replay -> detector -> recorder on the rendered clip: one /hand/keypoints per frame,
+    each with the stamp of its image (replay at 10 fps so the detector keeps up)."""
+    from handmocap import codec
+    from handmocap.bag import iter_messages
+    bag = tmp_path / "out.mcap"
+    lf = tmp_path / "g.yaml"
+    lf.write_text(f"""
+nodes:
+  replay: {{node: replay, params: {{source: {CLIP}, rate: 1.0, fps: 10}}, required: true}}
+  detector: {{node: detector, required: true}}
+  recorder: {{node: recorder, params: {{output: {bag}, overwrite: true}}, required: true}}
+""")
+    r = subprocess.run([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    stamps = {"Image": [], "HandKeypoints": []}
+    for topic, type_name, payload, _ in iter_messages(bag):
+        if type_name in stamps:
+            msg = codec.decode(payload, type_name)
+            stamps[type_name].append(msg["header"]["stamp_ns"])
+    frames = len(np.load(ROOT / "data" / "demo" / "hand_clip.npz")["uv"])
+    assert len(stamps["Image"]) == frames
+    assert stamps["HandKeypoints"] == stamps["Image"]
