@@ -152,23 +152,45 @@ def summary_line(name, s):
     return text
 
 
-def plot_curves(curves, path, title=""):
-    """PNG of PCK curves: curves = {label: (thresholds_mm, pck)}."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(5, 4), dpi=100)
-    for label, (t, c) in curves.items():
-        ax.plot(t, c, marker="o", ms=3, label=label)
-    ax.set_xlabel("error threshold (mm)")
-    ax.set_ylabel("3D PCK (root and scale aligned)")
-    ax.set_ylim(0, 1)
-    ax.grid(alpha=0.3)
-    ax.set_title(title)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+COLOURS = ((200, 90, 30), (40, 140, 240), (60, 170, 60), (30, 30, 200), (150, 60, 150))   # BGR
+
+
+def plot_curves(curves, path, title="", xlabel="error threshold (mm)", ylabel="PCK"):
+    """PNG (OpenCV drawing, no plotting library) of PCK curves: curves = {label:
+    (thresholds, pck (T,))}; y from 0 to 1, x over the thresholds' range."""
+    import cv2
+    w, h, left, right, top, bottom = 560, 420, 60, 20, 30, 50
+    img = np.full((h, w, 3), 255, np.uint8)
+    t_all = np.concatenate([np.asarray(t, float) for t, _ in curves.values()])
+    x0, x1 = float(t_all.min()), float(t_all.max())
+
+    def px(t, c):
+        return (np.stack([left + (np.asarray(t, float) - x0) / max(x1 - x0, 1e-9) * (w - left - right),
+                          h - bottom - np.asarray(c, float) * (h - top - bottom)], -1)).round().astype(np.int32)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for k in range(6):                                   # grid and tick labels
+        y = k / 5
+        a, b = px([x0, x1], [y, y])
+        cv2.line(img, tuple(a), tuple(b), (225, 225, 225), 1)
+        cv2.putText(img, f"{y:.1f}", (8, int(a[1]) + 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        xv = x0 + k / 5 * (x1 - x0)
+        a, b = px([xv, xv], [0, 1])
+        cv2.line(img, tuple(a), tuple(b), (225, 225, 225), 1)
+        cv2.putText(img, f"{xv:g}", (int(a[0]) - 10, h - bottom + 16), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.rectangle(img, tuple(px(x0, 1)), tuple(px(x1, 0)), (0, 0, 0), 1)
+    cv2.putText(img, xlabel, (w // 2 - 80, h - 12), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, f"{ylabel}  {title}", (left, 20), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    for i, (label, (t, c)) in enumerate(curves.items()):
+        colour = COLOURS[i % len(COLOURS)]
+        c = np.nan_to_num(np.asarray(c, float))
+        pts = px(t, c)
+        cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, colour, 2, cv2.LINE_AA)
+        for p in pts:
+            cv2.circle(img, tuple(int(v) for v in p), 3, colour, -1, cv2.LINE_AA)
+        cv2.putText(img, f"{label} (AUC {metrics.auc(t, c):.3f})", (left + 10, h - bottom - 12 - 18 * i), font, 0.45,
+                    colour, 1, cv2.LINE_AA)
+    if not cv2.imwrite(str(path), img):
+        raise ValueError(f"{path}: cannot write the PNG")
 
 
 def to_jsonable(x):
@@ -399,21 +421,11 @@ def cmd_score(args):
     if args.png:
         curves = {label: (s[k]["thresholds_mm"], s[k]["pck"]) for k, label in
                   (("3d_detnet", "DetNet"), ("3d_pipeline", "DetNet+IKNet+FK")) if k in s}
-        if not curves:   # no 3D ground truth: the 2D curve
-            import matplotlib
-            matplotlib.use("Agg")
-            import matplotlib.pyplot as plt
-            fig, ax = plt.subplots(figsize=(5, 4), dpi=100)
-            ax.plot(s["2d"]["thresholds_px"], s["2d"]["pck"], marker="o", ms=3)
-            ax.set_xlabel("error threshold (px)")
-            ax.set_ylabel("2D PCK")
-            ax.set_ylim(0, 1)
-            ax.grid(alpha=0.3)
-            fig.tight_layout()
-            fig.savefig(args.png)
-            plt.close(fig)
-        else:
-            plot_curves(curves, args.png, Path(args.pred).stem)
+        if curves:
+            plot_curves(curves, args.png, Path(args.pred).stem, ylabel="3D PCK (root/scale aligned)")
+        else:            # no 3D ground truth: the 2D curve
+            plot_curves({"2D": (s["2d"]["thresholds_px"], s["2d"]["pck"])}, args.png, Path(args.pred).stem,
+                        xlabel="error threshold (px)", ylabel="2D PCK")
         print(f"wrote {args.png}")
     if args.json:
         Path(args.json).write_text(json.dumps(to_jsonable(s), indent=1))

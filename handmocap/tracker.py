@@ -31,15 +31,16 @@ from .skeleton import ROOT
 
 class HandTracker:
     """detnet, finder, iknet, model: paths (None: the bundled ones; finder "none": no
-    finder, the centre square is tried instead). smooth: One Euro smoothing of rotations and
+    finder, the centre square is tried instead); detector: a ready HandDetector instead of
+    detnet/finder. smooth: One Euro smoothing of rotations and
     translation per track (off for single images). vertices: add each hand's mesh
     vertices (V,3) m camera frame. Other keywords go to HandDetector (max_hands,
     presence_threshold, redetect_every, crop_scale)."""
 
     def __init__(self, detnet=None, finder=None, iknet=None, model=None, threads=1, smooth=True,
-                 vertices=False, fps=30.0, clamp_to_limits=True, **detector_kwargs):
+                 vertices=False, fps=30.0, clamp_to_limits=True, detector=None, **detector_kwargs):
         self.model = HandModel.load(model)
-        self.detector = HandDetector.load(detnet, finder, threads=threads, **detector_kwargs)
+        self.detector = detector or HandDetector.load(detnet, finder, threads=threads, **detector_kwargs)
         self.shapes = ShapeEstimator(self.model)
         self.poses = PoseEstimator(IKSolver.load(iknet, threads=threads, model=self.model), self.model,
                                    {**IK_PARAMS, "smooth": smooth, "clamp_to_limits": clamp_to_limits})
