@@ -5,7 +5,9 @@ Run with a throwaway environment that has MediaPipe (never a project dependency)
     python3.11 -m venv /tmp/mpenv
     /tmp/mpenv/bin/pip install mediapipe==0.10.21 opencv-python-headless numpy
     handsynth generate -n 500 -o /tmp/synth_crops
-    /tmp/mpenv/bin/python scripts/mediapipe_realism.py /tmp/synth_crops [--upscale 256] [-n 500]
+    /tmp/mpenv/bin/python scripts/mediapipe_realism.py /tmp/synth_crops [--upscale 256] [-n 500] [--pad 0.5]
+    # the same measure on real webcam hands framed the same way (the reference):
+    /tmp/mpenv/bin/python scripts/mediapipe_realism.py --real shared/data/labelled2d/howiema_lstm_pm
 
 Reads the .npz shards directly (numpy only, no handmocap import). For each image it runs
 mediapipe.solutions.hands (static images, up to 2 hands, detection confidence 0.5) on the
@@ -38,9 +40,47 @@ def load(root, n):
     return {k: np.concatenate(v)[:n] for k, v in parts.items()}, meta
 
 
+def real_webcam_crops(root, n, size=128, crop_scale=1.3, joint_to_vertex_box=1.16, seed=0):
+    """Real hands framed like the engine's crops, as a reference for the same measure.
+
+    root: shared/data/labelled2d/howiema_lstm_pm (256 px webcam frames, 21 labelled
+    joints, MediaPipe order = ours). The square crop is the joints' box x
+    `joint_to_vertex_box` (the median ratio of the engine's vertex box to its joint box)
+    x crop_scale x U(0.85, 1.2), centre jittered by up to 8%, replicated border outside the
+    frame, resized to `size`. Returns the dict `load` returns (box: the joints' box)."""
+    rng = np.random.default_rng(seed)
+    items = []
+    for label_file in sorted(Path(root, "label").glob("*/*.json")):
+        labels = json.loads(label_file.read_text())
+        for key, pts in labels.items():
+            if key != "offset":
+                items.append((label_file.parent.name, label_file.stem, key, np.asarray(pts, np.float64)))
+    order = rng.permutation(len(items))[:n]
+    out = {k: [] for k in ("image", "uv", "box", "handedness", "visible")}
+    for i in order:
+        subject, seq, key, uv = items[i]
+        frame = cv2.imread(str(Path(root, "frames", subject, seq, f"{seq[0]}{key}.jpg")))[..., ::-1]
+        lo, hi = uv.min(0), uv.max(0)
+        side = (hi - lo).max() * joint_to_vertex_box * crop_scale * rng.uniform(0.85, 1.2)
+        centre = 0.5 * (lo + hi) + rng.uniform(-0.08, 0.08, 2) * (hi - lo).max() * joint_to_vertex_box
+        s = size / side
+        M = np.float32([[s, 0, size / 2 - s * centre[0]], [0, s, size / 2 - s * centre[1]]])
+        out["image"].append(cv2.warpAffine(np.ascontiguousarray(frame), M, (size, size), flags=cv2.INTER_AREA,
+                                           borderMode=cv2.BORDER_REPLICATE))
+        crop_uv = uv * s + M[:, 2]
+        out["uv"].append(crop_uv)
+        out["box"].append(np.r_[crop_uv.min(0), crop_uv.max(0)])
+        out["handedness"].append(int(seq[0] == "L"))
+        out["visible"].append(np.ones(21, bool))
+    data = {k: np.stack(v) for k, v in out.items()}
+    return data, {"config": {"mode": "real webcam crop"}, "backgrounds": "real"}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("data", type=Path, help="a directory written by `handsynth generate`")
+    ap.add_argument("data", type=Path, help="a directory written by `handsynth generate`, or with --real the "
+                    "howiema_lstm_pm folder of shared/data/labelled2d")
+    ap.add_argument("--real", action="store_true", help="real webcam frames cropped like the engine's crops")
     ap.add_argument("-n", type=int, default=500)
     ap.add_argument("--upscale", type=int, default=256, help="side in px fed to MediaPipe (0: as stored)")
     ap.add_argument("--pad", type=float, default=0.0,
@@ -50,7 +90,7 @@ def main():
     args = ap.parse_args()
 
     import mediapipe as mp
-    data, meta = load(args.data, args.n)
+    data, meta = real_webcam_crops(args.data, args.n) if args.real else load(args.data, args.n)
     n, size = len(data["image"]), data["image"].shape[1]
     side = args.upscale or size
     found = np.zeros(n, bool)

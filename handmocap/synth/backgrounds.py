@@ -139,7 +139,7 @@ def _fractal_noise(rng, size, octaves=5, persistence=0.55):
 
 
 def _palette(rng, k):
-    cols = random_hsv_colours(rng, k, sat=(0.0, 0.7), val=(0.08, 0.95))
+    cols = random_hsv_colours(rng, k, sat=(0.0, 0.55), val=(0.08, 0.95))
     return cols.astype(np.float32)
 
 
@@ -188,8 +188,10 @@ def procedural_background(rng, size):
     img = np.clip(img, 0, 1)
     if rng.random() < 0.6:
         img = _draw_shapes(rng, img, int(rng.integers(2, 14)))
-    if rng.random() < 0.5:
-        img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.5, 3.0))
+    # like a room behind a hand at arm's length: light falls off across it, and it is
+    # out of focus (the camera focuses on the hand)
+    img = img * (0.65 + 0.5 * _fractal_noise(rng, size, octaves=2)[..., None])
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), rng.uniform(0.5, 4.0) * size / 128)
     return (np.clip(img, 0, 1) * 255).astype(np.uint8)
 
 

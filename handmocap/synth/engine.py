@@ -48,7 +48,7 @@ class SynthConfig:
     second_hand: float = 0.2           # probability of a second hand in the image
     occluder: float = 0.35             # probability of 1-2 objects in front of the hand
     backgrounds: str = "auto"          # auto (real when cached / available), procedural
-    real_fraction: float = 0.7         # share of real backgrounds when there are any
+    real_fraction: float = 0.85        # share of real backgrounds when there are any
     augment: bool = True
     beta_sigma: float = 1.0
 
@@ -149,7 +149,7 @@ class SynthEngine:
         # -- occluders, backgrounds, appearance
         obj_tri, obj_draws, occ_count = self._occluders(rng, xyz1, n)
         bg, real_bg = self.backgrounds.sample(rng, n, T)
-        bg_linear = appearance.to_linear(bg.reshape(n, -1, 3).mean(1) / 255.0)
+        bg_linear = appearance.to_linear(bg[:, ::4, ::4].reshape(n, -1, 3).mean(1, dtype=np.float32) / 255.0)
         lights = appearance.light_blocks(rng, n, bg_linear)
         base, palm, nail, dark = appearance.sample_skin(rng, n)
         owner = np.concatenate([np.arange(n), np.flatnonzero(has2)])

@@ -2,7 +2,7 @@
 
 When `handmocap.pose_data` is there (IKNet's pose sampler: uniform, per-finger templates
 and whole-hand gestures — fists, grasps, pinches, OK, counting), its `sample_angles`
-gives the anatomical finger angles (with a smaller uniform share, 20%: random-finger
+gives the anatomical finger angles (with a smaller uniform share, 10%: random-finger
 hands look odd in pictures), 30% of them moved toward rest. Otherwise a curl model over
 the anatomical angles of handmocap.joint_limits:
 * 25%: every joint uniform within its limits (coverage of odd poses);
@@ -31,7 +31,7 @@ def _external_sampler(model):
     except ImportError:
         return None
     try:
-        sampler = DataPoseSampler(model, p_uniform=0.2)
+        sampler = DataPoseSampler(model, p_uniform=0.1)
     except TypeError:
         sampler = DataPoseSampler(model)
     return getattr(sampler, "sample_angles", None)

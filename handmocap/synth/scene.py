@@ -22,20 +22,24 @@ from .mesh import FOREARM_END_Y
 FULL_FRAME = (640, 480)
 
 
-def sample_rotations(rng, n):
+def sample_rotations(rng, n, uniform_share=0.1, side_share=0.3):
     """(n,3,3) model -> camera rotations covering palm, back, side, above, below.
 
-    75%: R = Rz(roll) Rx(pitch) Ry(yaw): yaw uniform (palm, side, back of the hand),
-    pitch N(0, 40 deg) within +-85 (fingers towards or away from the camera), roll
-    N(0, 45 deg) (fingers up in the image) or, for 15% of these, any roll; 25%: uniform.
+    Like hands in front of a webcam: (1 - uniform_share): R = Rz(roll) Rx(pitch) Ry(yaw)
+    with yaw (turn about the fingers' axis) near the palm or the back facing the camera
+    (N(0 or 180 deg, 35 deg)), or for `side_share` of these uniform (side views);
+    pitch N(0, 35 deg) within +-85 (fingers towards or away from the camera); roll
+    N(0, 45 deg) (fingers up in the image) or, for 15%, any roll. uniform_share: uniform
+    over SO(3) (coverage of every view).
     """
-    yaw = rng.uniform(-np.pi, np.pi, n)
-    pitch = np.clip(rng.normal(0, np.radians(40), n), -np.radians(85), np.radians(85))
+    facing = rng.normal(0, np.radians(35), n) + np.where(rng.random(n) < 0.5, 0.0, np.pi)
+    yaw = np.where(rng.random(n) < side_share, rng.uniform(-np.pi, np.pi, n), facing)
+    pitch = np.clip(rng.normal(0, np.radians(35), n), -np.radians(85), np.radians(85))
     roll = np.where(rng.random(n) < 0.15, rng.uniform(-np.pi, np.pi, n), rng.normal(0, np.radians(45), n))
     ex, ey, ez = np.eye(3)
     R = (axis_angle_to_matrix(roll[:, None] * ez) @ axis_angle_to_matrix(pitch[:, None] * ex)
          @ axis_angle_to_matrix(yaw[:, None] * ey))
-    uniform = rng.random(n) < 0.25
+    uniform = rng.random(n) < uniform_share
     q = rng.normal(size=(int(uniform.sum()), 4))
     R[uniform] = quat_to_matrix(q)
     return R
