@@ -12,7 +12,8 @@ Per frame (`HandDetector.process`):
    flipped horizontally, so DetNet always sees a right hand; its 2D is un-flipped and its
    3D mirrored back (x -> -x): HandKeypoints' xyz_rel is the hand as seen.
 3. One batched DetNet call for all crops; presence below `presence_threshold` ends the
-   track; a new track's crop is refined once from its own first 2D prediction.
+   track, and so do joints centred outside the frame or spread over more than twice its
+   size; a new track's crop is refined once from its own first 2D prediction.
 4. The next frame's crop of a track comes from this frame's 2D joints (their box, centre
    moved on by half the last displacement), as MediaPipe and the paper's videos do.
 5. Handedness per track: a running mean in logit space of DetNet's handedness head
@@ -270,6 +271,9 @@ class HandDetector:
                 self.lost_last_frame = True
                 continue
             uv = t.crop.to_frame(out["uv"][i])
+            if not self._plausible(uv, image_bgr.shape):
+                self.lost_last_frame = True
+                continue
             xyz = np.asarray(out["xyz"][i], dtype=np.float64)
             right_seen = float(out["handedness"][i])
             if t.crop.mirrored:
@@ -288,6 +292,16 @@ class HandDetector:
         self.tracks = keep
         hands = self._drop_duplicates(hands)
         return sorted(hands, key=lambda h: h["track_id"])
+
+    @staticmethod
+    def _plausible(uv, shape):
+        """A hand whose joints are finite, centred inside the frame and no wider than twice it."""
+        if not np.all(np.isfinite(uv)):
+            return False
+        h, w = shape[:2]
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        centre = (lo + hi) / 2
+        return bool(0 <= centre[0] < w and 0 <= centre[1] < h and np.max(hi - lo) <= 2 * max(h, w))
 
     def _drop_duplicates(self, hands, iou=0.5):
         """Two tracks on one hand: keep the higher score (ties: the older track)."""

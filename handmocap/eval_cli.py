@@ -1,9 +1,10 @@
 """`handeval`: run the image-to-pose pipeline on images and score it.
 
     handeval predict --images DIR|VIDEO [--K fx,fy,cx,cy | --K-file K.npy] --out PRED.npz [--sequence]
+                     [--detnet PATH] [--finder PATH|none] [--iknet PATH]
     handeval score --pred PRED.npz --gt GT.npz [--png CURVE.png] [--json OUT.json]
     handeval splits [--data shared/data] [--work /tmp/handeval] [--markdown TABLE.md]
-                    [--reference mediapipe]
+                    [--reference mediapipe|none] [--only SPLIT ...] [--detnet ...]
 
 predict: HandTracker on every image of DIR sorted by name (each image on its own: tracks
 reset, no smoothing; --sequence treats the images as consecutive video frames) or on every
@@ -80,15 +81,16 @@ def put_hands(pred, i, hands):
         pred["found"][i], pred["handedness"][i], pred["score"][i] = True, h["handedness"], h["score"]
 
 
-def predict(source, K=None, out=None, sequence=None, tracker=None, log=print):
+def predict(source, K=None, out=None, sequence=None, tracker=None, models=None, log=print):
     """Run HandTracker on a folder of images or a video; returns the PRED dict (and writes
-    it to `out` when given). K: None, or (N,3,3) per frame (see parse_K)."""
+    it to `out` when given). K: None, or (N,3,3) per frame (see parse_K); models: dict of
+    HandTracker path keywords (detnet, finder, iknet)."""
     from .tracker import HandTracker
     frames = open_frames(source)
     is_video = not Path(source).is_dir()
     sequence = is_video if sequence is None else sequence
     n = frames.frame_count
-    tracker = tracker or HandTracker(smooth=sequence, max_hands=MAX_HANDS)
+    tracker = tracker or HandTracker(smooth=sequence, max_hands=MAX_HANDS, **(models or {}))
     tracker.poses.p["smooth"] = sequence
     pred = empty_prediction(n)
     count = 0
@@ -368,7 +370,7 @@ TABLE_HEAD = ("| split | method | images | found % | 2D mean px | 2D PCK@10px | 
               "3D AUC / mean mm: DetNet+IKNet+FK |\n|---|---|---|---|---|---|---|---|")
 
 
-def run_splits(data, work, markdown=None, reference="mediapipe"):
+def run_splits(data, work, markdown=None, reference="mediapipe", models=None, only=None):
     """Build every split under `work` (once), predict with HandTracker (and MediaPipe when
     its venv exists), score, print and optionally write the markdown table."""
     import subprocess
@@ -377,6 +379,8 @@ def run_splits(data, work, markdown=None, reference="mediapipe"):
     rows = [TABLE_HEAD]
     use_ref = reference == "mediapipe" and REFERENCE_PYTHON.is_file()
     for name, build in SPLITS.items():
+        if only and name not in only:
+            continue
         root = work / name
         if not (root / "meta.json").is_file():
             build(data, root)
@@ -384,7 +388,7 @@ def run_splits(data, work, markdown=None, reference="mediapipe"):
         with np.load(root / "gt.npz") as g:
             gt = {k: g[k] for k in g.files}
         K = np.load(root / "K.npy") if (root / "K.npy").is_file() else None
-        pred = predict(root / "images", K, root / "pred.npz", sequence=meta["sequence"])
+        pred = predict(root / "images", K, root / "pred.npz", sequence=meta["sequence"], models=models)
         s = score(pred, gt)
         print(summary_line(name, s), flush=True)
         rows.append(table_row(name, "ours", s))
@@ -408,7 +412,17 @@ def cmd_predict(args):
     source = Path(args.images)
     count = open_frames(source).frame_count
     K = parse_K(args.K, args.K_file, count)
-    predict(source, K, args.out, sequence=True if args.sequence else None)
+    predict(source, K, args.out, sequence=True if args.sequence else None, models=model_paths(args))
+
+
+def model_paths(args):
+    return {k: getattr(args, k) for k in ("detnet", "finder", "iknet") if getattr(args, k, None)}
+
+
+def add_model_arguments(p):
+    p.add_argument("--detnet", help="DetNet ONNX (default models/detnet.onnx)")
+    p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx; 'none': centre square)")
+    p.add_argument("--iknet", help="IKNet ONNX (default models/iknet.onnx)")
 
 
 def cmd_score(args):
@@ -432,7 +446,7 @@ def cmd_score(args):
 
 
 def cmd_splits(args):
-    run_splits(Path(args.data), Path(args.work), args.markdown, args.reference)
+    run_splits(Path(args.data), Path(args.work), args.markdown, args.reference, model_paths(args), args.only)
 
 
 def main(argv=None):
@@ -445,6 +459,7 @@ def main(argv=None):
     k.add_argument("--K-file", help=".npy with (4,), (3,3), (N,4) or (N,3,3)")
     p.add_argument("--out", required=True)
     p.add_argument("--sequence", action="store_true", help="the folder's images are consecutive video frames")
+    add_model_arguments(p)
     p.set_defaults(run=cmd_predict)
     s = sub.add_parser("score", help="PCK/AUC and 2D error of a PRED.npz against a GT.npz")
     s.add_argument("--pred", required=True)
@@ -458,6 +473,8 @@ def main(argv=None):
     t.add_argument("--markdown", help="write the table (markdown) here")
     t.add_argument("--reference", default="mediapipe", choices=["mediapipe", "none"],
                    help="also score MediaPipe Hands (scripts/mediapipe_reference.py in /tmp/mpenv) when available")
+    t.add_argument("--only", nargs="+", choices=list(SPLITS), help="these splits only")
+    add_model_arguments(t)
     t.set_defaults(run=cmd_splits)
     args = parser.parse_args(argv)
     try:

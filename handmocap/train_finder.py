@@ -238,9 +238,16 @@ def losses(out, heat, reg, mask):
                                                      "size": l_size.item(), "hand": l_hand.item()}
 
 
+def square(boxes):
+    """(..., 4) boxes -> the squares of side max(width, height) on the same centres."""
+    c, side = (boxes[..., :2] + boxes[..., 2:]) / 2, np.max(boxes[..., 2:] - boxes[..., :2], -1, keepdims=True)
+    return np.concatenate([c - side / 2, c + side / 2], -1)
+
+
 def evaluate(model, images, boxes, right, threshold=0.3):
-    """Recall (IoU >= 0.3), false peaks per frame and handedness accuracy of found hands
-    on letterboxed INPUT_SIZE images with boxes (N,2,4) input px."""
+    """Recall (IoU >= 0.3 with the square joint box: what the finder predicts), false
+    peaks per frame and handedness accuracy of found hands on letterboxed INPUT_SIZE
+    images with joint boxes (N,2,4) input px."""
     import torch
     model.eval()
     hits = total = false = hand_ok = 0
@@ -250,6 +257,7 @@ def evaluate(model, images, boxes, right, threshold=0.3):
             for m, b, r in zip(maps, boxes[s:s + 64], right[s:s + 64]):
                 found = decode(m, threshold)
                 valid = np.all(np.isfinite(b), 1) & (np.max(b[:, 2:] - b[:, :2], 1) >= MIN_SIDE_PX)
+                b = square(b)
                 total += valid.sum()
                 used = set()
                 for box, _, pr in found:

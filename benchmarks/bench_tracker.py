@@ -1,0 +1,98 @@
+"""HandTracker.process on 640x480 frames with one tracked hand, the detector's parts, and
+MediaPipe Hands (tracking/video mode) on the same frames when /tmp/mpenv has it.
+
+    python benchmarks/bench_tracker.py [--video data/demo/hand_clip.mp4] [--repeat 3] [--threads 1]
+                                       [--detnet PATH] [--finder PATH]
+
+Prints median and p90 ms per frame of: the whole pipeline (HandTracker.process: detector +
+shape + IKNet + FK + translation + smoothing), the detector alone (HandDetector.process),
+DetNet alone on one crop and on a batch of 16 (crops/s), the hand finder on a frame, and
+MediaPipe's ms per frame (scripts/mediapipe_reference.py --bench, a subprocess) with the
+ratio. The first pass over the clip is a warm-up (the finder runs on the first frame
+only; afterwards the hand is tracked).
+"""
+import argparse
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+MP_PYTHON = Path("/tmp/mpenv/bin/python")
+
+
+def stats(times_s):
+    t = 1e3 * np.asarray(times_s)
+    return {"median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)), "n": int(t.size)}
+
+
+def timed(fn, items, repeat):
+    out = []
+    for _ in range(repeat):
+        for x in items:
+            t = time.perf_counter()
+            fn(x)
+            out.append(time.perf_counter() - t)
+    return out
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--video", default=str(ROOT / "data" / "demo" / "hand_clip.mp4"))
+    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads per network")
+    p.add_argument("--detnet", help="DetNet ONNX (default models/detnet.onnx)")
+    p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx)")
+    args = p.parse_args()
+    from handmocap.detector import HandDetector
+    from handmocap.tracker import HandTracker
+
+    cap = cv2.VideoCapture(args.video)
+    frames = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.resize(f, (640, 480)) if f.shape[:2] != (480, 640) else f)
+    results = {"frames": len(frames), "load_avg": os.getloadavg()[0], "threads": args.threads}
+
+    tracker = HandTracker(detnet=args.detnet, finder=args.finder, threads=args.threads)
+    for f in frames:                   # warm-up pass, and the hand is tracked from here on
+        tracker.process(f)
+    results["tracker"] = stats(timed(tracker.process, frames, args.repeat))
+    results["tracker"]["hands_per_frame"] = float(np.mean([len(tracker.process(f)) for f in frames]))
+
+    det = HandDetector.load(args.detnet, args.finder, threads=args.threads)
+    for f in frames:
+        det.process(f)
+    results["detector"] = stats(timed(det.process, frames, args.repeat))
+    results["detector"]["finder_runs_per_frame"] = det.stats["finder_runs"] / det.stats["frames"]
+
+    crops = np.random.default_rng(0).integers(0, 255, (16, 128, 128, 3), np.uint8)
+    one = stats(timed(lambda c: det.detnet(c[None]), list(crops), args.repeat * 4))
+    batch = stats(timed(det.detnet, [crops] * 10, args.repeat))
+    results["detnet_1_crop"] = {**one, "crops_per_s": 1e3 / one["median_ms"]}
+    results["detnet_16_crops"] = {**batch, "crops_per_s": 16e3 / batch["median_ms"]}
+    results["finder"] = stats(timed(det.finder.find, frames[:30], args.repeat))
+
+    if MP_PYTHON.is_file():
+        r = subprocess.run([str(MP_PYTHON), str(ROOT / "scripts" / "mediapipe_reference.py"), "--bench", args.video],
+                           capture_output=True, text=True)
+        lines = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]
+        if r.returncode == 0 and lines:
+            results["mediapipe_video_mode"] = json.loads(lines[-1])
+            results["mediapipe_over_tracker"] = results["mediapipe_video_mode"]["median_ms"] / \
+                results["tracker"]["median_ms"]
+        else:
+            results["mediapipe_video_mode"] = f"failed: {r.stderr[-300:]}"
+    else:
+        results["mediapipe_video_mode"] = "not measured: /tmp/mpenv absent"
+    print(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
