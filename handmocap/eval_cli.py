@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -116,7 +117,9 @@ def pick_nearest(pred, gt_uv):
     xyz_rel, uv (N,21,·) and found (N,)."""
     if "all_uv" not in pred:
         return pred["xyz"], pred["xyz_rel"], pred["uv"], pred["found"]
-    d = np.nanmean(np.linalg.norm(pred["all_uv"] - gt_uv[:, None], axis=-1), axis=-1)   # (N,H)
+    with warnings.catch_warnings():      # all-NaN rows (no hand, or no ground truth) are expected
+        warnings.simplefilter("ignore", RuntimeWarning)
+        d = np.nanmean(np.linalg.norm(pred["all_uv"] - gt_uv[:, None], axis=-1), axis=-1)   # (N,H)
     d = np.where(pred["all_found"] & np.isfinite(d), d, np.inf)
     k = np.argmin(d, axis=1)
     rows = np.arange(len(k))

@@ -3,13 +3,14 @@
 A thin loop over handmocap.detector.HandDetector (hand finder when a track is lost or every
 `redetect_every` frames, DetNet on a 128 px crop per tracked hand, crops tracked from the
 previous 2D joints, left hands mirrored into the right-hand network, stable track ids).
-Takes the freshest image only (latest-only), publishes one HandKeypoints per processed
-image with its stamp; `hands` may be empty.
+Takes the freshest image only (latest-only: a live camera never builds a backlog), or with
+every_frame:=true every image in order (offline processing of a recording); publishes one
+HandKeypoints per processed image with its stamp; `hands` may be empty.
 
 Params: detnet (ONNX path, default models/detnet.onnx), finder (ONNX path, default
 models/finder.onnx; "none": try the centre square of the frame), threads (onnxruntime
 intra-op threads per network), max_hands, presence_threshold (a track ends below it),
-redetect_every (frames), crop_scale (crop side / joint-box side).
+redetect_every (frames), crop_scale (crop side / joint-box side), every_frame.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from handmocap.detector import CROP_SCALE, HandDetector
 from handmocap.node import Node, run
 
 PARAMS = {"detnet": None, "finder": None, "threads": 1, "max_hands": 2, "presence_threshold": 0.5,
-          "redetect_every": 10, "crop_scale": CROP_SCALE}
+          "redetect_every": 10, "crop_scale": CROP_SCALE, "every_frame": False}
 
 
 def frame_bgr(image_msg):
@@ -44,7 +45,7 @@ def main() -> None:
     detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]), max_hands=int(p["max_hands"]),
                                  presence_threshold=float(p["presence_threshold"]),
                                  redetect_every=int(p["redetect_every"]), crop_scale=float(p["crop_scale"]))
-    node.subscribe("/camera/image", "Image", mode="latest")
+    node.subscribe("/camera/image", "Image", mode="all" if p["every_frame"] else "latest")
     node.advertise("/hand/keypoints", "HandKeypoints")
     for msg in node:
         try:
