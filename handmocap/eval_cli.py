@@ -4,7 +4,7 @@
                      [--detnet PATH] [--finder PATH|none] [--iknet PATH]
     handeval score --pred PRED.npz --gt GT.npz [--png CURVE.png] [--json OUT.json]
     handeval splits [--data shared/data] [--work /tmp/handeval] [--markdown TABLE.md]
-                    [--reference mediapipe|none] [--only SPLIT ...] [--detnet ...]
+                    [--methods ours mediapipe] [--only SPLIT ...] [--detnet ...]
 
 predict: HandTracker on every image of DIR sorted by name (each image on its own: tracks
 reset, no smoothing; --sequence treats the images as consecutive video frames) or on every
@@ -13,7 +13,7 @@ frame of a video file (tracked, smoothed). PRED.npz holds, per image, the best-s
   normalized joints (the hand as seen)         uv (N,21,2) px       found (N,) bool
   handedness (N,) str ("" when none)           score (N,)
 and every hand (up to MAX_HANDS per image): all_xyz (N,H,21,3), all_xyz_rel, all_uv,
-all_found (N,H). K.npy: (4,) or (N,4) fx, fy, cx, cy, or (3,3) / (N,3,3). Without K, the
+all_found (N,H), all_handedness (N,H). K.npy: (4,) or (N,4) fx, fy, cx, cy, or (3,3) / (N,3,3). Without K, the
 default field of view of camera_info.default_K (60 degrees horizontal).
 
 score: GT.npz with uv (N,21,2) px, optional xyz (N,21,3) m camera frame (NaN where there
@@ -67,7 +67,7 @@ def empty_prediction(n):
             "all_xyz": np.full((n, MAX_HANDS, 21, 3), np.nan, np.float32),
             "all_xyz_rel": np.full((n, MAX_HANDS, 21, 3), np.nan, np.float32),
             "all_uv": np.full((n, MAX_HANDS, 21, 2), np.nan, np.float32),
-            "all_found": np.zeros((n, MAX_HANDS), bool)}
+            "all_found": np.zeros((n, MAX_HANDS), bool), "all_handedness": np.full((n, MAX_HANDS), "", dtype="<U5")}
 
 
 def put_hands(pred, i, hands):
@@ -75,7 +75,7 @@ def put_hands(pred, i, hands):
     hands = sorted(hands, key=lambda h: -float(h["score"]))[:MAX_HANDS]
     for k, h in enumerate(hands):
         pred["all_xyz"][i, k], pred["all_xyz_rel"][i, k], pred["all_uv"][i, k] = h["xyz"], h["xyz_rel"], h["uv"]
-        pred["all_found"][i, k] = True
+        pred["all_found"][i, k], pred["all_handedness"][i, k] = True, h["handedness"]
     if hands:
         h = hands[0]
         pred["xyz"][i], pred["xyz_rel"][i], pred["uv"][i] = h["xyz"], h["xyz_rel"], h["uv"]
@@ -114,9 +114,9 @@ def predict(source, K=None, out=None, sequence=None, tracker=None, models=None, 
 # ----------------------------------------------------------------------------- score
 def pick_nearest(pred, gt_uv):
     """Per image, the predicted hand nearest to the GT (mean 2D joint distance): xyz,
-    xyz_rel, uv (N,21,·) and found (N,)."""
+    xyz_rel, uv (N,21,·), found (N,) and handedness (N,)."""
     if "all_uv" not in pred:
-        return pred["xyz"], pred["xyz_rel"], pred["uv"], pred["found"]
+        return pred["xyz"], pred["xyz_rel"], pred["uv"], pred["found"], pred["handedness"]
     with warnings.catch_warnings():      # all-NaN rows (no hand, or no ground truth) are expected
         warnings.simplefilter("ignore", RuntimeWarning)
         d = np.nanmean(np.linalg.norm(pred["all_uv"] - gt_uv[:, None], axis=-1), axis=-1)   # (N,H)
@@ -124,17 +124,22 @@ def pick_nearest(pred, gt_uv):
     k = np.argmin(d, axis=1)
     rows = np.arange(len(k))
     found = np.isfinite(d[rows, k])
-    return pred["all_xyz"][rows, k], pred["all_xyz_rel"][rows, k], pred["all_uv"][rows, k], found
+    handedness = pred["all_handedness"][rows, k] if "all_handedness" in pred else pred["handedness"]
+    return pred["all_xyz"][rows, k], pred["all_xyz_rel"][rows, k], pred["all_uv"][rows, k], found, handedness
 
 
 def score(pred, gt):
     """Scores of PRED against GT (dicts of arrays, see the module doc)."""
     gt_uv = np.asarray(gt["uv"], np.float64)
     valid = gt.get("joint_valid")
-    xyz, xyz_rel, uv, found = pick_nearest(pred, gt_uv)
+    xyz, xyz_rel, uv, found, handedness = pick_nearest(pred, gt_uv)
     uv = np.where(found[:, None, None], uv, np.nan)
     has_gt = np.isfinite(gt_uv).any(axis=(1, 2))
     out = {"images": int(has_gt.sum()), "found": float(np.mean(found[has_gt])), "2d": metrics.score_2d(uv, gt_uv, valid)}
+    if "handedness" in gt:       # the person's hand, "" where unknown
+        known = found & has_gt & (np.asarray(gt["handedness"]) != "")
+        if known.any():
+            out["handedness_acc"] = float(np.mean(np.asarray(handedness)[known] == np.asarray(gt["handedness"])[known]))
     gt_xyz = gt.get("xyz")
     if gt_xyz is not None and np.isfinite(gt_xyz).any():
         has = np.all(np.isfinite(gt_xyz), axis=(1, 2))
@@ -151,6 +156,8 @@ def summary_line(name, s):
     text = (f"{name}: {s['images']} images, found {s['found']:.1%}, 2D mean {d2['mean_px']:.1f} px "
             f"(median {d2['median_px']:.1f}), PCK@10px {np.interp(10, d2['thresholds_px'], d2['pck']):.3f}, "
             f"2D AUC 0-30px {d2['auc']:.3f}")
+    if "handedness_acc" in s:
+        text += f", handedness {s['handedness_acc']:.1%}"
     for key, label in (("3d_detnet", "DetNet"), ("3d_pipeline", "DetNet+IKNet+FK")):
         if key in s:
             text += f"; {label} 3D AUC 20-50mm {s[key]['auc']:.3f} (mean {s[key]['mean_mm']:.1f} mm)"
@@ -220,9 +227,9 @@ def project(K, xyz):
     return p[..., :2] / p[..., 2:3]
 
 
-def write_split(root, images, uv, xyz=None, K=None, joint_valid=None, sequence=False):
-    """A split folder: images/000000.png ..., gt.npz (uv, xyz, joint_valid), K.npy (N,3,3),
-    meta.json. images: list of BGR arrays."""
+def write_split(root, images, uv, xyz=None, K=None, joint_valid=None, sequence=False, handedness=None):
+    """A split folder: images/000000.png ..., gt.npz (uv, xyz, joint_valid, handedness: the
+    person's hand or ""), K.npy (N,3,3), meta.json. images: list of BGR arrays."""
     import cv2
     (root / "images").mkdir(parents=True, exist_ok=True)
     for i, img in enumerate(images):
@@ -232,6 +239,8 @@ def write_split(root, images, uv, xyz=None, K=None, joint_valid=None, sequence=F
     gt["xyz"] = np.full((n, 21, 3), np.nan) if xyz is None else np.asarray(xyz, np.float64)
     if joint_valid is not None:
         gt["joint_valid"] = np.asarray(joint_valid, bool)
+    if handedness is not None:
+        gt["handedness"] = np.asarray(handedness, dtype="<U5")
     np.savez(root / "gt.npz", **gt)
     if K is not None:
         np.save(root / "K.npy", np.asarray(K, np.float64))
@@ -256,13 +265,14 @@ def build_temugeb(data, root, camera):
     n = len(frames)
     xyz = np.full((n, 21, 3), np.nan)
     xyz[tri["frame"]] = xyz_cam
-    write_split(root, frames, project(K, xyz), xyz, np.repeat(K[None], n, 0), sequence=True)
+    write_split(root, frames, project(K, xyz), xyz, np.repeat(K[None], n, 0), sequence=True,
+                handedness=["right"] * n)    # one right hand (shared/data/README.md)
 
 
 def build_howiema(data, root, subject="040"):
     import cv2
     base = data / "labelled2d/howiema_lstm_pm"
-    images, uv = [], []
+    images, uv, sides = [], [], []
     for label_file in sorted((base / "label" / subject).glob("*.json")):
         seq = label_file.stem
         labels = json.loads(label_file.read_text())
@@ -271,17 +281,19 @@ def build_howiema(data, root, subject="040"):
             if img is not None:
                 images.append(img)
                 uv.append(labels[key])
-    write_split(root, images, uv)
+                sides.append({"L": "left", "R": "right"}[seq[0]])
+    write_split(root, images, uv, handedness=sides)
 
 
 def build_cmu(data, root):
     import cv2
     base = data / "labelled2d/cmu_hand_labels_sample"
-    images, uv = [], []
+    images, uv, sides = [], [], []
     for img_file in sorted((base / "data").glob("*.jpg")):
         images.append(cv2.imread(str(img_file)))
         uv.append(json.loads((base / "label" / f"{img_file.stem}.json").read_text())["hand_pts_crop"])
-    write_split(root, images, uv)
+        sides.append({"l": "left", "r": "right"}[img_file.stem[-1]])
+    write_split(root, images, uv, handedness=sides)
 
 
 def build_coco_2d(data, root, name):
@@ -290,13 +302,17 @@ def build_coco_2d(data, root, name):
     base = data / "samples/mmpose" / name
     doc = json.loads(next(base.glob("test_*.json")).read_text())
     files = {im["id"]: im["file_name"] for im in doc["images"]}
-    images, uv, valid = [], [], []
+    images, uv, valid, sides = [], [], [], []
     for ann in doc["annotations"]:
         kp = np.asarray(ann["keypoints"], np.float64).reshape(21, 3)
-        images.append(cv2.imread(str(base / files[ann["image_id"]])))
+        file_name = files[ann["image_id"]]
+        images.append(cv2.imread(str(base / file_name)))
         uv.append(kp[:, :2])
         valid.append(kp[:, 2] > 0)
-    write_split(root, images, uv, joint_valid=valid)
+        stem = Path(file_name).stem      # FreiHAND: right hands only; panoptic: *_l / *_r
+        sides.append("right" if name == "freihand" else
+                     {"l": "left", "r": "right"}.get(stem[-1], "") if name == "panoptic" else "")
+    write_split(root, images, uv, joint_valid=valid, handedness=sides)
 
 
 def build_rhd(data, root):
@@ -304,14 +320,15 @@ def build_rhd(data, root):
     base = data / "samples/mmpose/rhd"
     doc = json.loads((base / "test_rhd.json").read_text())
     ims = {im["id"]: im for im in doc["images"]}
-    images, xyz, Ks = [], [], []
+    images, xyz, Ks, sides = [], [], [], []
     for ann in doc["annotations"]:
         im = ims[ann["image_id"]]
+        sides.append(ann["hand_type"])
         (fx, fy), (cx, cy) = im["cam_param"]["focal"], im["cam_param"]["princpt"]
         images.append(cv2.imread(str(base / im["file_name"])))
         xyz.append(np.asarray(ann["joint_cam"], np.float64)[RHD_TO_MP] / 1000.0)
         Ks.append([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
-    write_split(root, images, project(np.array(Ks), np.array(xyz)), np.array(xyz), np.array(Ks))
+    write_split(root, images, project(np.array(Ks), np.array(xyz)), np.array(xyz), np.array(Ks), handedness=sides)
 
 
 def build_interhand(data, root):
@@ -321,7 +338,7 @@ def build_interhand(data, root):
     cams = json.loads((base / "test_interhand2.6m_camera.json").read_text())
     joints = json.loads((base / "test_interhand2.6m_joint_3d.json").read_text())
     ims = {im["id"]: im for im in doc["images"]}
-    images, xyz, Ks, valid = [], [], [], []
+    images, xyz, Ks, valid, sides = [], [], [], [], []
     for ann in doc["annotations"]:
         im = ims[ann["image_id"]]
         cap, cam = str(im["capture"]), str(im["camera"])
@@ -330,15 +347,16 @@ def build_interhand(data, root):
         (fx, fy), (cx, cy) = c["focal"][cam], c["princpt"][cam]
         world = np.asarray(joints[cap][str(im["frame_idx"])]["world_coord"], np.float64)
         jv = np.asarray(ann["joint_valid"], bool).ravel()
-        sides = {"right": [0], "left": [21], "interacting": [0, 21]}[ann["hand_type"]]
-        for o in sides:
+        offsets = {"right": [0], "left": [21], "interacting": [0, 21]}[ann["hand_type"]]
+        for o in offsets:
             order = [o + j for j in INTERHAND_TO_MP]
             images.append(cv2.imread(str(base / im["file_name"])))
             xyz.append((world[order] - pos) @ R.T / 1000.0)
             Ks.append([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
             valid.append(jv[order])
+            sides.append("right" if o == 0 else "left")
     xyz, Ks = np.array(xyz), np.array(Ks)
-    write_split(root, images, project(Ks, xyz), xyz, Ks, joint_valid=np.array(valid))
+    write_split(root, images, project(Ks, xyz), xyz, Ks, joint_valid=np.array(valid), handedness=sides)
 
 
 SPLITS = {
@@ -363,24 +381,27 @@ def fmt(x, spec=".3f"):
 def table_row(split, method, s):
     d2 = s["2d"]
     pck10 = np.interp(10, d2["thresholds_px"], d2["pck"])
-    row = [split, method, str(s["images"]), fmt(100 * s["found"], ".1f"), fmt(d2["mean_px"], ".1f"), fmt(pck10)]
+    row = [split, method, str(s["images"]), fmt(100 * s["found"], ".1f"), fmt(d2["mean_px"], ".1f"), fmt(pck10),
+           fmt(100 * s["handedness_acc"], ".0f") if "handedness_acc" in s else "–"]
     for key in ("3d_detnet", "3d_pipeline"):
         row.append(f"{fmt(s[key]['auc'])} / {fmt(s[key]['mean_mm'], '.1f')}" if key in s else "–")
     return "| " + " | ".join(row) + " |"
 
 
-TABLE_HEAD = ("| split | method | images | found % | 2D mean px | 2D PCK@10px | 3D AUC / mean mm: DetNet | "
-              "3D AUC / mean mm: DetNet+IKNet+FK |\n|---|---|---|---|---|---|---|---|")
+TABLE_HEAD = ("| split | method | images | found % | 2D mean px | 2D PCK@10px | handedness % | "
+              "3D AUC / mean mm: DetNet | 3D AUC / mean mm: DetNet+IKNet+FK |\n|---|---|---|---|---|---|---|---|---|")
 
 
-def run_splits(data, work, markdown=None, reference="mediapipe", models=None, only=None):
+def run_splits(data, work, markdown=None, methods=("ours", "mediapipe"), models=None, only=None):
     """Build every split under `work` (once), predict with HandTracker (and MediaPipe when
     its venv exists), score, print and optionally write the markdown table."""
     import subprocess
     if not data.is_dir():
         raise ValueError(f"{data}: no data pack (shared/data) here")
     rows = [TABLE_HEAD]
-    use_ref = reference == "mediapipe" and REFERENCE_PYTHON.is_file()
+    use_ref = "mediapipe" in methods and REFERENCE_PYTHON.is_file()
+    if "mediapipe" in methods and not use_ref:
+        print(f"MediaPipe reference skipped: {REFERENCE_PYTHON} absent (see scripts/mediapipe_reference.py)")
     for name, build in SPLITS.items():
         if only and name not in only:
             continue
@@ -391,10 +412,11 @@ def run_splits(data, work, markdown=None, reference="mediapipe", models=None, on
         with np.load(root / "gt.npz") as g:
             gt = {k: g[k] for k in g.files}
         K = np.load(root / "K.npy") if (root / "K.npy").is_file() else None
-        pred = predict(root / "images", K, root / "pred.npz", sequence=meta["sequence"], models=models)
-        s = score(pred, gt)
-        print(summary_line(name, s), flush=True)
-        rows.append(table_row(name, "ours", s))
+        if "ours" in methods:
+            pred = predict(root / "images", K, root / "pred.npz", sequence=meta["sequence"], models=models)
+            s = score(pred, gt)
+            print(summary_line(name, s), flush=True)
+            rows.append(table_row(name, "ours", s))
         if use_ref:
             cmd = [str(REFERENCE_PYTHON), str(REFERENCE_SCRIPT), "--images", str(root / "images"),
                    "--out", str(root / "mediapipe.npz")] + (["--sequence"] if meta["sequence"] else []) + \
@@ -449,7 +471,7 @@ def cmd_score(args):
 
 
 def cmd_splits(args):
-    run_splits(Path(args.data), Path(args.work), args.markdown, args.reference, model_paths(args), args.only)
+    run_splits(Path(args.data), Path(args.work), args.markdown, args.methods, model_paths(args), args.only)
 
 
 def main(argv=None):
@@ -474,8 +496,9 @@ def main(argv=None):
     t.add_argument("--data", default=str(SHARED_DATA))
     t.add_argument("--work", default="/tmp/handeval")
     t.add_argument("--markdown", help="write the table (markdown) here")
-    t.add_argument("--reference", default="mediapipe", choices=["mediapipe", "none"],
-                   help="also score MediaPipe Hands (scripts/mediapipe_reference.py in /tmp/mpenv) when available")
+    t.add_argument("--methods", nargs="+", default=["ours", "mediapipe"], choices=["ours", "mediapipe"],
+                   help="ours: HandTracker; mediapipe: MediaPipe Hands through scripts/mediapipe_reference.py "
+                        "in /tmp/mpenv, skipped when that venv is absent (default: both)")
     t.add_argument("--only", nargs="+", choices=list(SPLITS), help="these splits only")
     add_model_arguments(t)
     t.set_defaults(run=cmd_splits)

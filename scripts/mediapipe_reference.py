@@ -94,7 +94,8 @@ def predict(args):
            "handedness": np.full(n, "", "<U5"), "score": np.zeros(n, np.float32),
            "all_xyz": np.full((n, 2, 21, 3), np.nan, np.float32),
            "all_xyz_rel": np.full((n, 2, 21, 3), np.nan, np.float32),
-           "all_uv": np.full((n, 2, 21, 2), np.nan, np.float32), "all_found": np.zeros((n, 2), bool)}
+           "all_uv": np.full((n, 2, 21, 2), np.nan, np.float32), "all_found": np.zeros((n, 2), bool),
+           "all_handedness": np.full((n, 2), "", "<U5")}
     with mp.solutions.hands.Hands(static_image_mode=not sequence, max_num_hands=2, model_complexity=1,
                                   min_detection_confidence=0.5, min_tracking_confidence=0.5) as hands:
         for i, frame in enumerate(images):
@@ -113,7 +114,7 @@ def predict(args):
             for k, (score, uv, xyz_w, label) in enumerate(found[:2]):
                 out["all_uv"][i, k], out["all_xyz_rel"][i, k] = uv, normalized(xyz_w)
                 out["all_xyz"][i, k] = camera_placed(xyz_w, uv, Ks[i])
-                out["all_found"][i, k] = True
+                out["all_found"][i, k], out["all_handedness"][i, k] = True, label
                 if k == 0:
                     out["uv"][i], out["xyz_rel"][i], out["xyz"][i] = uv, normalized(xyz_w), out["all_xyz"][i, 0]
                     out["found"][i], out["handedness"][i], out["score"][i] = True, label, score
