@@ -109,14 +109,10 @@ def light_blocks(rng, n, ambient_rgb=None):
     fill /= np.linalg.norm(fill, axis=1, keepdims=True)
     key_t = rng.uniform(2700, 7500, n)
     fill_t = np.clip(key_t + rng.normal(0, 1500, n), 2500, 9000)
-    # the camera's auto white balance takes out most of the light's colour, as it does
-    # for the (real) backgrounds: keep 20-70% of the chroma
-    keep = rng.uniform(0.2, 0.7, (n, 1))
-    white_balanced = lambda rgb: 1.0 + keep * (rgb - 1.0)
     light[:, 0, :3], light[:, 0, 3] = key, rng.uniform(0.5, 1.3, n)
-    light[:, 1, :3], light[:, 1, 3] = white_balanced(kelvin_to_rgb(key_t)), rng.uniform(0.15, 0.5, n)
+    light[:, 1, :3], light[:, 1, 3] = kelvin_to_rgb(key_t), rng.uniform(0.15, 0.5, n)
     light[:, 2, :3], light[:, 2, 3] = fill, rng.uniform(0.05, 0.45, n)
-    light[:, 3, :3], light[:, 3, 3] = white_balanced(kelvin_to_rgb(fill_t)), rng.uniform(0.85, 1.25, n)
+    light[:, 3, :3], light[:, 3, 3] = kelvin_to_rgb(fill_t), rng.uniform(0.85, 1.25, n)
     sky = kelvin_to_rgb(rng.uniform(4000, 9000, n))
     ground = kelvin_to_rgb(rng.uniform(2700, 6000, n)) * rng.uniform(0.4, 0.9, (n, 1))
     if ambient_rgb is not None:
