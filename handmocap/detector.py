@@ -13,7 +13,8 @@ Per frame (`HandDetector.process`):
    3D mirrored back (x -> -x): HandKeypoints' xyz_rel is the hand as seen.
 3. One batched DetNet call for all crops; presence below `presence_threshold` ends the
    track, and so do joints centred outside the frame or spread over more than twice its
-   size; a new track's crop is refined once from its own first 2D prediction.
+   size; a new track's crop is refined once from its own first 2D prediction (and flipped
+   the other way if DetNet's handedness outweighs the finder's).
 4. The next frame's crop of a track comes from this frame's 2D joints (their box, centre
    moved on by half the last displacement), as MediaPipe and the paper's videos do.
 5. Handedness per track: a running mean in logit space of DetNet's handedness head
@@ -258,8 +259,9 @@ class HandDetector:
             for i in idx:
                 t = self.tracks[i]
                 if out["presence"][i] >= self.presence_threshold:
-                    uv = t.crop.to_frame(out["uv"][i])
-                    t.crop = crop_for_joints(uv, t.crop.mirrored, self.crop_scale)
+                    right_seen = float(out["handedness"][i])
+                    t.add_handedness(1.0 - right_seen if t.crop.mirrored else right_seen)
+                    t.crop = crop_for_joints(t.crop.to_frame(out["uv"][i]), not t.is_right, self.crop_scale)
             again = self._run(image_rgb, [self.tracks[i] for i in idx])
             for k, i in enumerate(idx):
                 for key in out:

@@ -94,8 +94,9 @@ class FakeDetNet:
 class FakeFinder:
     """HandFinder's interface: blobs of dots -> FoundHand (joint box, score 1, right_prob)."""
 
-    def __init__(self):
+    def __init__(self, wrong_handedness=False):
         self.calls = 0
+        self.wrong_handedness = wrong_handedness
 
     def find(self, image_bgr, threshold=None, max_hands=2):
         self.calls += 1
@@ -109,7 +110,8 @@ class FakeFinder:
             if np.isfinite(uv).all(axis=1).sum() < 18:
                 continue
             box = np.concatenate([np.nanmin(uv, 0), np.nanmax(uv, 0)])
-            found.append(FoundHand(box, 1.0, appears_right(uv)))
+            right = appears_right(uv)
+            found.append(FoundHand(box, 1.0, 1.0 - right if self.wrong_handedness else right))
         return found
 
 
@@ -155,6 +157,14 @@ def test_a_mirrored_hand_gives_back_the_mirrored_keypoints():
     np.testing.assert_allclose(uv_r, np.round(canonical_hand((250, 300), 160)), atol=1.2)   # dots are drawn at whole px
     # xyz_rel is the hand as seen: the left one is the mirror image of the right one
     np.testing.assert_allclose(out_l[0]["xyz_rel"], mirror_points(out_r[0]["xyz_rel"]), atol=0.02)
+
+
+def test_detnets_handedness_overrides_a_wrong_finder_at_once():
+    frame = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160, right=False))
+    det = HandDetector(FakeDetNet(), FakeFinder(wrong_handedness=True))
+    hands = det.process(frame)
+    assert [h["handedness"] for h in hands] == ["left"]
+    np.testing.assert_allclose(hands[0]["uv"], np.round(canonical_hand((250, 300), 160, right=False)), atol=1.2)
 
 
 def two_hand_frames(n, drop=()):
