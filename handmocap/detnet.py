@@ -1,0 +1,256 @@
+"""DetNet (paper Sec. 3.1): 2D heatmaps, delta maps and location maps from a 128 px crop,
+plus two heads the paper lacks (hand presence, handedness); torch, for training and export.
+
+    net = DetNet("fast")                     # or "paper" (the released cut-down ResNet-50)
+    out = net(images)                        # images (N,3,128,128) RGB in [0,1]
+    out["heatmap"]  (N,21,G,G) sigmoid       out["delta"]     (N,21,3,G,G) bone vectors
+    out["location"] (N,21,3,G,G) normalized   out["presence"], out["handedness"] (N,) logits
+    uv, xyz, conf = read_out(out["heatmap"], out["location"], stride=net.stride)
+
+Grid G = 128 / stride: 32 for "paper" (stride 4), 16 for "fast" (stride 8). A joint's 2D
+position is the heatmap argmax refined to sub-cell precision (`refine`), its 3D position
+the location map at the argmax cell (paper). Pixel convention: pixel centres at integer
+coordinates (the synthetic labels' K), so cell c of a stride-s grid is centred on pixel
+c*s + (s-1)/2.
+
+`DetNetExport` wraps the net with the read-out, so the ONNX graph (`export_onnx`) maps
+`image` straight to `uv`, `xyz`, `confidence`, `presence`, `handedness` (models/README.md).
+"""
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from .skeleton import NUM_JOINTS, PARENTS
+
+CROP = 128
+
+
+def conv_bn(cin, cout, k=3, stride=1, groups=1, dilation=1, relu=True):
+    layers = [nn.Conv2d(cin, cout, k, stride, dilation * (k // 2), dilation, groups, bias=False),
+              nn.BatchNorm2d(cout)]
+    return nn.Sequential(*layers, nn.ReLU(inplace=True)) if relu else nn.Sequential(*layers)
+
+
+# ------------------------------------------------------------------ paper backbone
+class Bottleneck(nn.Module):
+    """ResNet-50 bottleneck: 1x1 -> 3x3 (stride, dilation) -> 1x1 (x4), projection shortcut."""
+
+    def __init__(self, cin, mid, stride=1, dilation=1):
+        super().__init__()
+        cout = 4 * mid
+        self.body = nn.Sequential(conv_bn(cin, mid, 1), conv_bn(mid, mid, 3, stride, dilation=dilation),
+                                  conv_bn(mid, cout, 1, relu=False))
+        self.short = (nn.Identity() if cin == cout and stride == 1
+                      else conv_bn(cin, cout, 1, stride, relu=False))
+
+    def forward(self, x):
+        return F.relu(self.body(x) + self.short(x))
+
+
+def paper_backbone():
+    """The released DetNet feature extractor (shared/paper/NOTES.md): (N,3,128,128) ->
+    (N,256,32,32). 7x7/2 conv -> 64; 3 bottlenecks -> 256 (the third stride 2); 4 -> 512
+    dilation 2; 6 -> 1024 dilation 4; 3x3 conv 256. About 16 GFLOPs (multiply-adds x2)."""
+    stage1 = [Bottleneck(64, 64), Bottleneck(256, 64), Bottleneck(256, 64, stride=2)]
+    stage2 = [Bottleneck(256, 128, dilation=2)] + [Bottleneck(512, 128, dilation=2) for _ in range(3)]
+    stage3 = [Bottleneck(512, 256, dilation=4)] + [Bottleneck(1024, 256, dilation=4) for _ in range(5)]
+    return nn.Sequential(conv_bn(3, 64, 7, 2), *stage1, *stage2, *stage3, conv_bn(1024, 256, 3)), 256, 4
+
+
+# ------------------------------------------------------------------ fast backbone
+class InvertedResidual(nn.Module):
+    """MobileNetV2 block: 1x1 expand (x t) -> 3x3 depthwise (stride) -> 1x1 project."""
+
+    def __init__(self, cin, cout, stride=1, expand=3):
+        super().__init__()
+        mid = cin * expand
+        self.body = nn.Sequential(conv_bn(cin, mid, 1), conv_bn(mid, mid, 3, stride, groups=mid),
+                                  conv_bn(mid, cout, 1, relu=False))
+        self.residual = stride == 1 and cin == cout
+
+    def forward(self, x):
+        return x + self.body(x) if self.residual else self.body(x)
+
+
+class FastBackbone(nn.Module):
+    """Depthwise-separable stack for CPU real time: (N,3,128,128) -> (N,C,16,16).
+
+    A 4x4/4 "patchify" stem straight to 32 px (no 64 px activations: they dominated CPU
+    training time), inverted residuals at 32 px (w1), 16 px (w2) and 8 px (w3) context;
+    the 8 px map is upsampled and added to the 16 px one (one FPN step), so every 16x16
+    cell sees the whole hand. widths=(24, 48, 96), depth=(1, 3, 2) by default.
+    """
+
+    def __init__(self, widths=(24, 48, 96), depth=(1, 3, 2), expand=3):
+        super().__init__()
+        w1, w2, w3 = widths
+        d1, d2, d3 = depth
+
+        def stage(cin, cout, n, stride):
+            return [InvertedResidual(cin, cout, stride, expand)] + [InvertedResidual(cout, cout, 1, expand)
+                                                                   for _ in range(n - 1)]
+        self.stem = nn.Sequential(nn.Conv2d(3, w1, 4, 4, bias=False), nn.BatchNorm2d(w1), nn.ReLU(inplace=True))
+        self.s32 = nn.Sequential(*stage(w1, w1, d1, 1))
+        self.s16 = nn.Sequential(*stage(w1, w2, d2, 2))
+        self.s8 = nn.Sequential(*stage(w2, w3, d3, 2))
+        self.lateral = conv_bn(w2, w3, 1, relu=False)
+        self.fuse = nn.Sequential(conv_bn(w3, w3, 3, groups=w3), conv_bn(w3, w3, 1))
+        self.channels = w3
+
+    def forward(self, x):
+        x16 = self.s16(self.s32(self.stem(x)))
+        x8 = self.s8(x16)
+        return self.fuse(self.lateral(x16) + F.interpolate(x8, scale_factor=2.0, mode="nearest"))
+
+
+def fast_backbone(widths=(24, 48, 96), depth=(1, 3, 2)):
+    net = FastBackbone(widths, depth)
+    return net, net.channels, 8
+
+
+BACKBONES = {"paper": paper_backbone, "fast": fast_backbone}
+
+
+# ------------------------------------------------------------------ heads
+def coord_channels(n, g, device, dtype):
+    """(N,2,G,G): linspace(-1,1) along x and along y (NOTES.md)."""
+    lin = torch.linspace(-1.0, 1.0, g, device=device, dtype=dtype)
+    return torch.stack([lin.view(1, g).expand(g, g), lin.view(g, 1).expand(g, g)]).expand(n, 2, g, g)
+
+
+class Head(nn.Module):
+    """Two layers: 3x3 conv (full for the paper, depthwise-separable for fast) + BN + ReLU, 1x1."""
+
+    def __init__(self, cin, mid, cout, separable):
+        super().__init__()
+        first = (nn.Sequential(conv_bn(cin, cin, 3, groups=cin), conv_bn(cin, mid, 1)) if separable
+                 else conv_bn(cin, mid, 3))
+        self.net = nn.Sequential(first, nn.Conv2d(mid, cout, 1))
+
+    def forward(self, x):
+        return self.net(x)
+
+
+class DetNet(nn.Module):
+    """Backbone + heatmap, delta, location heads (paper) + presence, handedness (ours)."""
+
+    def __init__(self, backbone="fast"):
+        super().__init__()
+        if backbone not in BACKBONES:
+            raise ValueError(f"backbone must be one of {sorted(BACKBONES)}, got {backbone!r}")
+        self.backbone_name = backbone
+        self.backbone, c, self.stride = BACKBONES[backbone]()
+        self.grid = CROP // self.stride
+        separable = backbone != "paper"
+        mid = 256 if backbone == "paper" else c
+        J = NUM_JOINTS
+        self.heat_head = Head(c + 2, mid, J, separable)
+        self.delta_head = Head(c + 2 + J, mid, 3 * J, separable)
+        self.loc_head = Head(c + 2 + 4 * J, mid, 3 * J, separable)
+        self.global_head = nn.Sequential(nn.Linear(c, 64), nn.ReLU(inplace=True), nn.Linear(64, 2))
+
+    def forward(self, image):
+        """image (N,3,128,128) RGB [0,1] -> dict of maps (see module docstring)."""
+        feat = self.backbone(image * 2.0 - 1.0)
+        n, _, g, _ = feat.shape
+        x = torch.cat([feat, coord_channels(n, g, feat.device, feat.dtype)], 1)
+        heat = torch.sigmoid(self.heat_head(x))
+        delta = self.delta_head(torch.cat([x, heat], 1))
+        loc = self.loc_head(torch.cat([x, heat, delta], 1))
+        logits = self.global_head(feat.mean((2, 3)))
+        return {"heatmap": heat, "delta": delta.view(n, NUM_JOINTS, 3, g, g),
+                "location": loc.view(n, NUM_JOINTS, 3, g, g),
+                "presence": logits[:, 0], "handedness": logits[:, 1]}
+
+
+# ------------------------------------------------------------------ read-out
+REFINE = ("none", "soft3", "logquad")
+
+
+def read_out(heat, loc, stride, refine="logquad"):
+    """Joints from maps.
+
+    heat (N,J,G,G) in (0,1); loc (N,J,3,G,G); stride: crop px per cell.
+    refine: "none" = integer argmax (paper); "soft3" = heatmap-weighted mean offset of the
+    3x3 neighbourhood; "logquad" = peak of a parabola through log-heatmap at the argmax and
+    its two neighbours along x and along y (exact for a Gaussian peak), clamped to +-1 cell.
+    Returns uv (N,J,2) crop px, xyz (N,J,3) = loc at the argmax cell, confidence (N,J) = peak.
+    """
+    n, j, g, _ = heat.shape
+    flat = heat.reshape(n, j, g * g)
+    conf, idx = flat.max(-1)
+    row, col = idx // g, idx % g
+    xyz = torch.gather(loc.reshape(n, j, 3, g * g), 3, idx.view(n, j, 1, 1).expand(n, j, 3, 1))[..., 0]
+    cell = torch.stack([col, row], -1).to(heat.dtype)
+    if refine != "none":
+        pad = F.pad(heat, (1, 1, 1, 1), mode="replicate").reshape(n, j, (g + 2) ** 2)
+        d = torch.tensor([-1, 0, 1], device=heat.device)
+        dy, dx = torch.meshgrid(d, d, indexing="ij")
+        nb_idx = (row[..., None] + 1 + dy.reshape(1, 1, 9)) * (g + 2) + col[..., None] + 1 + dx.reshape(1, 1, 9)
+        nb = torch.gather(pad, 2, nb_idx).clamp_min(1e-6)            # (N,J,9): row-major 3x3
+        if refine == "soft3":
+            w = nb / nb.sum(-1, keepdim=True)
+            offset = torch.stack([(w * dx.reshape(1, 1, 9).to(w.dtype)).sum(-1),
+                                  (w * dy.reshape(1, 1, 9).to(w.dtype)).sum(-1)], -1)
+        elif refine == "logquad":
+            lg = torch.log(nb)
+            left, right, up, down, centre = lg[..., 3], lg[..., 5], lg[..., 1], lg[..., 7], lg[..., 4]
+
+            def vertex(a, b):                                       # parabola through (-1,a),(0,c),(1,b)
+                curv = a + b - 2.0 * centre
+                return torch.where(curv < -1e-6, 0.5 * (a - b) / torch.where(curv < -1e-6, curv, -1.0),
+                                   torch.zeros_like(curv)).clamp(-1.0, 1.0)
+            offset = torch.stack([vertex(left, right), vertex(up, down)], -1)
+        else:
+            raise ValueError(f"refine must be one of {REFINE}, got {refine!r}")
+        cell = cell + offset
+    uv = cell * stride + (stride - 1) / 2.0
+    return uv, xyz, conf
+
+
+def uv_to_cell(uv, stride):
+    """Crop px -> continuous grid coordinates (inverse of read_out's cell -> px)."""
+    return (uv - (stride - 1) / 2.0) / stride
+
+
+class DetNetExport(nn.Module):
+    """image (N,3,128,128) -> uv, xyz, confidence, presence, handedness (the ONNX interface)."""
+
+    def __init__(self, net, refine="logquad"):
+        super().__init__()
+        self.net, self.refine = net, refine
+
+    def forward(self, image):
+        out = self.net(image)
+        uv, xyz, conf = read_out(out["heatmap"], out["location"], self.net.stride, self.refine)
+        return uv, xyz, conf, torch.sigmoid(out["presence"]), torch.sigmoid(out["handedness"])
+
+
+OUTPUTS = ("uv", "xyz", "confidence", "presence", "handedness")
+
+
+def export_onnx(net, path, refine="logquad", opset=17):
+    """Write models/detnet.onnx: input `image` (N,3,128,128) float32 RGB [0,1]; outputs
+    uv (N,21,2) crop px, xyz (N,21,3) root-relative normalized (right hand), confidence
+    (N,21), presence (N,), handedness (N,) = P(crop shows a right hand as it appears)."""
+    import onnx
+    was_training = net.training
+    net.eval()
+    wrapper = DetNetExport(net, refine).eval()
+    dummy = torch.rand(2, 3, CROP, CROP)
+    torch.onnx.export(wrapper, (dummy,), str(path), input_names=["image"], output_names=list(OUTPUTS),
+                      dynamic_axes={"image": {0: "N"}, **{k: {0: "N"} for k in OUTPUTS}},
+                      opset_version=opset, dynamo=False)
+    model = onnx.load(str(path))
+    model.producer_name = "handmocap.detnet"
+    model.doc_string = f"DetNet backbone={net.backbone_name} refine={refine}; see models/README.md"
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+    net.train(was_training)
+
+
+def bone_vectors(xyz):
+    """(...,21,3) -> (...,21,3) child - parent, row 0 (wrist) zero: delta-map targets."""
+    parents = torch.as_tensor(PARENTS).clamp_min(0)
+    d = xyz - xyz[..., parents, :]
+    return torch.cat([torch.zeros_like(d[..., :1, :]), d[..., 1:, :]], -2)

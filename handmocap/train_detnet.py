@@ -1,0 +1,554 @@
+"""Train DetNet on CPU and export it to models/detnet.onnx (`handtrain detnet`).
+
+    handsynth generate -n 8192 -o runs/detnet_data/synth_train_0 --seed 1000   # (and _1, _2, ...)
+    handsynth generate -n 1024 -o runs/detnet_data/synth_val --seed 424242
+    handtrain detnet                          # fast backbone, from scratch (runs/detnet/fast/)
+    handtrain detnet --resume --iters 30000   # continue runs/detnet/fast/last.pt
+    handtrain detnet --export-only            # write the ONNX file from last.pt
+
+Each batch (drawn from numpy generator [seed, iteration], so a resumed run sees the
+batches the uninterrupted run would have) mixes:
+* synthetic crops (handsynth shards, --data): all heads. Left hands are mirrored to the
+  right and the 3D label's x negated (DESIGN.md);
+* real hand crops with 2D labels only (zero 3D weight): howiema_lstm_pm subject 001 and
+  the MediaPipe pseudo-labels of real_data.TRAIN_VIDEOS (weight = MediaPipe's score), cut
+  like the detector cuts (square around the keypoint box x 1.3) with jitter;
+* negatives (presence 0, heatmaps 0): real video crops away from every labelled hand of
+  the frame, and procedural background textures (handmocap.synth.backgrounds).
+Handedness ("does the crop show a right hand as it appears"): a share (--share-left) of
+hand crops is presented as a LEFT hand (a right hand mirrored, a left one left as it is);
+those train presence and handedness only, every other hand crop is presented as a right
+hand and trains all heads. So the keypoint heads see right hands only, and the detector
+asks for handedness on the unmirrored crop.
+Augmentation (NOTES.md): centre jitter 0.1, scale 0.9-1.1 (real crops; synthetic crops
+come jittered), rotation +-90 deg applied to 2D and 3D, colour jitter, light blur.
+Losses: heatmap 100 (per-cell MSE, sigma = 1 cell Gaussians), location 10, delta 1
+(squared error weighted by H_gt + 0.1, normalised by the weight sum, so every joint's
+map also learns its value away from the peak), presence and handedness BCE 1, AdamW
+weight decay (L_reg).
+Validation (never training data): held-out synthetic shards (--val), the held-out tail
+of every training video (last 15% of frames, 15 frames gap) and howiema 001 sequences
+L8/R8 (not used for training).
+"""
+import glob
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import real_data
+from .pose_data import SHARED_DATA
+from .skeleton import NUM_JOINTS, ROOT
+
+RUN_DIR = Path("runs/detnet")
+DATA_DIR = Path("runs/detnet_data")
+DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "models" / "detnet.onnx"
+CTX = 176                    # real hand context crops: px, covering CTX_SCALE x the keypoint box
+CTX_SCALE = 2.4
+HELD_OUT_TAIL, HELD_OUT_GAP = 0.15, 15
+HOWIEMA_HELD_OUT = ("L8", "R8")
+
+
+def add_arguments(p):
+    p.add_argument("--backbone", choices=("fast", "paper"), default="fast")
+    p.add_argument("--iters", type=int, default=20000, help="total iterations (a resumed run continues to this)")
+    p.add_argument("--batch", type=int, default=32)
+    p.add_argument("--lr", type=float, default=2e-3, help="AdamW, cosine decay to lr/50 after 300 warm-up iterations")
+    p.add_argument("--weight-decay", type=float, default=1e-4)
+    p.add_argument("--data", nargs="*", default=[str(DATA_DIR / "synth_train_*")],
+                   help="synthetic shard directories (globs; re-scanned every 500 iterations for new ones)")
+    p.add_argument("--val", default=str(DATA_DIR / "synth_val"), help="held-out synthetic shard directory")
+    p.add_argument("--shared", type=Path, default=SHARED_DATA, help="real data pack (default %(default)s)")
+    p.add_argument("--share-real", type=float, default=0.25, help="share of real hand crops per batch")
+    p.add_argument("--share-neg", type=float, default=0.12, help="share of no-hand crops per batch")
+    p.add_argument("--share-left", type=float, default=0.3, help="share of hand crops presented as left hands")
+    p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
+    p.add_argument("--val-every", type=int, default=250)
+    p.add_argument("--ckpt-every", type=int, default=50)
+    p.add_argument("--run-dir", type=Path, default=None, help="default runs/detnet/<backbone>")
+    p.add_argument("--export", type=Path, default=DEFAULT_MODEL, help="ONNX output (default %(default)s)")
+    p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
+    p.add_argument("--export-only", action="store_true", help="export RUN_DIR/last.pt and stop")
+
+
+# ------------------------------------------------------------------ synthetic data
+def synth_dirs(patterns):
+    """Complete shard directories (meta.json written last by handsynth) matching the globs."""
+    return sorted({d for pat in patterns for d in glob.glob(pat) if (Path(d) / "meta.json").exists()})
+
+
+def load_synth(dirs, limit):
+    """Concatenated arrays image (n,128,128,3) uint8, uv (n,21,2), xyz_rel (n,21,3), xyz
+    (n,21,3) m, handedness (n,) int8 (0 right), in_image (n,21) of the shard dirs."""
+    from .synth.dataset import SynthDataset
+    keys = ("image", "uv", "xyz_rel", "xyz", "handedness", "in_image")
+    parts = {k: [] for k in keys}
+    total = 0
+    for d in dirs:
+        ds = SynthDataset(d)
+        for k in range(len(ds.counts)):
+            if total >= limit:
+                break
+            shard = ds.shard(k)
+            for key in keys:
+                parts[key].append(shard[key])
+            total += len(shard["image"])
+    return {k: np.concatenate(v)[:limit] for k, v in parts.items()} if total else None
+
+
+# ------------------------------------------------------------------ real data
+def _video_split(n_frames):
+    """(train mask, held-out mask) over frames: the last 15% held out, 15 frames gap."""
+    cut = int(round(n_frames * (1 - HELD_OUT_TAIL)))
+    idx = np.arange(n_frames)
+    return idx < cut - HELD_OUT_GAP, idx >= cut
+
+
+def _boxes_overlap(box, boxes):
+    return any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in boxes)
+
+
+def build_real_cache(shared, path, seed=0, log=print):
+    """Cut every usable real hand into a context crop (CTX px around its keypoint box x
+    CTX_SCALE) and a few negatives per video frame; save the arrays to `path`.
+
+    Hands: image (n,CTX,CTX,3), uv (n,21,2) in context px, right (n,) 1 if the hand appears
+    as a right hand, weight (n,) label weight, held (n,) bool held-out, source (n,) str.
+    Negatives: neg (m,128,128,3) uint8 from training frames only, neg_held (m,) bool.
+    """
+    rng = np.random.default_rng([seed, 99])
+    hands = {k: [] for k in ("image", "uv", "right", "weight", "held", "source")}
+    negs, neg_held = [], []
+
+    def add_hand(image, uv, right, weight, held, source):
+        cx, cy, side = real_data.crop_box(uv, CTX_SCALE)
+        if side < 16:
+            return
+        M = real_data.crop_affine(cx, cy, side, CTX)
+        hands["image"].append(real_data.warp(image, M, CTX))
+        hands["uv"].append(real_data.apply_affine(M, uv).astype(np.float32))
+        for k, v in (("right", right), ("weight", weight), ("held", held), ("source", source)):
+            hands[k].append(v)
+
+    for seq in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, shared):
+        seq_name = seq["name"].split("/")[1]
+        add_hand(seq["image"], seq["uv"], seq["handedness"] == "right", 1.0, seq_name in HOWIEMA_HELD_OUT,
+                 "howiema001/" + seq_name)
+    for rel in real_data.TRAIN_VIDEOS:
+        video = Path(shared) / rel
+        lab = real_data.load_pseudo_labels(video)
+        train, held = _video_split(len(lab["found"]))
+        for f, image in real_data.read_video(video):
+            if f >= len(lab["found"]) or not (train[f] or held[f]):
+                continue
+            slots = np.flatnonzero(lab["found"][f])
+            boxes = [np.r_[lab["uv"][f, s].min(0), lab["uv"][f, s].max(0)] for s in slots]
+            dup = len(slots) == 2 and _iou(boxes[0], boxes[1]) > 0.3
+            for s, box in zip(slots, boxes):
+                if dup:
+                    break
+                add_hand(image, lab["uv"][f, s], lab["handedness"][f, s] == 0, float(lab["score"][f, s]),
+                         bool(held[f]), video.stem)
+            if len(slots) and f % 3 == 0:             # negatives: squares of hand-like size, away from hands
+                h, w = image.shape[:2]
+                grown = [np.r_[b[:2] - 0.3 * (b[2:] - b[:2]) - 12, b[2:] + 0.3 * (b[2:] - b[:2]) + 12] for b in boxes]
+                base = max(max(b[2] - b[0], b[3] - b[1]) for b in boxes) * 1.3
+                for _ in range(4):
+                    side = float(np.clip(base * rng.uniform(0.6, 1.6), 32, min(h, w)))
+                    x0, y0 = rng.uniform(0, w - side), rng.uniform(0, h - side)
+                    if not _boxes_overlap((x0, y0, x0 + side, y0 + side), grown):
+                        M = real_data.crop_affine(x0 + side / 2, y0 + side / 2, side, 128)
+                        negs.append(real_data.warp(image, M, 128))
+                        neg_held.append(bool(held[f]))
+                        break
+        log(f"  {rel}: {len(hands['image'])} hands, {len(negs)} negatives so far")
+    arrays = {k: np.asarray(v) for k, v in hands.items()}
+    arrays["neg"], arrays["neg_held"] = np.asarray(negs, np.uint8).reshape(-1, 128, 128, 3), np.asarray(neg_held)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **arrays)
+    return arrays
+
+
+def _iou(a, b):
+    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = ix * iy
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return inter / max(union, 1e-9)
+
+
+def load_real(shared, log=print):
+    """The real cache (built on first use under runs/detnet_data/), or None without shared/."""
+    if not (Path(shared) / "labelled2d").exists():
+        log(f"note: no real data pack at {shared}; training on synthetic data only")
+        return None
+    path = DATA_DIR / "real_v1.npz"
+    if path.exists():
+        with np.load(path) as data:
+            return {k: data[k] for k in data.files}
+    log(f"cutting real crops from {shared} into {path} (once)")
+    return build_real_cache(shared, path, log=log)
+
+
+# ------------------------------------------------------------------ batches
+def rotate_mirror_3d(xyz, angle_deg, mirror):
+    """Root-relative (...,21,3) joints under the crop's in-plane rotation (crop_affine's
+    convention, camera x right / y down) and optional mirroring (x -> -x)."""
+    a = np.deg2rad(angle_deg)[..., None]
+    x, y = xyz[..., 0], xyz[..., 1]
+    out = np.stack([np.cos(a) * x + np.sin(a) * y, -np.sin(a) * x + np.cos(a) * y, xyz[..., 2]], -1)
+    out[..., 0] *= np.where(np.asarray(mirror)[..., None], -1.0, 1.0)
+    return out
+
+
+class BatchMaker:
+    """Numpy batches: image (B,128,128,3) uint8, uv (B,21,2), xyz (B,21,3), w2d, w3d,
+    presence, right, w_hand (B,) float32."""
+
+    def __init__(self, synth, real, share_real, share_neg, share_left):
+        self.synth, self.real = synth, real
+        self.share_left = share_left
+        self.real_train = np.flatnonzero(~real["held"]) if real is not None else np.zeros(0, int)
+        self.neg_train = np.flatnonzero(~real["neg_held"]) if real is not None else np.zeros(0, int)
+        self.share_real = share_real if len(self.real_train) else 0.0
+        self.share_neg = share_neg
+        self.procedural = None
+        try:
+            from .synth.backgrounds import BackgroundSource
+            self.procedural = BackgroundSource(np.random.default_rng(12345), None, 0.0, pool_size=96)
+        except Exception as exc:            # the engine is optional for real-data negatives
+            print(f"note: no procedural negatives ({exc})")
+
+    def make(self, n, rng):
+        n_neg = int(round(self.share_neg * n))
+        n_real = int(round(self.share_real * n))
+        n_syn = n - n_neg - n_real
+        parts = [self._synth(n_syn, rng)]
+        if n_real:
+            parts.append(self._real(n_real, rng))
+        if n_neg:
+            parts.append(self._negatives(n_neg, rng))
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    def _present(self, n, appears_right, rng):
+        """Which crops to show as left hands; mirror flag that makes the rest right hands."""
+        show_left = rng.random(n) < self.share_left
+        mirror = np.where(show_left, appears_right, ~appears_right)
+        return show_left, mirror
+
+    def _synth(self, n, rng):
+        s = self.synth
+        idx = rng.integers(0, len(s["image"]), n)
+        show_left, mirror = self._present(n, s["handedness"][idx] == 0, rng)
+        angle = rng.uniform(-90, 90, n)
+        scale = rng.uniform(0.95, 1.05, n)
+        shift = rng.uniform(-0.05, 0.05, (n, 2)) * 128
+        images, uv = np.empty((n, 128, 128, 3), np.uint8), np.empty((n, 21, 2), np.float32)
+        c = 63.5
+        for i in range(n):
+            M = real_data.crop_affine(c + shift[i, 0], c + shift[i, 1], 128 * scale[i], 128, angle[i], mirror[i])
+            images[i] = real_data.warp(s["image"][idx[i]], M)
+            uv[i] = real_data.apply_affine(M, s["uv"][idx[i]])
+        xyz = rotate_mirror_3d(s["xyz_rel"][idx], angle, mirror).astype(np.float32)
+        keypoints = (~show_left).astype(np.float32)
+        return {"image": images, "uv": uv, "xyz": xyz, "w2d": keypoints, "w3d": keypoints,
+                "presence": np.ones(n, np.float32), "right": (~show_left).astype(np.float32),
+                "w_hand": np.ones(n, np.float32)}
+
+    def _real(self, n, rng):
+        r = self.real
+        idx = self.real_train[rng.integers(0, len(self.real_train), n)]
+        show_left, mirror = self._present(n, r["right"][idx].astype(bool), rng)
+        images, uv = np.empty((n, 128, 128, 3), np.uint8), np.empty((n, 21, 2), np.float32)
+        side0 = (CTX - 1) / CTX_SCALE * 1.3           # the detector's crop side in context px
+        for i in range(n):
+            side = side0 * rng.uniform(0.9, 1.1)
+            cx, cy = (CTX - 1) / 2 + rng.uniform(-0.1, 0.1, 2) * side
+            M = real_data.crop_affine(cx, cy, side, 128, rng.uniform(-90, 90), mirror[i])
+            images[i] = real_data.warp(r["image"][idx[i]], M)
+            uv[i] = real_data.apply_affine(M, r["uv"][idx[i]])
+        weight = r["weight"][idx].astype(np.float32)
+        return {"image": images, "uv": uv, "xyz": np.zeros((n, 21, 3), np.float32),
+                "w2d": np.where(show_left, 0.0, weight).astype(np.float32), "w3d": np.zeros(n, np.float32),
+                "presence": np.ones(n, np.float32), "right": (~show_left).astype(np.float32), "w_hand": weight}
+
+    def _negatives(self, n, rng):
+        n_real = int(rng.binomial(n, 0.6)) if len(self.neg_train) else 0
+        if self.procedural is None:
+            n_real = n if len(self.neg_train) else 0
+        images = [self.real["neg"][self.neg_train[rng.integers(0, len(self.neg_train), n_real)]]] if n_real else []
+        if n - n_real:
+            images.append(self.procedural.sample(rng, n - n_real, 128)[0])
+        images = np.concatenate(images)
+        for i in np.flatnonzero(rng.random(len(images)) < 0.5):
+            images[i] = images[i, :, ::-1]
+        zeros = np.zeros(n, np.float32)
+        return {"image": images, "uv": np.full((n, 21, 2), -1000.0, np.float32), "xyz": np.zeros((n, 21, 3), np.float32),
+                "w2d": np.ones(n, np.float32), "w3d": zeros, "presence": zeros, "right": zeros, "w_hand": zeros}
+
+
+def to_torch(batch, rng=None):
+    """Tensors; images (B,3,128,128) float [0,1], with colour jitter and light blur when rng."""
+    import torch
+    t = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in batch.items()}
+    img = t["image"].permute(0, 3, 1, 2).float() / 255.0
+    if rng is not None:
+        n = img.shape[0]
+        r = lambda lo, hi, *shape: torch.from_numpy(rng.uniform(lo, hi, (n, *shape)).astype(np.float32))  # noqa: E731
+        grey = img.mean(1, keepdim=True)
+        img = grey + (img - grey) * r(0.5, 1.5, 1, 1, 1)                          # saturation
+        mean = img.mean((1, 2, 3), keepdim=True)
+        img = mean + (img - mean) * r(0.6, 1.4, 1, 1, 1)                          # contrast
+        img = img * r(0.6, 1.4, 1, 1, 1) * r(0.85, 1.15, 3, 1, 1)                 # brightness, white balance
+        blur = torch.from_numpy(rng.random(n) < 0.3)
+        if blur.any():
+            k = torch.tensor([0.25, 0.5, 0.25])
+            k2 = (k[:, None] * k[None, :]).expand(3, 1, 3, 3)
+            img[blur] = torch.nn.functional.conv2d(torch.nn.functional.pad(img[blur], (1, 1, 1, 1), mode="replicate"),
+                                                   k2, groups=3)
+        img = img.clamp(0.0, 1.0)
+    t["image"] = img.contiguous()
+    return t
+
+
+# ------------------------------------------------------------------ losses
+def gaussian_heatmaps(uv, grid, stride):
+    """(B,21,2) crop px -> (B,21,G,G) Gaussians of sigma 1 cell, peak 1."""
+    import torch
+    from .detnet import uv_to_cell
+    cell = uv_to_cell(uv, stride)
+    g = torch.arange(grid, dtype=uv.dtype)
+    dx2 = (g.view(1, 1, 1, grid) - cell[..., 0, None, None]) ** 2
+    dy2 = (g.view(1, 1, grid, 1) - cell[..., 1, None, None]) ** 2
+    return torch.exp(-0.5 * (dx2 + dy2))
+
+
+def detnet_losses(out, b, stride):
+    """dict of scalar losses (unweighted) for a batch from to_torch."""
+    import torch
+    import torch.nn.functional as F
+
+    from .detnet import bone_vectors
+    heat = out["heatmap"]
+    grid = heat.shape[-1]
+    h_gt = gaussian_heatmaps(b["uv"], grid, stride)
+    w2d = b["w2d"]
+    l_heat = ((heat - h_gt) ** 2).mean((1, 2, 3))
+    l_heat = (l_heat * w2d).sum() / w2d.sum().clamp_min(1e-6)
+    w3d = b["w3d"]
+    weight = (h_gt + 0.1).unsqueeze(2)                                      # (B,21,1,G,G)
+    weight = weight / weight.sum((3, 4), keepdim=True)
+
+    def map_loss(pred, target):                                             # pred (B,21,3,G,G), target (B,21,3)
+        err = (((pred - target[..., None, None]) ** 2) * weight).sum((3, 4)).mean((1, 2))
+        return (err * w3d).sum() / w3d.sum().clamp_min(1e-6)
+    l_loc = map_loss(out["location"], b["xyz"])
+    l_delta = map_loss(out["delta"], bone_vectors(b["xyz"]))
+    l_presence = F.binary_cross_entropy_with_logits(out["presence"], b["presence"])
+    wh = b["w_hand"] * torch.where(b["right"] > 0.5, 1.0, 1.0 / 0.6)        # ~balance the left share
+    l_hand = (F.binary_cross_entropy_with_logits(out["handedness"], b["right"], reduction="none") * wh).sum() \
+        / wh.sum().clamp_min(1e-6)
+    return {"heat": l_heat, "loc": l_loc, "delta": l_delta, "presence": l_presence, "hand": l_hand}
+
+
+LOSS_WEIGHTS = {"heat": 100.0, "loc": 10.0, "delta": 1.0, "presence": 1.0, "hand": 1.0}
+
+
+# ------------------------------------------------------------------ validation
+def synth_val_set(path, limit=512):
+    """Held-out synthetic crops as the detector sees them: left hands mirrored to the right
+    (image, uv, xyz_rel), plus the unmirrored images for the handedness head."""
+    s = load_synth([path], limit)
+    if s is None:
+        return None
+    left = s["handedness"] == 1
+    image = s["image"].copy()
+    image[left] = image[left][:, :, ::-1]
+    uv = s["uv"].copy()
+    uv[left, :, 0] = 127.0 - uv[left, :, 0]
+    xyz = s["xyz_rel"].copy()
+    xyz[left, :, 0] *= -1
+    bone_m = np.linalg.norm(s["xyz"][:, 0] - s["xyz"][:, ROOT], axis=-1)
+    return {"image": image, "raw": s["image"], "uv": uv, "xyz": xyz, "in_image": s["in_image"],
+            "right": (~left).astype(np.float32), "bone_m": bone_m}
+
+
+def real_val_set(real):
+    """Held-out real crops at the detector's crop (box x 1.3, no jitter), shown as right
+    hands: every howiema L8/R8 frame and every 3rd held-out video hand."""
+    if real is None:
+        return None
+    idx = np.flatnonzero(real["held"])
+    how = np.char.startswith(real["source"][idx].astype(str), "howiema")
+    idx = np.concatenate([idx[how], idx[~how][::3]])
+    side = (CTX - 1) / CTX_SCALE * 1.3
+    c = (CTX - 1) / 2
+    images, uv = [], []
+    for i in idx:
+        M = real_data.crop_affine(c, c, side, 128, 0.0, not real["right"][i])
+        images.append(real_data.warp(real["image"][i], M))
+        uv.append(real_data.apply_affine(M, real["uv"][i]))
+    return {"image": np.asarray(images), "uv": np.asarray(uv, np.float32), "source": real["source"][idx],
+            "neg": real["neg"][real["neg_held"]]}
+
+
+def predict(net, images, refines=("logquad",), batch=128):
+    """Torch DetNet (eval) on uint8 crops (N,128,128,3), one pass -> {refine: (uv, xyz, conf)},
+    presence (N,), right (N,) probabilities (numpy)."""
+    import torch
+
+    from .detnet import read_out
+    was_training = net.training
+    net.eval()
+    reads, pres, right = {r: [] for r in refines}, [], []
+    with torch.no_grad():
+        for i in range(0, len(images), batch):
+            x = torch.from_numpy(np.ascontiguousarray(images[i:i + batch])).permute(0, 3, 1, 2).float() / 255.0
+            out = net(x.contiguous(memory_format=torch.channels_last))
+            for r in refines:
+                reads[r].append([t.numpy() for t in read_out(out["heatmap"], out["location"], net.stride, r)])
+            pres.append(torch.sigmoid(out["presence"]).numpy())
+            right.append(torch.sigmoid(out["handedness"]).numpy())
+    net.train(was_training)
+    return ({r: [np.concatenate(k) for k in zip(*v)] for r, v in reads.items()},
+            np.concatenate(pres), np.concatenate(right))
+
+
+def pck_auc(err_mm, lo=20.0, hi=50.0, steps=15):
+    """Paper's 3D PCK over thresholds linspace(20,50) mm -> AUC (trapezoid, normalised)."""
+    th = np.linspace(lo, hi, steps)
+    pck = (err_mm.reshape(-1)[:, None] <= th).mean(0)
+    return float(np.trapezoid(pck, th) / (hi - lo))
+
+
+def validate(net, sval, rval, refines=("logquad",)):
+    """Held-out metrics; syn_px_<refine> for each read-out (2D px over in-crop joints)."""
+    m = {}
+    if sval is not None:
+        reads, pres, _ = predict(net, sval["image"], refines)
+        for refine, (uv, xyz, _) in reads.items():
+            err2d = np.linalg.norm(uv - sval["uv"], axis=-1)[sval["in_image"]]
+            m[f"syn_px_{refine}"] = float(err2d.mean())
+            m[f"syn_pck5px_{refine}"] = float((err2d <= 5).mean())
+        err3d = np.linalg.norm(xyz - sval["xyz"], axis=-1)
+        m["syn_3d_norm"] = float(err3d.mean())
+        err_mm = err3d * sval["bone_m"][:, None] * 1000
+        m["syn_3d_mm"] = float(err_mm.mean())
+        m["syn_3d_auc_20_50mm"] = pck_auc(err_mm)
+        m["syn_presence"] = float((pres > 0.5).mean())
+        right = predict(net, sval["raw"], ())[2]
+        m["syn_handedness_acc"] = float(((right > 0.5) == (sval["right"] > 0.5)).mean())
+    if rval is not None:
+        reads, pres, _ = predict(net, rval["image"], refines[:1])
+        err = np.linalg.norm(reads[refines[0]][0] - rval["uv"], axis=-1).mean(-1)
+        how = np.char.startswith(rval["source"].astype(str), "howiema")
+        if how.any():
+            m["howiema001_heldout_px"] = float(err[how].mean())
+        if (~how).any():
+            m["video_heldout_px_vs_mediapipe"] = float(err[~how].mean())
+        m["real_presence"] = float((pres > 0.5).mean())
+        if len(rval["neg"]):
+            m["neg_rejected"] = float((predict(net, rval["neg"], ())[1] < 0.5).mean())
+    return m
+
+
+def lr_at(it, args):
+    warm = 300
+    if it < warm:
+        return args.lr * (it + 1) / warm
+    t = (it - warm) / max(1, args.iters - warm)
+    return args.lr * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * min(t, 1.0))))
+
+
+def main(args):
+    import torch
+    from tqdm import tqdm
+
+    from .detnet import DetNet, export_onnx
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    run_dir = args.run_dir or RUN_DIR / args.backbone
+    net = DetNet(args.backbone).to(memory_format=torch.channels_last)
+    opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+    ckpt_path = run_dir / "last.pt"
+    start, history, refine = 0, [], "logquad"
+    if args.resume or args.export_only:
+        if not ckpt_path.exists():
+            raise SystemExit(f"no checkpoint at {ckpt_path}: train from scratch with `handtrain detnet`")
+        ckpt = torch.load(ckpt_path, weights_only=False)
+        net.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        start, history, refine = ckpt["iteration"], ckpt["history"], ckpt.get("refine", refine)
+        print(f"resumed {ckpt_path} at iteration {start}")
+    if args.export_only:
+        export_onnx(net, args.export, refine)
+        print(f"exported {args.export} (refine {refine})")
+        return
+
+    dirs = synth_dirs(args.data)
+    synth = load_synth(dirs, args.max_synth)
+    if synth is None:
+        raise SystemExit(f"no synthetic shards match {args.data}: run `handsynth generate -n 8192 -o "
+                         f"{DATA_DIR}/synth_train_0` first")
+    print(f"synthetic: {len(synth['image'])} crops from {len(dirs)} directories")
+    real = load_real(args.shared)
+    if real is not None:
+        print(f"real: {int((~real['held']).sum())} training hand crops, {int(real['held'].sum())} held out; "
+              f"{int((~real['neg_held']).sum())} negatives ({int(real['neg_held'].sum())} held out)")
+    maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left)
+    sval = synth_val_set(args.val) if (Path(args.val) / "meta.json").exists() else None
+    if sval is None:
+        print(f"note: no held-out synthetic set at {args.val}")
+    rval = real_val_set(real)
+    run_dir.mkdir(parents=True, exist_ok=True)
+
+    def save(it):
+        tmp = ckpt_path.with_suffix(".tmp")
+        torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "iteration": it, "refine": refine,
+                    "history": history, "backbone": args.backbone,
+                    "args": {k: str(v) for k, v in vars(args).items()}}, tmp)
+        os.replace(tmp, ckpt_path)
+
+    net.train()
+    bar = tqdm(range(start, args.iters), initial=start, total=args.iters, desc=f"detnet-{args.backbone}",
+               dynamic_ncols=True, mininterval=5)
+    t0 = time.monotonic()
+    for it in bar:
+        if it % 500 == 0 and it > start and len(synth["image"]) < args.max_synth:
+            new_dirs = synth_dirs(args.data)
+            if new_dirs != dirs:
+                dirs, synth = new_dirs, load_synth(new_dirs, args.max_synth)
+                maker.synth = synth
+                bar.write(f"synthetic: now {len(synth['image'])} crops from {len(dirs)} directories")
+        for group in opt.param_groups:
+            group["lr"] = lr_at(it, args)
+        rng = np.random.default_rng([args.seed, it])
+        b = to_torch(maker.make(args.batch, rng), rng)
+        losses = detnet_losses(net(b["image"].contiguous(memory_format=torch.channels_last)), b, net.stride)
+        loss = sum(LOSS_WEIGHTS[k] * v for k, v in losses.items())
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if it % 20 == 0:
+            bar.set_postfix({k: f"{v.item():.4f}" for k, v in losses.items()})
+        done = it + 1
+        if done % args.val_every == 0 or done == args.iters:
+            metrics = validate(net, sval, rval, refines=("logquad", "soft3", "none"))
+            if sval is not None:                        # the read-out that measures best on held-out synthetic
+                refine = min(("logquad", "soft3", "none"), key=lambda r: metrics[f"syn_px_{r}"])
+            history.append({"iteration": done, "seconds": time.monotonic() - t0, "refine": refine,
+                            "synthetic_crops": len(synth["image"]), **metrics})
+            bar.write(f"iter {done}: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v
+                                                     for k, v in history[-1].items()}))
+            save(done)
+            export_onnx(net, run_dir / "detnet.onnx", refine)
+        elif done % args.ckpt_every == 0:
+            save(done)
+    args.export.parent.mkdir(parents=True, exist_ok=True)
+    export_onnx(net, args.export, refine)
+    print(f"exported {args.export} ({args.export.stat().st_size / 1e6:.1f} MB, refine {refine}) "
+          f"after {args.iters} iterations")

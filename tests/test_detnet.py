@@ -1,0 +1,134 @@
+"""DetNet: shapes, read-out, ONNX export vs torch, a training step, the committed model."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+MODEL = Path(__file__).resolve().parent.parent / "models" / "detnet.onnx"
+
+
+def _torch():
+    return pytest.importorskip("torch", reason="DetNet training/export needs torch (the `train` extra)")
+
+
+@pytest.mark.parametrize("backbone,grid", [("fast", 16), ("paper", 32)])
+def test_forward_shapes(backbone, grid):
+    torch = _torch()
+    from handmocap.detnet import DetNet
+    net = DetNet(backbone).eval()
+    with torch.no_grad():
+        out = net(torch.rand(2, 3, 128, 128))
+    assert net.grid == grid
+    assert out["heatmap"].shape == (2, 21, grid, grid)
+    assert out["delta"].shape == out["location"].shape == (2, 21, 3, grid, grid)
+    assert out["presence"].shape == out["handedness"].shape == (2,)
+    assert float(out["heatmap"].min()) >= 0 and float(out["heatmap"].max()) <= 1
+
+
+def _gaussian_maps(cells, grid):
+    """(N,21,2) continuous cells -> (N,21,G,G) sigma-1 Gaussians."""
+    g = np.arange(grid)
+    return np.exp(-0.5 * ((g[None, None, None, :] - cells[..., 0, None, None]) ** 2
+                          + (g[None, None, :, None] - cells[..., 1, None, None]) ** 2)) * 0.9
+
+
+def test_read_out_argmax_and_subpixel():
+    torch = _torch()
+    from handmocap.detnet import read_out, uv_to_cell
+    rng = np.random.default_rng(0)
+    grid, stride = 16, 8
+    cells = rng.uniform(1.5, grid - 2.5, (3, 21, 2))
+    heat = torch.from_numpy(_gaussian_maps(cells, grid)).float()
+    loc = torch.from_numpy(rng.normal(size=(3, 21, 3, grid, grid))).float()
+    uv_none, xyz, conf = read_out(heat, loc, stride, "none")
+    nearest = np.rint(cells).astype(int)
+    assert np.allclose(uv_to_cell(uv_none.numpy(), stride), nearest)          # integer argmax
+    expect_xyz = loc.numpy()[np.arange(3)[:, None], np.arange(21)[None], :, nearest[..., 1], nearest[..., 0]]
+    assert np.allclose(xyz.numpy(), expect_xyz)                                # location at the argmax cell
+    assert np.all(conf.numpy() <= 0.9 + 1e-6)
+    uv_quad = read_out(heat, loc, stride, "logquad")[0].numpy()
+    uv_soft = read_out(heat, loc, stride, "soft3")[0].numpy()
+    true_uv = cells * stride + (stride - 1) / 2
+    err = {k: np.abs(v - true_uv).max() for k, v in (("none", uv_none.numpy()), ("soft", uv_soft), ("quad", uv_quad))}
+    assert err["quad"] < 1e-3                                                  # exact for a Gaussian peak
+    assert err["soft"] < err["none"]
+
+
+def test_onnx_export_matches_torch(tmp_path):
+    torch = _torch()
+    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    from handmocap.detnet import DetNet, DetNetExport, export_onnx
+    torch.manual_seed(0)
+    net = DetNet("fast")
+    with torch.no_grad():                       # non-trivial BN statistics
+        net.train()(torch.rand(4, 3, 128, 128))
+    net.eval()
+    path = tmp_path / "detnet.onnx"
+    export_onnx(net, path)
+    x = torch.rand(3, 3, 128, 128)
+    with torch.no_grad():
+        ref = [t.numpy() for t in DetNetExport(net).eval()(x)]
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got = sess.run(["uv", "xyz", "confidence", "presence", "handedness"], {"image": x.numpy()})
+    # uv in px: the log-parabola refinement amplifies float differences on an untrained
+    # net's flat heatmaps a little; a wrong argmax would be >= 4 px off
+    for name, a, b, tol in zip(("uv", "xyz", "confidence", "presence", "handedness"), ref, got,
+                               (0.05, 1e-3, 1e-4, 1e-4, 1e-4)):
+        assert a.shape == b.shape and b.dtype == np.float32
+        assert np.abs(a - b).max() < tol, (name, np.abs(a - b).max())
+
+
+def test_training_step_decreases_loss():
+    torch = _torch()
+    from handmocap.detnet import DetNet
+    from handmocap.train_detnet import LOSS_WEIGHTS, detnet_losses
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    n = 4
+    batch = {"image": torch.rand(n, 3, 128, 128), "uv": torch.from_numpy(rng.uniform(20, 108, (n, 21, 2))).float(),
+             "xyz": torch.from_numpy(rng.normal(size=(n, 21, 3))).float(),
+             "w2d": torch.ones(n), "w3d": torch.tensor([1.0, 1.0, 0.0, 0.0]),
+             "presence": torch.tensor([1.0, 1.0, 1.0, 0.0]), "right": torch.tensor([1.0, 0.0, 1.0, 0.0]),
+             "w_hand": torch.tensor([1.0, 1.0, 1.0, 0.0])}
+    net = DetNet("fast").train()
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+
+    def total():
+        return sum(LOSS_WEIGHTS[k] * v for k, v in detnet_losses(net(batch["image"]), batch, net.stride).items())
+    first = total()
+    for _ in range(8):
+        loss = total()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert total().item() < 0.7 * first.item()
+
+
+def test_augmentation_keeps_2d_and_3d_consistent():
+    """Rotating/mirroring the crop and the 3D label together keeps the 3D label the crop's."""
+    from handmocap import real_data
+    from handmocap.train_detnet import rotate_mirror_3d
+    rng = np.random.default_rng(1)
+    xyz = rng.normal(size=(21, 3))
+    for angle, mirror in ((30.0, False), (-75.0, True)):
+        M = real_data.crop_affine(63.5, 63.5, 128, 128, angle, mirror)
+        # orthographic check: the image-plane part of the 3D offsets moves like 2D offsets
+        uv = 63.5 + 10 * xyz[:, :2]
+        moved = real_data.apply_affine(M, uv)
+        rotated = rotate_mirror_3d(xyz[None], np.array([angle]), np.array([mirror]))[0]
+        assert np.allclose(moved, 63.5 + 10 * rotated[:, :2], atol=1e-6)
+        assert np.allclose(rotated[:, 2], xyz[:, 2])
+
+
+@pytest.mark.skipif(not MODEL.exists(), reason="models/detnet.onnx not exported yet")
+def test_committed_model_interface():
+    ort = pytest.importorskip("onnxruntime")
+    sess = ort.InferenceSession(str(MODEL), providers=["CPUExecutionProvider"])
+    assert [i.name for i in sess.get_inputs()] == ["image"]
+    x = np.random.default_rng(0).random((2, 3, 128, 128), dtype=np.float32)
+    uv, xyz, conf, presence, right = sess.run(["uv", "xyz", "confidence", "presence", "handedness"], {"image": x})
+    assert uv.shape == (2, 21, 2) and xyz.shape == (2, 21, 3) and conf.shape == (2, 21)
+    assert presence.shape == right.shape == (2,)
+    assert uv.dtype == np.float32 and np.all((uv >= -8) & (uv <= 136))
+    assert np.all((conf >= 0) & (conf <= 1)) and np.all((presence >= 0) & (presence <= 1))
