@@ -2,7 +2,6 @@
 
     handtrain iknet [--resume] [--iters N] [--export-only] ...    (handmocap/train_iknet.py)
     handtrain detnet [--backbone fast|paper] [--resume] [--iters N] [--data DIR ...]    (handmocap/train_detnet.py)
-    handtrain detnet [--backbone fast|paper] [--resume] [--iters N] [--data DIR ...]    (handmocap/train_detnet.py)
     handtrain finder [--resume] [--iters N] [--export-only] ...   (handmocap/train_finder.py)
 
 Each network is one subcommand: a module with add_arguments(parser) and main(args).
@@ -12,7 +11,6 @@ import importlib
 
 SUBCOMMANDS = {
     "iknet": ("handmocap.train_iknet", "IKNet: joint rotations from 3D joints"),
-    "detnet": ("handmocap.train_detnet", "DetNet: 2D/3D joints, presence, handedness from a hand crop"),
     "detnet": ("handmocap.train_detnet", "DetNet: 2D/3D joints, presence, handedness from a hand crop"),
     "finder": ("handmocap.train_finder", "hand finder: hand boxes in a whole frame"),
 }
