@@ -90,19 +90,27 @@ class CropTransform:
         return np.stack([(u + 0.5) * s - 0.5 + self.x0, (uv_crop[..., 1] + 0.5) * s - 0.5 + self.y0], axis=-1)
 
     def cut(self, image):
-        """(size,size,C) uint8 crop of `image` (H,W,C); outside the frame the border
-        pixels are repeated."""
+        """(size,size,C) uint8 crop of `image` (H,W,C); outside the frame the border pixels
+        are repeated. Cost is independent of the crop's side: a crop more than twice the
+        output size is first shrunk by an integer factor k (INTER_AREA, in-frame part only,
+        exact pixel mapping u_small + 0.5 = (u - x + 0.5) / k), then one bilinear warp."""
         h, w = image.shape[:2]
-        x1, y1 = self.x0 + self.side, self.y0 + self.side
-        cx0, cy0, cx1, cy1 = max(self.x0, 0), max(self.y0, 0), min(x1, w), min(y1, h)
-        if cx0 >= cx1 or cy0 >= cy1:                       # wholly outside: a grey crop
-            return np.full((self.size, self.size) + image.shape[2:], 114, np.uint8)
-        roi = image[cy0:cy1, cx0:cx1]
-        if (cx0, cy0, cx1, cy1) != (self.x0, self.y0, x1, y1):
-            roi = cv2.copyMakeBorder(roi, cy0 - self.y0, y1 - cy1, cx0 - self.x0, x1 - cx1, cv2.BORDER_REPLICATE)
-        interp = cv2.INTER_AREA if self.side > self.size else cv2.INTER_LINEAR
-        crop = cv2.resize(roi, (self.size, self.size), interpolation=interp)
-        return crop[:, ::-1] if self.mirrored else crop
+        s = self.size / self.side                       # crop px per frame px
+        k = max(1, int(1.0 / s))
+        src, ox, oy = image, 0, 0
+        if k >= 2:                                      # the in-frame part (+ margin), whole k-blocks
+            ox, oy = max(self.x0 - k, 0) // k * k, max(self.y0 - k, 0) // k * k
+            x1, y1 = min(self.x0 + self.side + k, w), min(self.y0 + self.side + k, h)
+            nx, ny = (x1 - ox) // k, (y1 - oy) // k
+            if nx < 1 or ny < 1:                        # wholly outside: nearest frame pixels only
+                k, ox, oy = 1, 0, 0
+            else:
+                src = cv2.resize(image[oy:oy + ny * k, ox:ox + nx * k], (nx, ny), interpolation=cv2.INTER_AREA)
+        # u_crop = (k (u_src + 0.5) - 0.5 + ox - x0 + 0.5) s - 0.5
+        M = np.array([[k * s, 0.0, (0.5 * k + ox - self.x0) * s - 0.5],
+                      [0.0, k * s, (0.5 * k + oy - self.y0) * s - 0.5]])
+        crop = cv2.warpAffine(src, M, (self.size, self.size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return np.ascontiguousarray(crop[:, ::-1]) if self.mirrored else crop
 
 
 def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE):

@@ -292,7 +292,7 @@ def main(args):
     args.run_dir.mkdir(parents=True, exist_ok=True)
     ckpt = args.run_dir / "last.pt"
     if args.export_only:
-        model.load_state_dict(torch.load(ckpt)["model"])
+        model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
         export(model, args.export)
         return
     meta = json.loads((args.synth / "meta.json").read_text())
@@ -311,7 +311,7 @@ def main(args):
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     start = 0
     if args.resume and ckpt.is_file():
-        state = torch.load(ckpt)
+        state = torch.load(ckpt, weights_only=False)   # our own file
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["opt"])
         start = state["iter"]
@@ -319,7 +319,7 @@ def main(args):
     for it in range(start, args.iters):
         lr = args.lr / 50 + (args.lr - args.lr / 50) * 0.5 * (1 + np.cos(np.pi * it / args.iters))
         for g in opt.param_groups:
-            g["lr"] = lr
+            g["lr"] = float(lr)
         x, heat, reg, mask = (torch.from_numpy(a) for a in batches.make(np.random.default_rng([args.seed, it]),
                                                                         args.batch))
         loss, parts = losses(model(x), heat, reg, mask)
