@@ -49,7 +49,8 @@ nodes:
     assert r.returncode == 0, r.stdout + r.stderr
     fast, slow, keep = (sink_result(tmp_path / f"{n}.json") for n in ("fast", "slow", "all"))
     assert keep["seqs"] == list(range(200))
-    assert len(fast["seqs"]) >= 150 and np.median(fast["ages_ms"]) < 60
+    # generous bounds: a loaded 2-core machine must not make this flaky
+    assert len(fast["seqs"]) >= 100 and np.median(fast["ages_ms"]) < 60
     # 2 s of frames at 100 ms each: about 20 frames, each fresh (a backlog would age by 90 ms a frame)
     assert 10 <= len(slow["seqs"]) <= 30
     # (the first frames can be late while the 2 cores are still busy starting 4 processes)
