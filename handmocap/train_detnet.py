@@ -215,13 +215,13 @@ class BatchMaker:
         self.real_train = np.flatnonzero(~real["held"]) if real is not None else np.zeros(0, int)
         self.neg_train = np.flatnonzero(~real["neg_held"]) if real is not None else np.zeros(0, int)
         self.share_real = share_real if len(self.real_train) else 0.0
-        self.share_neg = share_neg
         self.procedural = None
         try:
             from .synth.backgrounds import BackgroundSource
             self.procedural = BackgroundSource(np.random.default_rng(12345), None, 0.0, pool_size=96)
         except Exception as exc:            # the engine is optional for real-data negatives
             print(f"note: no procedural negatives ({exc})")
+        self.share_neg = share_neg if len(self.neg_train) or self.procedural is not None else 0.0
 
     def make(self, n, rng):
         n_neg = int(round(self.share_neg * n))
