@@ -17,7 +17,6 @@ Every batch is made from numpy generator [seed, iteration], so a resumed run see
 the batches the uninterrupted run would have. Validation uses its own seed, never a
 training batch.
 """
-import argparse
 import os
 import time
 from pathlib import Path

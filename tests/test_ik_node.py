@@ -1,16 +1,12 @@
 """The ik node: its maths in-process (mirroring, translation, every HandPose field), the
-per-track smoothing, and the node in a real graph fed by `handbag play`."""
+per-track smoothing, and the node in a real graph."""
 import importlib
-import subprocess
-import sys
-import time
-
 import numpy as np
 import pytest
 
-from conftest import graph_env
-from handmocap import bus, camera_info, codec
-from handmocap.bag import BagWriter, iter_messages
+from conftest import handlaunch
+from handmocap import camera_info, codec
+from handmocap.bag import iter_messages
 from handmocap.hand_model import HandModel
 from handmocap.ik_solver import IKSolver
 from handmocap.pose_data import PoseSampler
@@ -104,55 +100,28 @@ def test_estimator_uses_track_shapes_smooths_and_resets_lost_tracks():
     assert [o["track_id"] for o in smooth.update([broken, hand], K, 2.3)] == [3]
 
 
-def write_keypoints_bag(path, hands):
-    """A bag as the detector would leave it: /camera/info then /hand/keypoints per frame."""
-    t0 = time.time_ns()
-    with BagWriter(path) as bag:
-        for i, hand in enumerate(hands):
-            stamp = t0 + i * 33_000_000
-            info = {"header": codec.header(i, "camera", stamp), "width": W, "height": H, "K": K,
-                    "distortion": np.zeros(5), "source": "default-fov"}
-            kp = {"header": codec.header(i, "camera", stamp), "width": W, "height": H,
-                  "hands": [] if i == 3 else [hand]}                    # frame 3: no hand
-            bag.write("/camera/info", "CameraInfo", codec.encode(info, "CameraInfo"), stamp, stamp)
-            bag.write("/hand/keypoints", "HandKeypoints", codec.encode(kp, "HandKeypoints"), stamp, stamp)
-
-
-def test_ik_node_in_a_graph_fed_by_handbag_play(tmp_path, run_dir):
-    hands, _, _ = synthetic_hands(12, 4)
-    hands[5] = {**hands[5], "handedness": "left", "track_id": 8}
-    src, out = tmp_path / "keypoints.mcap", tmp_path / "pose.mcap"
-    write_keypoints_bag(src, hands)
+def test_ik_node_in_a_graph(tmp_path, run_dir):
+    """A publishing test node (synthetic hands projected with a known K, and /camera/info)
+    -> ik -> recorder, under handlaunch: one /hand/pose per /hand/keypoints, same stamps."""
+    out = tmp_path / "pose.mcap"
     lf = tmp_path / "g.yaml"
     lf.write_text(f"""
 nodes:
+  source: {{node: graphnodes.keypoints_source, params: {{frames: 20, handedness: left, track_id: 8}}, required: true}}
   ik: {{node: ik, required: true}}
-  recorder: {{node: recorder, params: {{output: {out}, topics: [/hand/pose]}}, required: true}}
+  recorder: {{node: recorder, params: {{output: {out}, topics: [/hand/keypoints, /hand/pose]}}, required: true}}
 """)
-    env = graph_env(run_dir)
-    graph = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=env,
-                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        deadline = time.monotonic() + 30
-        while not any(n.name == "ik" and n.ready for n in bus.read_node_files(run_dir).values()):
-            assert time.monotonic() < deadline and graph.poll() is None, "ik node did not start"
-            time.sleep(0.05)
-        play = subprocess.run([sys.executable, "-m", "handmocap.bag_cli", "play", str(src)], env=env,
-                              capture_output=True, text=True, timeout=30)
-        assert play.returncode == 0, play.stdout + play.stderr
-        log, _ = graph.communicate(timeout=30)
-    finally:
-        if graph.poll() is None:
-            graph.kill()
-    assert graph.returncode == 0, log
-    poses = [codec.decode(p, t) for _, t, p, _ in iter_messages(out)]
-    assert len(poses) == len(hands)                                         # one per keypoints message
-    sent = [codec.decode(p, t) for _, t, p, _ in iter_messages(src, ["/hand/keypoints"])]
-    assert [m["header"]["stamp_ns"] for m in poses] == [m["header"]["stamp_ns"] for m in sent]
-    assert [len(m["hands"]) for m in poses] == [0 if i == 3 else 1 for i in range(len(hands))]
-    for i, m in enumerate(poses):
-        for h in m["hands"]:
-            for name, shape in FIELDS.items():
-                assert h[name].shape == shape and h[name].dtype == np.float32, name
-            assert h["handedness"] == ("left" if i == 5 else "right")
-            assert 0.3 < h["root"][2] < 1.2                               # translated with the bag's K
+    r = handlaunch([lf], run_dir)
+    assert r.returncode == 0, r.stdout + r.stderr
+    got = {"/hand/keypoints": [], "/hand/pose": []}
+    for topic, type_name, payload, _ in iter_messages(out):
+        got[topic].append(codec.decode(payload, type_name))
+    sent, poses = got["/hand/keypoints"], got["/hand/pose"]
+    assert len(sent) == 20 and len(poses) == 20                            # one pose per keypoints message
+    assert sorted(m["header"]["stamp_ns"] for m in poses) == sorted(m["header"]["stamp_ns"] for m in sent)
+    for m in poses:
+        (h,) = m["hands"]
+        for name, shape in FIELDS.items():
+            assert h[name].shape == shape and h[name].dtype == np.float32, name
+        assert h["handedness"] == "left" and h["track_id"] == 8
+        assert 0.35 < h["root"][2] < 0.7                                   # the source's hands are 0.5 m away
