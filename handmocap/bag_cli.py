@@ -58,41 +58,53 @@ def _sleep_until(node, t: float) -> None:
         time.sleep(min(left, 0.1))
 
 
-def cmd_play(args) -> None:
-    from .node import Node
-    info = _checked_info(args.file, args.topics)
-    chosen = {t: v for t, v in info["topics"].items() if not args.topics or t in args.topics}
+def playable_topics(path, topics=None) -> dict:
+    """{topic: message type} of a bag that can be played (msgpack messages of known types),
+    limited to `topics` when given; raises CliError naming the problem."""
+    info = _checked_info(path, topics)
+    chosen = {t: v for t, v in info["topics"].items() if not topics or t in topics}
     for topic, v in chosen.items():
         if v["encoding"] != MESSAGE_ENCODING:
-            raise CliError(f"{args.file}: topic {topic} holds {v['encoding']} messages; only bags "
+            raise CliError(f"{path}: topic {topic} holds {v['encoding']} messages; only bags "
                            f"recorded by handbag/recorder ({MESSAGE_ENCODING}) can be played")
         if v["type"] not in codec.message_types():
-            raise CliError(f"{args.file}: topic {topic} has unknown message type {v['type']!r}")
-    if args.rate < 0:
-        raise CliError(f"--rate must be >= 0, not {args.rate}")
+            raise CliError(f"{path}: topic {topic} has unknown message type {v['type']!r}")
+    return {t: v["type"] for t, v in chosen.items()}
+
+
+def play_messages(node, path, topics: dict, rate: float = 1.0, loop: bool = False) -> int:
+    """Publish a bag's stored payloads unchanged on `node` (which advertised `topics`), paced by
+    their log times / rate (0: as fast as possible); returns how many were sent."""
+    if rate < 0:
+        raise CliError(f"rate must be >= 0, not {rate}")
+    sent = 0
+    while node.ok():
+        t_start, t_first = time.monotonic(), None
+        for topic, type_name, payload, log_ns in iter_messages(path, list(topics)):
+            if not node.ok():
+                break
+            t_first = log_ns if t_first is None else t_first
+            if rate > 0:
+                _sleep_until(node, t_start + (log_ns - t_first) / 1e9 / rate)
+            node.publish_raw(topic, type_name, payload)
+            sent += 1
+        if not loop or t_first is None:
+            break
+    return sent
+
+
+def cmd_play(args) -> None:
+    from .node import Node
+    topics = playable_topics(args.file, args.topics)
     node = Node(f"bagplay{os.getpid()}", argv=[])
     try:
-        for topic, v in chosen.items():
-            node.advertise(topic, v["type"])
-        if "HANDMOCAP_LAUNCH_ID" in os.environ:
-            node.wait_for_graph()
-        else:
+        for topic, type_name in topics.items():
+            node.advertise(topic, type_name)
+        if "HANDMOCAP_LAUNCH_ID" not in os.environ:
             missing = node.wait_for_subscribers(SUBSCRIBER_WAIT_S)
             if missing:
                 node.log.warning("playing without all subscribers connected: %s", missing)
-        sent = 0
-        while node.ok():
-            t_start, t_first = time.monotonic(), None
-            for topic, type_name, payload, log_ns in iter_messages(args.file, list(chosen)):
-                if not node.ok():
-                    break
-                t_first = log_ns if t_first is None else t_first
-                if args.rate > 0:
-                    _sleep_until(node, t_start + (log_ns - t_first) / 1e9 / args.rate)
-                node.publish_raw(topic, type_name, payload)
-                sent += 1
-            if not args.loop or t_first is None:
-                break
+        sent = play_messages(node, args.file, topics, args.rate, args.loop)
         node.log.info("played %d message(s) from %s", sent, args.file)
     finally:
         node.close()

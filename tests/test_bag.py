@@ -303,3 +303,32 @@ def test_recorder_refuses_to_overwrite(tmp_path, graph_env):
     cli = run_handbag("record", "-o", str(rec), env=graph_env)
     assert cli.returncode == 1 and cli.stderr.strip().startswith("handbag: error: ") and str(rec) in cli.stderr
     assert rec.read_bytes() == b"precious"
+
+
+def test_bagplay_node_feeds_a_launched_graph(tmp_path):
+    """A bag recorded from one graph drives another through the bagplay node: payloads arrive
+    unchanged and the graph drains and returns by itself."""
+    from conftest import handlaunch
+    first, second = tmp_path / "kp.mcap", tmp_path / "shape.mcap"
+    g1 = tmp_path / "g1.yaml"
+    g1.write_text(f"""
+nodes:
+  source: {{node: graphnodes.keypoints_source, params: {{frames: 25}}}}
+  recorder: {{node: recorder, params: {{output: {first}}}}}
+""")
+    g2 = tmp_path / "g2.yaml"
+    g2.write_text(f"""
+nodes:
+  bagplay: {{node: bagplay, params: {{file: {first}, rate: 0, topics: [/hand/keypoints]}}, required: true}}
+  shape: {{node: shape}}
+  recorder: {{node: recorder, params: {{output: {second}}}}}
+""")
+    for g in (g1, g2):
+        r = handlaunch([g], Path(tempfile.mkdtemp(prefix="hm")))
+        assert r.returncode == 0, r.stdout + r.stderr
+    recorded = {t: [] for t in ("/hand/keypoints", "/hand/shape")}
+    for topic, _, payload, _ in bag.iter_messages(second):
+        recorded[topic].append(payload)
+    original = [p for t, _, p, _ in bag.iter_messages(first) if t == "/hand/keypoints"]
+    assert recorded["/hand/keypoints"] == original and len(original) == 25
+    assert len(recorded["/hand/shape"]) == 25

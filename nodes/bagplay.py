@@ -1,0 +1,33 @@
+"""bagplay: a bag as a node of a launched graph (what `handbag play` does from a shell).
+
+Publishes the stored payloads of `file` unchanged on their recorded topics (all, or
+`topics`), paced by their log times divided by `rate` (0 = as fast as the graph takes them),
+looping if asked; then ends its streams so the graph drains. Header stamps are kept as
+recorded (a bag replays the past); use the `replay` node to re-stamp camera frames.
+"""
+from __future__ import annotations
+
+from handmocap.bag_cli import CliError, play_messages, playable_topics
+from handmocap.node import Node, run
+
+PARAMS = {"file": None, "rate": 1.0, "loop": False, "topics": []}
+
+
+def main() -> None:
+    node = Node("bagplay", params=PARAMS)
+    p = node.params
+    if not p["file"]:
+        raise ValueError("bagplay needs a bag: file:=PATH.mcap")
+    try:
+        topics = playable_topics(p["file"], p["topics"] or None)
+        for topic, type_name in topics.items():
+            node.advertise(topic, type_name)
+        sent = play_messages(node, p["file"], topics, float(p["rate"]), bool(p["loop"]))
+    except CliError as e:
+        raise ValueError(str(e)) from None
+    node.log.info("played %d message(s) from %s", sent, p["file"])
+    node.close()
+
+
+if __name__ == "__main__":
+    run(main)
