@@ -16,10 +16,12 @@ Per frame (`HandDetector.process`):
    size; a new track's crop is refined once from its own first 2D prediction (and flipped
    the other way if DetNet's handedness outweighs the finder's).
 4. The next frame's crop of a track comes from this frame's 2D joints (their box, centre
-   moved on by half the last displacement), as MediaPipe and the paper's videos do.
+   moved on by half the last displacement, side changing by at most 1.33x per frame), as
+   MediaPipe and the paper's videos do.
 5. Handedness per track: a running mean in logit space of DetNet's handedness head
    (mapped back through the flip) and, at detection, the finder's.
-6. Two tracks on one hand (box IoU >= 0.5): the lower-scoring one is dropped.
+6. Two tracks on one hand (joint-box IoU >= 0.5, or the smaller box 70% inside the other):
+   the lower-scoring one is dropped.
 
 >>> det = HandDetector.load()
 >>> hands = det.process(frame_bgr)      # HandKeypoints hands (track_id, handedness, score,
@@ -148,6 +150,15 @@ class DetNetRunner:
     def __call__(self, crops_rgb):
         x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
         return dict(zip(self.outputs, self.session.run(None, {"image": x})))
+
+
+def box_overlap_of_smaller(box, boxes):
+    """(M,) intersection of `box` (4,) with each of `boxes` (M,4), over the smaller area."""
+    x0, y0 = np.maximum(box[0], boxes[:, 0]), np.maximum(box[1], boxes[:, 1])
+    x1, y1 = np.minimum(box[2], boxes[:, 2]), np.minimum(box[3], boxes[:, 3])
+    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
+    area = lambda b: np.maximum((b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1]), 1e-9)   # noqa: E731
+    return inter / np.minimum(area(box), area(boxes))
 
 
 def logit(p):
@@ -297,11 +308,21 @@ class HandDetector:
                           "score": presence, "bbox": t.crop.box.astype(np.float32),
                           "uv": uv.astype(np.float32), "confidence": np.asarray(out["confidence"][i], np.float32),
                           "xyz_rel": xyz.astype(np.float32)})
-            t.crop = crop_for_joints(uv + 0.5 * t.velocity, not t.is_right, self.crop_scale)
+            t.crop = self._next_crop(t, uv)
             keep.append(t)
         self.tracks = keep
         hands = self._drop_duplicates(hands)
         return sorted(hands, key=lambda h: h["track_id"])
+
+    def _next_crop(self, track, uv, max_change=1.33):
+        """Next frame's crop from this frame's joints: moved on by half the last
+        displacement; its side changes by at most a factor `max_change` per frame (a hand
+        does not change size that fast: a collapsing or exploding prediction must not take
+        the crop with it)."""
+        crop = crop_for_joints(uv + 0.5 * track.velocity, not track.is_right, self.crop_scale)
+        side = float(np.clip(crop.side, track.crop.side / max_change, track.crop.side * max_change))
+        centre = (crop.box[:2] + crop.box[2:]) / 2
+        return CropTransform.around(centre, side, mirrored=crop.mirrored)
 
     @staticmethod
     def _plausible(uv, shape):
@@ -313,15 +334,18 @@ class HandDetector:
         centre = (lo + hi) / 2
         return bool(0 <= centre[0] < w and 0 <= centre[1] < h and np.max(hi - lo) <= 2 * max(h, w))
 
-    def _drop_duplicates(self, hands, iou=0.5):
-        """Two tracks on one hand: keep the higher score (ties: the older track)."""
+    def _drop_duplicates(self, hands, iou=0.5, inside=0.7):
+        """Two tracks on one hand (joint boxes with IoU >= `iou`, or the smaller box at
+        least `inside` covered by the other): keep the higher score (ties: the older track)."""
         order = sorted(hands, key=lambda h: (-h["score"], h["track_id"]))
-        kept = []
+        kept, kept_boxes = [], []
         for h in order:
             box = np.concatenate([h["uv"].min(0), h["uv"].max(0)])
-            if any(box_iou(box, np.concatenate([k["uv"].min(0), k["uv"].max(0)]))[0, 0] >= iou for k in kept):
+            if kept_boxes and (box_iou(box, np.array(kept_boxes)).max() >= iou
+                               or box_overlap_of_smaller(box, np.array(kept_boxes)).max() >= inside):
                 continue
             kept.append(h)
+            kept_boxes.append(box)
         ids = {h["track_id"] for h in kept}
         self.tracks = [t for t in self.tracks if t.track_id in ids]
         return kept

@@ -214,6 +214,18 @@ def test_tracked_hands_do_not_run_the_finder():
     assert det.finder.calls == 1 and det.stats["crops"] == 2 * 30 + 2    # + the refinement of each new track
 
 
+def test_a_second_track_inside_a_hand_is_a_duplicate_and_crops_change_size_slowly():
+    det = detector()
+    big = canonical_hand((300, 300), 150)
+    small = (big - big.mean(0)) * 0.2 + big.mean(0)           # a collapsed prediction on the same hand
+    hands = [{"track_id": 0, "score": 0.9, "uv": small}, {"track_id": 1, "score": 0.95, "uv": big},
+             {"track_id": 2, "score": 0.8, "uv": big + 400}]
+    assert [h["track_id"] for h in det._drop_duplicates(hands)] == [1, 2]
+    from handmocap.detector import Track
+    track = Track(0, crop_for_joints(big))
+    assert det._next_crop(track, small).side == pytest.approx(track.crop.side / 1.33, abs=1)
+
+
 def test_empty_frame_gives_no_hands():
     assert detector().process(np.zeros((H, W, 3), np.uint8)) == []
 
