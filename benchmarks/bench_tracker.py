@@ -2,7 +2,7 @@
 MediaPipe Hands (tracking/video mode) on the same frames when /tmp/mpenv has it.
 
     python benchmarks/bench_tracker.py [--video data/demo/hand_clip.mp4] [--repeat 3] [--threads 1]
-                                       [--detnet PATH] [--finder PATH]
+                                       [--detnet PATH] [--finder PATH] [--max-hands 2]
 
 Prints median and p90 ms per frame of: the whole pipeline (HandTracker.process: detector +
 shape + IKNet + FK + translation + smoothing), the detector alone (HandDetector.process),
@@ -54,6 +54,7 @@ def main():
     p.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads per network")
     p.add_argument("--detnet", help="DetNet ONNX (default models/detnet.onnx)")
     p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx)")
+    p.add_argument("--max-hands", type=int, default=2, help="HandTracker/HandDetector max_hands (1: exactly one track)")
     args = p.parse_args()
     from handmocap.detector import HandDetector
     from handmocap.tracker import HandTracker
@@ -65,15 +66,16 @@ def main():
         if not ok:
             break
         frames.append(cv2.resize(f, (640, 480)) if f.shape[:2] != (480, 640) else f)
-    results = {"frames": len(frames), "load_avg": os.getloadavg()[0], "threads": args.threads}
+    results = {"frames": len(frames), "load_avg": os.getloadavg()[0], "threads": args.threads,
+               "max_hands": args.max_hands}
 
-    tracker = HandTracker(detnet=args.detnet, finder=args.finder, threads=args.threads)
+    tracker = HandTracker(detnet=args.detnet, finder=args.finder, threads=args.threads, max_hands=args.max_hands)
     for f in frames:                   # warm-up pass, and the hand is tracked from here on
         tracker.process(f)
     results["tracker"] = stats(timed(tracker.process, frames, args.repeat))
     results["tracker"]["hands_per_frame"] = float(np.mean([len(tracker.process(f)) for f in frames]))
 
-    det = HandDetector.load(args.detnet, args.finder, threads=args.threads)
+    det = HandDetector.load(args.detnet, args.finder, threads=args.threads, max_hands=args.max_hands)
     for f in frames:
         det.process(f)
     results["detector"] = stats(timed(det.process, frames, args.repeat))
