@@ -14,7 +14,7 @@ from collections import deque
 
 import numpy as np
 
-from .skeleton import BONES, FINGER_TIPS, REF_BONE
+from .skeleton import BONES, FINGER_TIPS, REF_BONE, normalize_joints
 
 _REF_INDEX = BONES.index(REF_BONE)
 BONES_WITH_TIPS = tuple(i for i in range(len(BONES)) if i != _REF_INDEX)                     # 19
@@ -156,3 +156,33 @@ class ShapeTracker:
         # a ratio l/l_ref carries the noise of both lengths: var ≈ sigma_d^2 (1 + r^2) / l_ref^2
         ratio_var = 2.0 * noise_var / corrected[_REF_INDEX]
         return np.sqrt(corrected / corrected[_REF_INDEX]), ratio_var
+
+
+class ShapeEstimator:
+    """Shape trackers of all live tracks of one hand model (a HandModel); the shape node's
+    and HandTracker's per-frame step."""
+
+    def __init__(self, model, forget_after_s: float = 2.0, window: int = 600):
+        self.model = model
+        self.fitter = ShapeFitter(model)
+        self.forget_after_s = forget_after_s
+        self.window = window
+        self.tracks: dict[int, tuple[ShapeTracker, str, float]] = {}
+
+    def update(self, hands: list[dict], now: float) -> list[dict]:
+        """hands: HandKeypoints hands; returns HandShape shapes of every live track."""
+        for h in hands:
+            tracker = self.tracks.get(h["track_id"], (None,))[0] or ShapeTracker(self.fitter, window=self.window)
+            tracker.update(h["xyz_rel"])
+            self.tracks[h["track_id"]] = (tracker, h["handedness"], now)
+        for tid in [t for t, (_, _, seen) in self.tracks.items() if now - seen > self.forget_after_s]:
+            del self.tracks[tid]
+        out = []
+        for tid, (tracker, handedness, _) in sorted(self.tracks.items()):
+            rest = normalize_joints(self.model.rest_joints(tracker.beta))
+            out.append({"track_id": tid, "handedness": handedness,
+                        "beta": tracker.beta.astype(np.float32),
+                        "rest_xyz": rest.astype(np.float32),
+                        "bone_ratios": bone_ratios(rest).astype(np.float32),
+                        "samples": tracker.n_samples})
+        return out

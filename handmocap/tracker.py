@@ -8,8 +8,8 @@
         # and xyz_rel (21,3) (DetNet's normalized joints), vertices (V,3) m when asked
 
 Stages, the same code as the graph's nodes: detector.HandDetector (finder, crops, DetNet,
-tracks) -> the shape node's ShapeEstimator (paper Eq. 8, one ShapeTracker per track) -> the
-ik node's PoseEstimator (IKNet, FK at the track's beta, One Euro smoothing, Eq. 5
+tracks) -> shape.ShapeEstimator (paper Eq. 8, one ShapeTracker per track) ->
+pose.PoseEstimator (IKNet, FK at the track's beta, One Euro smoothing, Eq. 5
 translation). K: (3,3) or (4,) fx, fy, cx, cy of the frame; without it
 camera_info.default_K (a DEFAULT_HFOV_DEG = 60 degree horizontal field of view, principal
 point at the centre). stamp_ns: capture time (smoothing needs real time between frames;
@@ -23,9 +23,8 @@ from . import camera_info
 from .detector import HandDetector
 from .hand_model import HandModel
 from .ik_solver import IKSolver
-from .nodes.ik import PARAMS as IK_PARAMS
-from .nodes.ik import PoseEstimator
-from .nodes.shape import ShapeEstimator
+from .pose import PoseEstimator
+from .shape import ShapeEstimator
 from .skeleton import ROOT
 
 
@@ -43,7 +42,7 @@ class HandTracker:
         self.detector = detector or HandDetector.load(detnet, finder, threads=threads, **detector_kwargs)
         self.shapes = ShapeEstimator(self.model)
         self.poses = PoseEstimator(IKSolver.load(iknet, threads=threads, model=self.model), self.model,
-                                   {**IK_PARAMS, "smooth": smooth, "clamp_to_limits": clamp_to_limits})
+                                   {"smooth": smooth, "clamp_to_limits": clamp_to_limits})
         self.vertices, self.fps = vertices, fps
         self.frame_index = 0
         self.last_keypoints = []

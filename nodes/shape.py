@@ -1,5 +1,7 @@
 """shape: a running hand-shape estimate per track (paper Eq. 8). /hand/keypoints -> /hand/shape.
 
+A thin loop over handmocap.shape.ShapeEstimator.
+
 Per track id one ShapeTracker accumulates the bone lengths of the detector's normalized 3D
 joints (bone lengths do not change under the mirroring of left hands); the fitted beta,
 the rest pose of the model at that beta (root-relative, scale-normalized: IKNet's
@@ -11,43 +13,11 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-
 from handmocap.hand_model import HandModel
 from handmocap.node import Node, run
-from handmocap.shape import ShapeFitter, ShapeTracker, bone_ratios
-from handmocap.skeleton import normalize_joints
+from handmocap.shape import ShapeEstimator
 
 PARAMS = {"model": None, "forget_after_s": 2.0, "window": 600}
-
-
-class ShapeEstimator:
-    """Shape trackers of all live tracks; knows nothing of the bus."""
-
-    def __init__(self, model: HandModel, forget_after_s: float = 2.0, window: int = 600):
-        self.model = model
-        self.fitter = ShapeFitter(model)
-        self.forget_after_s = forget_after_s
-        self.window = window
-        self.tracks: dict[int, tuple[ShapeTracker, str, float]] = {}
-
-    def update(self, hands: list[dict], now: float) -> list[dict]:
-        """hands: HandKeypoints hands; returns HandShape shapes of every live track."""
-        for h in hands:
-            tracker = self.tracks.get(h["track_id"], (None,))[0] or ShapeTracker(self.fitter, window=self.window)
-            tracker.update(h["xyz_rel"])
-            self.tracks[h["track_id"]] = (tracker, h["handedness"], now)
-        for tid in [t for t, (_, _, seen) in self.tracks.items() if now - seen > self.forget_after_s]:
-            del self.tracks[tid]
-        out = []
-        for tid, (tracker, handedness, _) in sorted(self.tracks.items()):
-            rest = normalize_joints(self.model.rest_joints(tracker.beta))
-            out.append({"track_id": tid, "handedness": handedness,
-                        "beta": tracker.beta.astype(np.float32),
-                        "rest_xyz": rest.astype(np.float32),
-                        "bone_ratios": bone_ratios(rest).astype(np.float32),
-                        "samples": tracker.n_samples})
-        return out
 
 
 def main() -> None:

@@ -1,6 +1,5 @@
 """The ik node: its maths in-process (mirroring, translation, every HandPose field), the
 per-track smoothing, and the node in a real graph."""
-import importlib
 import numpy as np
 import pytest
 
@@ -13,7 +12,7 @@ from handmocap.pose_data import PoseSampler
 from handmocap.rotations import mirror_points, quat_angle_between
 from handmocap.skeleton import normalize_joints
 
-ik = importlib.import_module("handmocap.nodes.ik")
+from handmocap import pose as ik
 MODEL = HandModel.load()
 SOLVER = IKSolver.load()
 W, H = 640, 480

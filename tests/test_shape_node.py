@@ -1,6 +1,4 @@
 """The shape node: its estimator in-process, and the node in a real graph."""
-import importlib
-
 import numpy as np
 
 from conftest import handlaunch
@@ -8,9 +6,9 @@ from graphnodes.keypoints_source import synthetic_hands
 from handmocap import codec
 from handmocap.bag import iter_messages
 from handmocap.hand_model import HandModel
+from handmocap.shape import ShapeEstimator
 from handmocap.skeleton import normalize_joints
 
-shape_node = importlib.import_module("handmocap.nodes.shape")
 # coefficients that bone ratios can see (hand_size, finger_thickness, wrist_girth cannot: models/README.md)
 OBSERVABLE = [1, 2, 3, 4, 5, 6, 9]
 
@@ -18,7 +16,7 @@ OBSERVABLE = [1, 2, 3, 4, 5, 6, 9]
 def test_estimator_converges_and_forgets_lost_tracks():
     beta = np.array([0.0, 1.0, -1.0, 0.5, 0.0, -0.5, 1.0, 0.0, 0.0, -1.0])
     _, xyz_rel, _ = synthetic_hands(40, beta, seed=1)
-    est = shape_node.ShapeEstimator(HandModel.load())
+    est = ShapeEstimator(HandModel.load())
     for i, x in enumerate(xyz_rel):
         shapes = est.update([{"track_id": 4, "handedness": "left", "xyz_rel": x}], now=i * 0.03)
     (s,) = shapes

@@ -1,0 +1,133 @@
+"""Hand poses from keypoints: IKNet per hand, FK at the person's shape, Eq. 5 translation,
+One Euro smoothing per track. The maths of the `ik` node and of HandTracker (no bus).
+
+Per hand (pose_from_keypoints):
+1. A left hand's xyz_rel (the hand as seen) is mirrored (x -> -x) into the right-hand model.
+2. IKNet (IKSolver) turns the joints into 21 global bone quaternions, given the rest pose
+   of the person (the paper's X_ref, D_ref; the average hand until a shape is known). With
+   clamp_to_limits the finger angles are then clipped into the anatomical limits of the
+   average hand (ik_solver.clamp_to_limits; the IKNet section of models/README.md says what
+   it costs).
+3. Optional One Euro smoothing per track of the quaternions (sign-aligned with the last
+   output, renormalized) and of the root translation; a track's filters are reset when the
+   track is missing from a keypoints message or unseen for `reset_after_s`.
+4. pose (16,3) relative axis-angle from the quaternions; joints by forward kinematics of the
+   model at the track's beta (so xyz, quat, pose and beta agree exactly), mirrored back for
+   a left hand; translation by Eq. 5 (translation.camera_joints_from_keypoints) from uv and
+   K, with the model's reference bone length at beta as the metric scale.
+`quat` and `pose` are those of the right-hand model (HandModel.forward(quat, beta,
+handedness="left") draws the left hand); `xyz` and `root` are the hand as seen.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .ik_solver import clamp_to_limits
+from .joint_limits import JointLimits
+from .kinematics import (as_matrices, bone_rotations_to_frames, forward_kinematics,
+                         frames_to_bone_rotations, global_quats_to_relative)
+from .one_euro import OneEuroFilter
+from .rotations import mirror_points, quat_normalize
+from .skeleton import ROOT
+from .translation import camera_joints_from_keypoints
+
+# Settings of PoseEstimator (the ik node's parameters): filter cut-offs in Hz (handmocap/one_euro.py),
+# measured on synthetic jitter only so far.
+POSE_DEFAULTS = {"clamp_to_limits": True, "smooth": True, "rot_min_cutoff": 1.0, "rot_beta": 1.5,
+                 "root_min_cutoff": 0.5, "root_beta": 2.0, "d_cutoff": 1.0, "reset_after_s": 0.5}
+
+
+def posed_joints(quats, model, beta):
+    """(21,3) joints in metres, right-hand model frame (wrist at the rest wrist), from bone
+    quaternions (21,4), with the model's rigid palm (as HandModel.forward)."""
+    bones = frames_to_bone_rotations(bone_rotations_to_frames(as_matrices(quats)))
+    return forward_kinematics(bones, model.rest_joints(beta))
+
+
+def solve_rotations(xyz_rel, handedness, rest, solver, limits=None):
+    """Global bone quaternions (21,4) of the right-hand model for one hand's joints as seen;
+    with limits (a JointLimits), finger angles are clipped into them."""
+    xyz = mirror_points(xyz_rel) if handedness == "left" else np.asarray(xyz_rel, dtype=np.float64)
+    quats = solver.solve(xyz, rest)
+    return (quats if limits is None else clamp_to_limits(quats, limits))[0]
+
+
+def pose_fields(hand, quats, beta, K, model):
+    """HandPose hand (float32 arrays) from one HandKeypoints hand and its (already solved,
+    maybe smoothed) right-model quaternions; root is Eq. 5's, before any smoothing."""
+    ref_m = float(model.ref_bone_length(beta))
+    joints = posed_joints(quats, model, beta)
+    rel = joints - joints[ROOT]
+    if hand["handedness"] == "left":
+        rel = mirror_points(rel)
+    _, root, valid = camera_joints_from_keypoints(K, hand["uv"], rel / ref_m, ref_m)
+    return {"track_id": int(hand["track_id"]), "handedness": hand["handedness"], "score": float(hand["score"]),
+            "xyz": (root + rel).astype(np.float32), "root": root.astype(np.float32),
+            "quat": quat_normalize(quats).astype(np.float32),
+            "pose": global_quats_to_relative(quats).astype(np.float32),
+            "beta": np.asarray(beta, dtype=np.float32), "uv": np.asarray(hand["uv"], dtype=np.float32),
+            "translation_valid": bool(valid)}
+
+
+def pose_from_keypoints(hand, K, rest, solver, model, beta=None, limits=None):
+    """One HandKeypoints hand -> one HandPose hand, unsmoothed. rest: (21,3) rest joints of
+    the person (None: the model's at beta); beta (10,) (None: the average hand); limits: a
+    JointLimits to clip the finger angles into (None: IKNet's angles as they are)."""
+    beta = np.zeros(model.num_betas) if beta is None else np.asarray(beta, dtype=np.float64)
+    rest = model.rest_joints(beta) if rest is None else rest
+    quats = solve_rotations(hand["xyz_rel"], hand["handedness"], rest, solver, limits)
+    return pose_fields(hand, quats, beta, K, model)
+
+
+class TrackSmoother:
+    """One Euro filters of one track: quaternions (21,4) and root (3,)."""
+
+    def __init__(self, p):
+        self.quat = OneEuroFilter(p["rot_min_cutoff"], p["rot_beta"], p["d_cutoff"])
+        self.root = OneEuroFilter(p["root_min_cutoff"], p["root_beta"], p["d_cutoff"])
+        self.last_t = None
+
+    def quats(self, q, t):
+        if self.quat.x is not None:       # q and -q are one rotation: stay on the last output's side
+            q = np.where(np.sum(q * self.quat.x, axis=-1, keepdims=True) < 0, -q, q)
+        self.last_t = t
+        return quat_normalize(self.quat(q, t))
+
+
+class PoseEstimator:
+    """Every hand of a keypoints message -> HandPose hands; shapes and smoothing per track."""
+
+    def __init__(self, solver, model, params=None):
+        self.solver, self.model, self.p = solver, model, {**POSE_DEFAULTS, **(params or {})}
+        self.shapes = {}          # track id -> (beta (10,), rest_xyz (21,3))
+        self.limits = JointLimits.for_model(model) if self.p["clamp_to_limits"] else None
+        self.tracks = {}          # track id -> TrackSmoother
+
+    def set_shapes(self, shapes):
+        self.shapes = {s["track_id"]: (np.asarray(s["beta"], np.float64), np.asarray(s["rest_xyz"], np.float64))
+                       for s in shapes}
+
+    def update(self, hands, K, t):
+        """hands: HandKeypoints hands; K (3,3); t: capture time (s). Returns HandPose hands;
+        hands with non-finite joints are skipped."""
+        seen = {h["track_id"] for h in hands}
+        for tid in [tid for tid, s in self.tracks.items()
+                    if tid not in seen or t - s.last_t > self.p["reset_after_s"]]:
+            del self.tracks[tid]                                   # lost: start afresh
+        out = []
+        for hand in hands:
+            if not (np.all(np.isfinite(hand["xyz_rel"])) and np.all(np.isfinite(hand["uv"]))):
+                continue
+            beta, rest = self.shapes.get(hand["track_id"], (np.zeros(self.model.num_betas), None))
+            rest = self.model.rest_joints(beta) if rest is None else rest
+            q = solve_rotations(hand["xyz_rel"], hand["handedness"], rest, self.solver, self.limits)
+            if not self.p["smooth"]:
+                out.append(pose_fields(hand, q, beta, K, self.model))
+                continue
+            track = self.tracks.setdefault(hand["track_id"], TrackSmoother(self.p))
+            fields = pose_fields(hand, track.quats(q, t), beta, K, self.model)
+            root = track.root(fields["root"], t)
+            fields["xyz"] = (fields["xyz"] - fields["root"] + root).astype(np.float32)
+            fields["root"] = root.astype(np.float32)
+            out.append(fields)
+        return out
