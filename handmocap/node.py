@@ -21,6 +21,7 @@ graph and `handlaunch` returns.
 """
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import os
@@ -199,6 +200,9 @@ class Node:
     def ready(self) -> None:
         """Mark this node as set up (the launcher starts sources once every node is)."""
         if not self.info.ready:
+            # everything allocated while setting up (modules, models) lives as long as the node:
+            # out of the collector's sight, its collections stay short on the data path
+            gc.freeze()
             self.info.ready = True
             self._scan(force=True)
             self._announce()
