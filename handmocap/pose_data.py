@@ -25,7 +25,7 @@ finger swapped with its neighbour or collapsed toward its knuckle; the result is
 normalized again, as a detector's output is.
 
 Real sequences (load_real_sequences): MediaPipe world landmarks of the clips in
-/work/shared/data (not ground truth: roughly metric, viewpoint-dependent bone lengths),
+../shared/data beside the repository (not ground truth: roughly metric, viewpoint-dependent bone lengths),
 left hands mirrored into the right-hand model, normalized. REAL_TRAIN clips may be used as
 positional supervision; REAL_EVAL clips are held back. temugeb_stereo is never read here:
 it is an evaluation split of the detector.

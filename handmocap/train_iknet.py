@@ -12,7 +12,7 @@ Each batch mixes (paper Sec. 3.3):
   instead (pose_data.PositionPairs.from_npz), once a trained detector exists;
 * real joint sequences (pose_data.REAL_TRAIN, MediaPipe world landmarks) as positional
   supervision, L_xyz with the rest pose fitted to each frame's bone ratios; skipped with a
-  note when /work/shared/data is absent.
+  note when the shared data pack (../shared/data) is absent.
 Every batch is made from numpy generator [seed, iteration], so a resumed run sees exactly
 the batches the uninterrupted run would have. Validation uses its own seed, never a
 training batch.

@@ -146,7 +146,7 @@ def test_bad_K_is_an_error_not_a_crash(tmp_path, capsys):
     assert "K.npy" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not (SHARED_DATA / "samples" / "mmpose" / "rhd").is_dir(), reason="no /work/shared/data here")
+@pytest.mark.skipif(not (SHARED_DATA / "samples" / "mmpose" / "rhd").is_dir(), reason="no shared/data pack beside the repository")
 def test_split_ground_truth_reprojects(tmp_path):
     """The RHD and InterHand samples' 3D projects onto their 2D labels (joint orders right)."""
     import json
