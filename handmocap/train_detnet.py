@@ -40,7 +40,8 @@ import numpy as np
 
 from . import real_data
 from .pose_data import SHARED_DATA
-from .skeleton import NUM_JOINTS, ROOT
+from .skeleton import ROOT
+from .training import warmup_cosine_lr
 
 RUN_DIR = Path("runs/detnet")
 DATA_DIR = Path("runs/detnet_data")
@@ -456,14 +457,6 @@ def validate(net, sval, rval, refines=("logquad",)):
     return m
 
 
-def lr_at(it, args):
-    warm = 300
-    if it < warm:
-        return args.lr * (it + 1) / warm
-    t = (it - warm) / max(1, args.iters - warm)
-    return args.lr * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * min(t, 1.0))))
-
-
 def main(args):
     import torch
     from tqdm import tqdm
@@ -525,7 +518,7 @@ def main(args):
                 maker.synth = synth
                 bar.write(f"synthetic: now {len(synth['image'])} crops from {len(dirs)} directories")
         for group in opt.param_groups:
-            group["lr"] = lr_at(it, args)
+            group["lr"] = warmup_cosine_lr(it, args.lr, args.iters, warmup=300, floor=0.02)
         rng = np.random.default_rng([args.seed, it])
         b = to_torch(maker.make(args.batch, rng), rng)
         losses = detnet_losses(net(b["image"].contiguous(memory_format=torch.channels_last)), b, net.stride)

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from .hand_finder import BORDER_VALUE, GRID, INPUT_SIZE, STRIDE, box_iou, decode, letterbox
+from .training import warmup_cosine_lr
 
 RUN_DIR = Path("runs/finder")
 DEFAULT_EXPORT = Path(__file__).resolve().parent.parent / "models" / "finder.onnx"
@@ -317,7 +318,7 @@ def main(args):
         start = state["iter"]
     t0 = time.time()
     for it in range(start, args.iters):
-        lr = args.lr / 50 + (args.lr - args.lr / 50) * 0.5 * (1 + np.cos(np.pi * it / args.iters))
+        lr = warmup_cosine_lr(it, args.lr, args.iters, floor=1 / 50)
         for g in opt.param_groups:
             g["lr"] = float(lr)
         x, heat, reg, mask = (torch.from_numpy(a) for a in batches.make(np.random.default_rng([args.seed, it]),

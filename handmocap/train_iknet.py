@@ -26,6 +26,7 @@ import numpy as np
 from .ik_solver import DEFAULT_MODEL, iknet_inputs
 from .pose_data import REAL_TRAIN, SHARED_DATA, PositionPairs, PoseSampler, corrupt_joints, load_real_sequences
 from .rotations import matrix_to_quat, quat_angle_between, quat_to_matrix
+from .training import warmup_cosine_lr
 
 RUN_DIR = Path("runs/iknet")
 VAL_SEED = 987_654_321
@@ -128,14 +129,6 @@ def validate(net, model, val):
             "noise_mm": float(np.linalg.norm(noisy - poses["xyz"], axis=-1).mean() * mm)}
 
 
-def lr_at(it, args):
-    warm = 200
-    if it < warm:
-        return args.lr * (it + 1) / warm
-    t = (it - warm) / max(1, args.iters - warm)
-    return args.lr * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * min(t, 1.0))))
-
-
 def main(args):
     import torch
     from tqdm import tqdm
@@ -187,7 +180,7 @@ def main(args):
     t0 = time.monotonic()
     for it in bar:
         for group in opt.param_groups:
-            group["lr"] = lr_at(it, args)
+            group["lr"] = warmup_cosine_lr(it, args.lr, args.iters, warmup=200, floor=0.01)
         b = to_torch(maker.make(args.batch, np.random.default_rng([args.seed, it])))
         raw = net(b["features"])
         losses = iknet_losses(raw, b["xyz"], b["rest"], b["quat"], b["has_quat"])
