@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from .hand_finder import HandFinder, box_iou
+from .onnx_models import open_session
 from .rotations import mirror_points
 
 CROP = 128
@@ -138,14 +139,7 @@ class DetNetRunner:
 
     @classmethod
     def load(cls, path=None, threads=1):
-        import onnxruntime as ort
-        path = Path(path) if path else DETNET_PATH
-        if not path.is_file():
-            raise FileNotFoundError(f"DetNet model {path} not found (train it: handtrain detnet)")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads
-        opts.inter_op_num_threads = 1
-        return cls(ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"]))
+        return cls(open_session(path or DETNET_PATH, "DetNet", "handtrain detnet", threads))
 
     def __call__(self, crops_rgb):
         x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0

@@ -23,6 +23,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .onnx_models import open_session
+
 INPUT_SIZE = 160
 STRIDE = 8
 GRID = INPUT_SIZE // STRIDE
@@ -125,14 +127,7 @@ class HandFinder:
 
     @classmethod
     def load(cls, path=None, threads=1, **kwargs):
-        import onnxruntime as ort
-        path = Path(path) if path else DEFAULT_PATH
-        if not path.is_file():
-            raise FileNotFoundError(f"hand finder model {path} not found (train it: handtrain finder)")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads
-        opts.inter_op_num_threads = 1
-        return cls(ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"]), **kwargs)
+        return cls(open_session(path or DEFAULT_PATH, "hand finder", "handtrain finder", threads), **kwargs)
 
     def raw(self, image_bgr):
         """(5, GRID, GRID) network output for one BGR frame, and its Letterbox."""

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .kinematics import PARENTS
+from .onnx_models import open_session
 from .rotations import matrix_to_quat, quat_multiply, quat_normalize, quat_to_matrix
 from .skeleton import NON_TIP_JOINTS, NUM_JOINTS, normalize_joints
 
@@ -91,17 +92,7 @@ class IKSolver:
     def load(cls, path=None, threads=1, model=None):
         """IKNet from `path` (default models/iknet.onnx); the default rest pose is the hand
         model's (model, default the bundled one) at beta = 0."""
-        import onnxruntime as ort
-        path = DEFAULT_MODEL if path is None else Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"IKNet model {path} not found; train and export it with "
-                                    f"`handtrain iknet` (or pass the path of an exported iknet.onnx)")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        session = open_session(DEFAULT_MODEL if path is None else path, "IKNet", "handtrain iknet", threads)
         if model is None:
             from .hand_model import HandModel
             model = HandModel.load()

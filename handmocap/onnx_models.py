@@ -1,0 +1,19 @@
+"""The one way the project opens its ONNX models (CPU, onnxruntime; no torch at run time)."""
+from pathlib import Path
+
+
+def open_session(path: Path, what: str, made_by: str, threads: int = 1):
+    """An onnxruntime CPU session of `path`, `threads` intra-op threads (1 is fastest per call
+    on a busy 2-core machine); a missing file is one clear error naming it and the command
+    that makes it (`made_by`)."""
+    import onnxruntime as ort   # imported here: nodes that never run a model start faster
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} model {path} not found; make it with `{made_by}` "
+                                f"(or pass the path of an exported file)")
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
