@@ -301,7 +301,7 @@ class Launcher:
             while not self.stopping:
                 if not ready_file.exists():
                     if self._all_ready():
-                        ready_file.touch()
+                        self._write_ready(ready_file)
                     elif time.monotonic() - t0 > STARTUP_TIMEOUT_S:
                         self.print("handlaunch", f"error: nodes not up after {STARTUP_TIMEOUT_S} s: "
                                    f"{', '.join(self._not_ready())}")
@@ -321,6 +321,23 @@ class Launcher:
             return 130 if any(c.exit_code not in (0, None) for c in self.children if c.spec.required) else 0
         self.print("handlaunch", "all nodes finished")
         return 0
+
+    def _write_ready(self, ready_file: Path) -> None:
+        """Say that every node is up, with the graph's publishers and subscribers per topic: a
+        node then knows which of its inputs will get data (and from whom to await
+        end-of-stream), and a publisher which subscribers to wait for, even if it never caught
+        another node's file fresh."""
+        publishers: dict[str, list[str]] = {}
+        subscribers: dict[str, list[str]] = {}
+        for info in bus.read_node_files(self.dir, alive_only=False).values():
+            for topic in info.publishes:
+                publishers.setdefault(topic, []).append(info.name)
+            if not info.observer:
+                for topic in info.subscribes:
+                    subscribers.setdefault(topic, []).append(info.name)
+        tmp = ready_file.with_suffix(".tmp")
+        tmp.write_text(json.dumps({"publishers": publishers, "subscribers": subscribers}))
+        os.replace(tmp, ready_file)
 
     def _all_ready(self) -> bool:
         return not self._not_ready()

@@ -180,12 +180,16 @@ class Node:
         every topic) is connected to us, at most `timeout_s`; returns {topic: "have/want"}
         still missing. Observers (handtopic) are not waited for."""
         deadline = time.monotonic() + timeout_s
+        launched = self._launched_subscribers()
         while True:
-            nodes = bus.read_node_files(self.dir)
+            files = bus.read_node_files(self.dir, alive_only=launched is None)
+            nodes = {n: i for n, i in files.items() if not i.ended and not i.observer and n != self.name}
             missing = {}
             for topic in self.info.publishes:
-                want = sum(1 for n in nodes.values() if n.name != self.name and not n.observer
-                           for t in n.subscribes if t in (topic, "*"))
+                if launched is not None:   # the graph's own list: a busy node's stale heartbeat can't hide it
+                    want = sum(1 for t in (topic, "*") for n in launched.get(t, ()) if n in nodes)
+                else:
+                    want = sum(1 for n in nodes.values() for t in n.subscribes if t in (topic, "*"))
                 have = self.pub.subscriber_count(topic)
                 if have < want:
                     missing[topic] = f"{have}/{want}"
@@ -302,7 +306,10 @@ class Node:
         # checked before reading the node files: once the launcher wrote it, every node of the
         # graph had announced itself, so this scan sees every publisher there will be
         launch_id = os.environ.get("HANDMOCAP_LAUNCH_ID")
-        graph_complete = bool(launch_id) and (self.dir / f"{launch_id}.ready").exists()
+        ready_file = self.dir / f"{launch_id}.ready" if launch_id else None
+        graph_complete = ready_file is not None and ready_file.exists()
+        if graph_complete and not self._graph_complete:
+            self._add_graph_publishers(ready_file)
         files = bus.read_node_files(self.dir, alive_only=False)
         for info in files.values():
             if info.name == self.name or not info.publishes:
@@ -325,11 +332,34 @@ class Node:
         self._graph_complete = self._graph_complete or graph_complete
         return True
 
+    def _launched_subscribers(self) -> dict | None:
+        """{topic: [node names]} of the launched graph's subscribers (from the launcher's ready
+        file), or None outside a launched graph or before it is up."""
+        launch_id = os.environ.get("HANDMOCAP_LAUNCH_ID")
+        try:
+            return json.loads((self.dir / f"{launch_id}.ready").read_text())["subscribers"] if launch_id else None
+        except (OSError, ValueError, KeyError):
+            return None
+
+    def _add_graph_publishers(self, ready_file: Path) -> None:
+        """The launcher's list of the graph's publishers per topic (written once every node was
+        up): inputs that will get data, and whose end-of-stream to wait for."""
+        try:
+            publishers = json.loads(ready_file.read_text())["publishers"]
+        except (OSError, ValueError, KeyError):
+            return
+        for topic, names in publishers.items():
+            for sub_topic in self.info.subscribes:
+                if sub_topic in ("*", topic):
+                    self._publishers[sub_topic].update(n for n in names if n != self.name)
+
     def _inputs_ended(self) -> bool:
         """Every input that has publishers has heard end-of-stream from all of them (or the
         launcher marked the publisher as dead for good). In a launched graph, an input that no
         node of the graph publishes will never get data and counts as ended; outside one, a
         publisher may still come, so such a node waits."""
+        if "HANDMOCAP_LAUNCH_ID" in os.environ and not self._graph_complete:
+            return False   # until the launcher's list of publishers is in, some may be unknown yet
         topics = [t for t in self.info.subscribes if self._publishers.get(t)]
         if not topics and (not self._graph_complete or self.extra_endpoints):
             return False   # a publisher may still come (or lives on another host: connect:)

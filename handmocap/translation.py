@@ -114,11 +114,33 @@ def camera_joints_from_keypoints(K, uv, xyz_rel, ref_bone_m=DEFAULT_REF_BONE_M):
     wrist, root = REF_BONE[0], ROOT
     d_wrist = xyz_rel[..., wrist, 2] - xyz_rel[..., root, 2]
     fallback = depth_from_hand_size(K, uv, xyz_rel, ref)
-    z, valid = root_depth_from_intrinsics(K, uv[..., root, :], uv[..., wrist, :], d_wrist, ref, near_depth=fallback)
-    z = np.where(valid, z, fallback)
     ray = back_project(K, uv[..., root, :])
     ray = np.where(np.isfinite(ray), ray, np.array([0.0, 0.0, 1.0]))   # a NaN pixel must not spread
-    root_xyz = ray * z[..., None]
     rel = np.where(np.isfinite(xyz_rel), xyz_rel, 0.0)
-    xyz = root_xyz[..., None, :] + ref[..., None, None] * (rel - rel[..., root:root + 1, :])
+    rel = ref[..., None, None] * (rel - rel[..., root:root + 1, :])
+
+    def joints_at(z):
+        root_xyz = ray * z[..., None]
+        return root_xyz[..., None, :] + rel, root_xyz
+
+    # Eq. 5 can have two positive roots (the bone tilted towards or away from the camera):
+    # keep the one whose 21 joints reproject onto the keypoints best
+    z_far, valid = root_depth_from_intrinsics(K, uv[..., root, :], uv[..., wrist, :], d_wrist, ref)
+    z_near, _ = root_depth_from_intrinsics(K, uv[..., root, :], uv[..., wrist, :], d_wrist, ref,
+                                           near_depth=np.zeros_like(fallback))
+    z_near = np.where(np.isfinite(z_near), z_near, z_far)
+    err_far = _reprojection_error(K, joints_at(np.where(valid, z_far, fallback))[0], uv)
+    err_near = _reprojection_error(K, joints_at(np.where(valid, z_near, fallback))[0], uv)
+    z = np.where(valid, np.where(err_near < err_far, z_near, z_far), fallback)
+    xyz, root_xyz = joints_at(z)
     return xyz, root_xyz, valid
+
+
+def _reprojection_error(K, xyz, uv):
+    """(...,) mean pixel distance between the projection of xyz (..., 21, 3) and uv (..., 21, 2)."""
+    Km = _k_matrix(K)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        proj = np.einsum("...ij,...nj->...ni", Km, xyz)
+        px = proj[..., :2] / proj[..., 2:3]
+        err = np.nanmean(np.linalg.norm(px - uv, axis=-1), axis=-1)
+    return np.where(np.isfinite(err), err, np.inf)

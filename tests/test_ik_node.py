@@ -116,7 +116,7 @@ nodes:
     for topic, type_name, payload, _ in iter_messages(out):
         got[topic].append(codec.decode(payload, type_name))
     sent, poses = got["/hand/keypoints"], got["/hand/pose"]
-    assert len(sent) == 20 and len(poses) == 20                            # one pose per keypoints message
+    assert len(sent) == 20 and len(poses) == 20, r.stdout                 # one pose per keypoints message
     assert sorted(m["header"]["stamp_ns"] for m in poses) == sorted(m["header"]["stamp_ns"] for m in sent)
     for m in poses:
         (h,) = m["hands"]
