@@ -19,7 +19,7 @@ import time
 import numpy as np
 import zmq
 
-CASES = {  # name: (bus message type, body factory, bare payload size, rate Hz)
+CASES = {  # row name: which payload (small: small_body(), frame: frame_body())
     "1 kB HandKeypoints": "small",
     "640x480 BGR Image": "frame",
 }
