@@ -31,3 +31,40 @@ def graph_env(run_dir: Path, **extra) -> dict:
 def handlaunch(args, run_dir, timeout=60, **kw):
     return subprocess.run([sys.executable, "-m", "handmocap.launch", *map(str, args)], env=graph_env(run_dir),
                           capture_output=True, text=True, timeout=timeout, **kw)
+
+
+# -- the demo chain as a launched graph (test_e2e, test_drills) ---------------------------
+DEMO_CLIP = ROOT / "data" / "demo" / "hand_clip.mp4"   # 640x480, 30 fps, 90 frames
+DEMO_TRUTH = ROOT / "data" / "demo" / "hand_clip.npz"  # its ground truth (scripts/render_demo_clip.py)
+
+
+def chain_yaml(source, bag, rate=1.0, loop=False, detector="", extra_nodes="", replay_params=""):
+    """Launch-file text of launch/demo.yaml's chain, replay -> detector -> shape -> ik ->
+    recorder, written by the tests themselves (demo.yaml is the product's and changes; its
+    visualizer is not under test here). `detector`: extra keys of the detector entry (e.g.
+    "respawn: true"); `extra_nodes`: more node entries, one per line, two-space indented;
+    `replay_params`: more replay params (", calibration: FILE")."""
+    return f"""
+nodes:
+  replay: {{node: replay, params: {{source: "{source}", rate: {rate}, loop: {str(loop).lower()}{replay_params}}}, required: true}}
+  detector: {{node: detector, params: {{every_frame: true}}, required: true{', ' + detector if detector else ''}}}
+  shape: {{node: shape}}
+  ik: {{node: ik, required: true}}
+  recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true}}, required: true}}
+{extra_nodes}"""
+
+
+def read_bag(path):
+    """{topic: [(decoded message, log time ns = the recorder's receive time)]} of a bag, in order."""
+    from handmocap import codec
+    from handmocap.bag import iter_messages
+    out = {}
+    for topic, type_name, payload, log_ns in iter_messages(path):
+        out.setdefault(topic, []).append((codec.decode(payload, type_name), log_ns))
+    return out
+
+
+def pose_latencies_ms(bag_msgs):
+    """(N,) ms from each /hand/pose's capture stamp to its receipt by the recorder, in order."""
+    import numpy as np
+    return np.array([(log_ns - m["header"]["stamp_ns"]) / 1e6 for m, log_ns in bag_msgs.get("/hand/pose", [])])
