@@ -36,9 +36,16 @@ def foxglove_time(ns: int) -> dict:
     return {"sec": int(ns) // 1_000_000_000, "nsec": int(ns) % 1_000_000_000}
 
 
-def _color(handedness: str, alpha: float = 1.0) -> dict:
+def hand_color(handedness: str, alpha: float = 1.0) -> dict:
+    """Foxglove {r, g, b, a} of a hand (HAND_COLORS by handedness)."""
     r, g, b = HAND_COLORS.get(handedness, (0.8, 0.8, 0.8))
     return {"r": r, "g": g, "b": b, "a": alpha}
+
+
+_color = hand_color
+# the pose of a primitive whose points are already in its entity's frame
+IDENTITY_POSE = {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                 "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
 
 
 def image_to_compressed(msg: dict) -> dict:
@@ -105,8 +112,7 @@ def pose_to_scene_update(msg: dict) -> dict:
     h = msg["header"]
     t = foxglove_time(h["stamp_ns"])
     frame = h["frame_id"] or "camera"
-    identity = {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
-                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+    identity = IDENTITY_POSE
     entities = []
     for hand in msg["hands"]:
         xyz = np.asarray(hand["xyz"], dtype=np.float64)

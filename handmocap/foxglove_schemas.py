@@ -1,5 +1,5 @@
 """Minimal JSON Schemas of the Foxglove well-known message types that `handbag export
---foxglove` writes (written here from the field lists of Foxglove's schema docs; only the
+--foxglove` and the live bridge (handmocap.foxglove_live) write (written here from the field lists of Foxglove's schema docs; only the
 fields we fill are described, Foxglove treats missing optional fields as defaults).
 
 A channel whose schema has encoding `jsonschema`, one of these names and message encoding
@@ -93,10 +93,13 @@ _LINE = _object(
     pose=POSE, thickness=NUMBER, scale_invariant=BOOLEAN,
     points=_array(POINT3), color=COLOR, colors=_array(COLOR), indices=_array(INTEGER),
 )
+_TRIANGLES = _object(   # points (N,3) metres; indices: 3 per triangle into points (all points in order if empty)
+    pose=POSE, points=_array(POINT3), color=COLOR, colors=_array(COLOR), indices=_array(INTEGER),
+)
 _ENTITY = _object(
     timestamp=TIME, frame_id=STRING, id=STRING, lifetime=DURATION, frame_locked=BOOLEAN,
     metadata=_array(_object(key=STRING, value=STRING)),
-    spheres=_array(_SPHERE), lines=_array(_LINE),
+    spheres=_array(_SPHERE), lines=_array(_LINE), triangles=_array(_TRIANGLES),
 )
 _DELETION = _object(
     timestamp=TIME,
@@ -108,4 +111,17 @@ SCENE_UPDATE = _titled("foxglove.SceneUpdate", _object(
     entities=_array(_ENTITY),
 ), "Adds, replaces or deletes entities of a 3D scene")
 
-BY_NAME = {s["title"]: s for s in (COMPRESSED_IMAGE, CAMERA_CALIBRATION, IMAGE_ANNOTATIONS, SCENE_UPDATE)}
+_FRAME_TRANSFORM = _object(
+    timestamp=TIME,
+    parent_frame_id=STRING,
+    child_frame_id=STRING,
+    translation=VECTOR3,
+    rotation=QUATERNION,
+)
+FRAME_TRANSFORM = _titled("foxglove.FrameTransform", _FRAME_TRANSFORM,
+                          "Pose of a child frame in its parent frame (metres, unit quaternion)")
+FRAME_TRANSFORMS = _titled("foxglove.FrameTransforms", _object(transforms=_array(_FRAME_TRANSFORM)),
+                           "Several frame transforms at once")
+
+BY_NAME = {s["title"]: s for s in (COMPRESSED_IMAGE, CAMERA_CALIBRATION, IMAGE_ANNOTATIONS, SCENE_UPDATE,
+                                    FRAME_TRANSFORM, FRAME_TRANSFORMS)}
