@@ -20,6 +20,7 @@ A launch file:
         env: {}
         bind: tcp://127.0.0.1:6000    # optional: listen here instead of the default ipc socket
         connect: [tcp://10.0.0.2:6000] # optional: publishers on other hosts
+        if: $(var bag)        # optional: the node runs only when this is true (see is_true)
 
 Everything is checked before any process starts; an error names the file, line and problem.
 The launcher returns when every node has finished (a finite replay ends, its end-of-stream
@@ -46,7 +47,8 @@ import yaml
 from . import bus
 from .node import parse_cli_params
 
-NODE_KEYS = {"node", "params", "remap", "env", "respawn", "respawn_delay", "required", "bind", "connect"}
+NODE_KEYS = {"node", "params", "remap", "env", "respawn", "respawn_delay", "required", "bind", "connect", "if"}
+FALSE_WORDS = {"", "false", "no", "off", "0", "null", "none"}
 TOP_KEYS = {"graph", "args", "env", "nodes"}
 VAR = re.compile(r"\$\((var|env) ([A-Za-z_][A-Za-z0-9_]*)(?: ([^)]*))?\)")
 STARTUP_TIMEOUT_S = 120
@@ -110,6 +112,14 @@ class LaunchFile:
     path: Path
     graph: str | None
     nodes: list[NodeSpec]
+
+
+def is_true(value) -> bool:
+    """An `if:` value: false for null, false, 0, and the strings '', 'false', 'no', 'off', '0',
+    'null', 'none' (any case); true otherwise (so `if: $(var bag)` runs a node when a path is given)."""
+    if isinstance(value, str):
+        return value.strip().lower() not in FALSE_WORDS
+    return bool(value)
 
 
 def resolve_module(name: str) -> str:
@@ -189,6 +199,10 @@ def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
                 raise err(kp + (k,), f"node {name!r}: unknown key {k!r} "
                           f"(expected one of {', '.join(sorted(NODE_KEYS))})")
         entry = substitute(entry, kp)
+        if "if" in entry:
+            if isinstance(entry["if"], (dict, list)):
+                raise err(kp + ("if",), f"node {name!r}: 'if' must be a value (e.g. $(var bag)), not a "
+                          f"{type(entry['if']).__name__}")
         module = resolve_module(str(entry["node"]))
         try:
             found = importlib.util.find_spec(module)
@@ -210,6 +224,8 @@ def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
                 if p not in known:
                     raise err(kp + ("params", p), f"node {name!r} ({entry['node']}) has no parameter {p!r}; "
                               f"known: {', '.join(sorted(known))}")
+        if not is_true(entry.get("if", True)):
+            continue   # switched off, after the same checks as a node that runs (a typo fails either way)
         specs.append(NodeSpec(name=name, module=module, params=params, remap=entry.get("remap") or {},
                               env={**common_env, **(entry.get("env") or {})},
                               respawn=bool(entry.get("respawn", False)),

@@ -4,6 +4,7 @@ import sys
 
 import pytest
 
+from conftest import ROOT
 from handmocap.launch import LaunchError, load_launch_file
 
 GOOD = """\
@@ -68,3 +69,45 @@ def test_bad_file_starts_no_process(tmp_path, run_dir):
                        capture_output=True, text=True)
     assert r.returncode == 2 and "unknown node type 'nope'" in r.stderr
     assert "Traceback" not in r.stderr and not list(run_dir.iterdir())
+
+
+OPTIONAL = """\
+args:
+  bag: {default: ""}
+nodes:
+  replay:
+    node: replay
+    params: {source: clip.mp4}
+  recorder:
+    node: recorder
+    params: {output: $(var bag)}
+    if: $(var bag)
+"""
+
+
+@pytest.mark.parametrize("args, names", [
+    ({}, ["replay"]),                                   # empty default: switched off
+    ({"bag": "out.mcap"}, ["replay", "recorder"]),
+    ({"bag": False}, ["replay"]), ({"bag": "off"}, ["replay"]), ({"bag": None}, ["replay"]),
+])
+def test_if_switches_a_node_on_and_off(tmp_path, args, names):
+    lf = load_launch_file(write(tmp_path, OPTIONAL), args)
+    assert [n.name for n in lf.nodes] == names
+
+
+def test_a_switched_off_node_is_still_checked(tmp_path):
+    path = write(tmp_path, OPTIONAL.replace("params: {output: $(var bag)}", "params: {outptu: x}"))
+    with pytest.raises(LaunchError) as e:
+        load_launch_file(path, {})
+    assert str(e.value).startswith(f"{path}:9:") and "has no parameter 'outptu'" in str(e.value)
+    path = write(tmp_path, OPTIONAL.replace("if: $(var bag)", "if: [a]"))
+    with pytest.raises(LaunchError, match="'if' must be a value"):
+        load_launch_file(path, {})
+
+
+@pytest.mark.parametrize("name", ["demo", "replay", "webcam", "depthai"])
+def test_product_launch_files_are_valid(name):
+    """Every shipped graph passes the launcher's checks with its defaults (input for replay)."""
+    args = {"input": "clip.mp4"} if name == "replay" else {}
+    lf = load_launch_file(ROOT / "launch" / f"{name}.yaml", args)
+    assert lf.nodes
