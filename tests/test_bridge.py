@@ -149,6 +149,14 @@ def test_rate_caps_and_idle_channels():
     assert not any(c.out for c in idle_channels.values())
 
 
+def test_rate_limit_keeps_the_average_rate_of_a_jittery_source():
+    rate, rng = fl.RateLimit(), np.random.default_rng(0)
+    times = np.arange(300) / 30 + rng.uniform(-0.01, 0.01, 300)        # 10 s of a 30 Hz camera, +-10 ms
+    passed = [t for t in times if rate.allow("image", 15.0, now=t)]
+    assert len(passed) == pytest.approx(150, abs=2)                     # every second frame
+    assert rate.allow("image", 15.0, now=100.0) and not rate.allow("image", 15.0, now=100.01)   # no burst
+
+
 # -- the node in a real graph ---------------------------------------------------------------------
 def free_port() -> int:
     with socket.socket() as s:

@@ -87,6 +87,13 @@ nodes:
                 assert np.linalg.norm(np.array(q.strip("[] ").split(), float)) == pytest.approx(1, abs=0.01)
 
 
+def test_readme_shows_the_subscriber_example_as_it_is():
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("## Using /hand/pose (teleop)"):]
+    block = re.search(r"```python\n(.*?)```", section, re.S)[1]
+    assert block == (EXAMPLES / "subscribe_pose.py").read_text()
+
+
 # -- dex-retargeting input ---------------------------------------------------------------------
 MODEL = HandModel.load()
 K = camera_info.default_K(640, 480)
