@@ -5,13 +5,15 @@ frames wait here until their pose arrives. A frame is **ready** once its pose is
 keypoints, or `grace_s` after the pose without them). It is **expired** (drawn without
 overlay) when it will never get a pose:
 - the pose stream has passed it: a pose with a later stamp arrived (one publisher's messages
-  arrive in order, so the detector skipped this frame), or the pose stream ended;
+  arrive in order, so the detector skipped this frame);
 - or no pose arrived at all for `timeout_s` while it waited (no hand pipeline, or it stalled).
 Waiting on a pipeline that is merely behind (a backlog of keep-all frames) never expires a frame.
 
 Two ways out (`pop`):
 - keep_all (a video file): every frame, in stamp order, each as soon as it and all before it
-  are ready or expired;
+  are ready or expired. A frame the detector skipped (a latest-only detector on a live camera)
+  is drawn with the previous frame's pose and keypoints when those are at most `hold_s` older
+  (`Frame.held`), so a recording does not flicker between annotated and bare frames;
 - live: only the newest ready frame; older frames are dropped (not drawn late). Expired frames
   are drawn only when no pose came for `timeout_s` (so a camera without a hand pipeline still
   shows), never when the detector merely skipped them (that would flicker).
@@ -31,11 +33,15 @@ class Frame:
     keypoints: dict | None = None     # HandKeypoints message, None if it never came
     arrived: float = 0.0              # receive time (s, monotonic)
     pose_arrived: float | None = None
+    held: bool = False                # pose and keypoints are an earlier frame's (this one was skipped)
 
 
 class FrameSync:
-    def __init__(self, keep_all: bool, timeout_s: float = 1.0, grace_s: float = 0.05, max_frames: int = 300):
+    def __init__(self, keep_all: bool, timeout_s: float = 1.0, grace_s: float = 0.05, max_frames: int = 300,
+                 hold_s: float = 0.1):
         self.keep_all, self.timeout_s, self.grace_s, self.max_frames = keep_all, timeout_s, grace_s, max_frames
+        self.hold_ns = int(hold_s * 1e9)
+        self.last_paired: Frame | None = None   # the newest frame drawn with its own pose
         self.frames: OrderedDict[int, Frame] = OrderedDict()   # stamp -> frame, in arrival order
         self.poses: dict[int, tuple[dict, float]] = {}          # poses/keypoints whose image is not in (yet)
         self.keypoints: dict[int, dict] = {}
@@ -43,7 +49,6 @@ class FrameSync:
         self.last_info: dict | None = None
         self.last_pose_stamp = -1
         self.last_pose_time: float | None = None
-        self.pose_ended = False
         self.emitted_stamp = -1
         self.overflowed = 0            # frames pushed out unpaired because the buffer was full
 
@@ -80,10 +85,6 @@ class FrameSync:
         elif stamp > self.emitted_stamp:
             self.poses[stamp] = (msg, now)
 
-    def end_poses(self) -> None:
-        """The pose stream ended: no frame waits for a pose any more."""
-        self.pose_ended = True
-
     # -- output ---------------------------------------------------------------------------
     def _ready(self, f: Frame, now: float) -> bool:
         return f.pose is not None and (f.keypoints is not None or now - f.pose_arrived >= self.grace_s)
@@ -94,7 +95,7 @@ class FrameSync:
         return now - max(last, f.arrived) >= self.timeout_s
 
     def _expired(self, f: Frame, now: float) -> bool:
-        return (f.pose is None and (self.pose_ended or self.last_pose_stamp > f.stamp_ns)) or self._stalled(f, now)
+        return (f.pose is None and self.last_pose_stamp > f.stamp_ns) or self._stalled(f, now)
 
     def pop(self, now: float, flush: bool = False) -> list[Frame]:
         """Frames to draw now, oldest first (see the module docstring); flush: everything left."""
@@ -106,6 +107,10 @@ class FrameSync:
                 if not (flush or full or self._ready(f, now) or self._expired(f, now)):
                     break
                 self.overflowed += full and f.pose is None
+                if f.pose is None and not full and self.last_paired is not None \
+                        and f.stamp_ns - self.last_paired.stamp_ns <= self.hold_ns \
+                        and self.last_pose_stamp > f.stamp_ns:   # skipped by the detector, not a stall
+                    f.pose, f.keypoints, f.held = self.last_paired.pose, self.last_paired.keypoints, True
                 out.append(self._take(f))
         else:
             ready = [f for f in self.frames.values() if self._ready(f, now)
@@ -128,6 +133,8 @@ class FrameSync:
         if not popped:
             del self.frames[f.stamp_ns]
         self.emitted_stamp = max(self.emitted_stamp, f.stamp_ns)
+        if f.pose is not None and not f.held:
+            self.last_paired = f
         f.info = self.infos.get(f.stamp_ns) or self._info_before(f.stamp_ns)
         return f
 

@@ -2,10 +2,11 @@
 -> /viz/image, and optionally an MP4.
 
 A thin loop over handmocap.frame_sync.FrameSync (pairs each frame with the pose and keypoints
-of its stamp) and handmocap.overlay.Overlay (the posed hand mesh of every hand, rendered once
+of its stamp; in a video, a frame the detector skipped gets the previous frame's) and handmocap.overlay.Overlay (the posed hand mesh of every hand, rendered once
 per frame with the camera's K and alpha-blended; the 2D skeleton with per-finger colours;
 handedness, score and track id; a side-view inset). A frame whose pose never comes (no hand
-pipeline, or the detector skipped it) is drawn without overlay; a pose with no hands too.
+pipeline, or the detector skipped it and no earlier pose is held) is drawn without overlay; a
+pose with no hands too.
 
 Params:
 - video: an MP4 path to write (mp4v; parent folders are made, an existing file is replaced).
@@ -94,12 +95,12 @@ def main() -> None:
     node.subscribe("/hand/pose", "HandPose", mode="all")
     if p["publish"]:
         node.advertise("/viz/image", "Image")
-    drawn = paired = 0
+    drawn = paired = held = 0
 
     def emit(frames, deadline=None) -> None:
         """Draw, write and publish; past `deadline` (monotonic s) frames go into the video
         undrawn, so a shutdown finishes the file before the launcher's kill."""
-        nonlocal drawn, paired
+        nonlocal drawn, paired, held
         for f in frames:
             try:
                 image = frame_bgr(f.image)
@@ -118,7 +119,8 @@ def main() -> None:
                 node.publish("/viz/image", image_message(out), stamp_ns=f.stamp_ns,
                              frame_id=f.image["header"]["frame_id"])
             drawn += 1
-            paired += f.pose is not None
+            paired += f.pose is not None and not f.held
+            held += f.held
 
     try:
         for msg in node.events(timeout=TICK_S):
@@ -140,7 +142,8 @@ def main() -> None:
         if video is not None:
             video.close()
         overlay.release()
-        node.log.info("drew %d frame(s), %d with their pose%s", drawn, paired,
+        node.log.info("drew %d frame(s), %d with their pose%s%s", drawn, paired,
+                      f", {held} with the previous frame's (skipped by the detector)" if held else "",
                       f"; wrote {video.frames} to {video.path}" if video is not None else "")
         if sync.overflowed:
             node.log.warning("%d frame(s) drawn without their pose: the buffer was full", sync.overflowed)

@@ -158,6 +158,21 @@ def test_keep_all_pairs_by_stamp_in_order_and_waits_for_a_slow_pipeline():
     assert s.pop(now=2.0) == [] and not s.poses and not s.frames
 
 
+def test_keep_all_holds_the_previous_pose_over_a_skipped_frame():
+    s = FrameSync(keep_all=True, timeout_s=1.0, hold_s=0.1)
+    ms = 1_000_000
+    for i in range(4):
+        s.add_image(msg(i * 33 * ms, data=i), now=0.0)
+    for i in (0, 2):                                             # a latest-only detector skipped frames 1 and 3
+        s.add_keypoints(msg(i * 33 * ms, hands=[i]))
+        s.add_pose(msg(i * 33 * ms, hands=[i]), now=0.1)
+    out = s.pop(now=0.1)
+    assert [(f.pose["hands"], f.held) for f in out] == [([0], False), ([0], True), ([2], False)]
+    assert out[1].keypoints["hands"] == [0]
+    f3 = s.pop(now=1.2)                                          # frame 3: the pipeline stalled, no hold
+    assert [(f.pose, f.held) for f in f3] == [(None, False)]
+
+
 def test_live_draws_only_the_newest_paired_frame():
     s = FrameSync(keep_all=False, timeout_s=0.5)
     for i in range(5):
