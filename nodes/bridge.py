@@ -31,7 +31,8 @@ def main() -> None:
         node.close()
         raise
     try:
-        topics = {node.subscribe(t, "Image", mode="latest"): "Image" for t in p["images"]}
+        images = [p["images"]] if isinstance(p["images"], str) else p["images"]   # images:=/viz/image
+        topics = {node.subscribe(t, "Image", mode="latest"): "Image" for t in images}
         topics[node.subscribe("/camera/info", "CameraInfo", mode="latest")] = "CameraInfo"
         topics[node.subscribe("/hand/keypoints", "HandKeypoints", mode="latest")] = "HandKeypoints"
         topics[node.subscribe("/hand/pose", "HandPose", mode="latest")] = "HandPose"

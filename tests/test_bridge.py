@@ -97,8 +97,7 @@ def test_every_channel_gets_schema_valid_messages_and_the_mesh_sits_on_the_joint
     assert len(tri["points"]) == len(MODEL.v_template) and len(tri["indices"]) == 3 * len(MODEL.faces)
     vertices = np.array([[p["x"], p["y"], p["z"]] for p in tri["points"]])
     # the model posed at (quat, beta), moved by the same offset, puts its joints on xyz
-    _, joints = MODEL.forward(hand["quat"], hand["beta"], handedness=handedness)
-    v_model, _ = MODEL.forward(hand["quat"], hand["beta"], handedness=handedness)
+    v_model, joints = MODEL.forward(hand["quat"], hand["beta"], handedness=handedness)
     offset = hand["root"] - joints[9]
     np.testing.assert_allclose(joints + offset, hand["xyz"], atol=1e-5)
     np.testing.assert_allclose(vertices, v_model + offset, atol=1e-4)   # rounded to 0.1 mm on the wire
