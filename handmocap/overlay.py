@@ -89,6 +89,11 @@ def draw_label(img, text, anchor, colour=(255, 255, 255), scale=0.5):
     return img
 
 
+def mesh_colour(hand: dict) -> tuple[float, float, float]:
+    """RGB in [0,1] of a hand's mesh, by handedness."""
+    return MESH_COLOURS.get(hand["handedness"], MESH_COLOURS["right"])
+
+
 def hand_mesh(model: HandModel, hand: dict):
     """The posed mesh of one HandPose hand in the camera frame: vertices (V,3) metres and
     faces (F,3) (winding flipped for a left hand), and its 21 joints (21,3) metres, which
@@ -174,8 +179,9 @@ class Overlay:
         return int(self.side * min(width, height)) if self.mesh else 0
 
     def draw(self, frame, K, pose_hands=(), keypoint_hands=()):
-        """Annotated copy of frame (H,W,3) BGR uint8: mesh of every pose hand (one render for
-        all), 2D skeleton of every keypoints hand (else the pose's uv), labels, side view.
+        """Annotated copy of frame (H,W,3) BGR uint8: the mesh of every pose hand whose root is
+        MESH_DEPTH_M away (one render for all), the 2D skeleton of every keypoints hand (of a
+        pose hand without keypoints: its uv), the projected 3D joints, labels, the side view.
         K (3,3) px; pose_hands: HandPose hands; keypoint_hands: HandKeypoints hands (same frame)."""
         h, w = frame.shape[:2]
         K = np.asarray(K, dtype=np.float64)
@@ -184,43 +190,37 @@ class Overlay:
                   and MESH_DEPTH_M[0] < hand["root"][2] < MESH_DEPTH_M[1]]
         out = frame.copy()
         if meshes:
-            rgb, depth = self._render(
-                "main", w, h, [(v, f, MESH_COLOURS.get(hand["handedness"], MESH_COLOURS["right"])) for v, f, _, hand in meshes], K)
+            rgb, depth = self._render("main", w, h, [(v, f, mesh_colour(hand)) for v, f, _, hand in meshes], K)
             out = composite(frame, rgb, depth, self.alpha)
-        by_track = {hand["track_id"]: hand for hand in pose_hands}
-        drawn = set()
-        for hand in keypoint_hands:
+        pose_by_track = {hand["track_id"]: hand for hand in pose_hands}
+        seen = {hand["track_id"] for hand in keypoint_hands}
+        skeletons = list(keypoint_hands) + [hand for hand in pose_hands if hand["track_id"] not in seen]
+        for hand in skeletons:
             draw_skeleton(out, hand["uv"], hand.get("confidence"))
-            drawn.add(hand["track_id"])
-        for hand in pose_hands:
-            if hand["track_id"] not in drawn:
-                draw_skeleton(out, hand["uv"])
         if self.joints3d:
             for hand in pose_hands:
                 draw_points(out, project(hand["xyz"], K))
-        for hand in list(keypoint_hands) + [h for h in pose_hands if h["track_id"] not in drawn]:
-            source = by_track.get(hand["track_id"], hand)
+        for hand in skeletons:            # labels last: on top of every skeleton
             uv = np.asarray(hand["uv"], dtype=np.float64)
             uv = uv[np.all(np.isfinite(uv), axis=1)]
+            best = pose_by_track.get(hand["track_id"], hand)
             if len(uv):
-                draw_label(out, hand_label(source["handedness"], float(source["score"]), int(source["track_id"])),
+                draw_label(out, hand_label(best["handedness"], float(best["score"]), int(best["track_id"])),
                            (uv[:, 0].min(), uv[:, 1].min() - 6))
         size = self.side_size(w, h)
         if size >= 32:
-            inset = self.side_view(meshes, size)
-            out[h - size - 8:h - 8, w - size - 8:w - 8] = inset
+            out[h - size - 8:h - 8, w - size - 8:w - 8] = self.side_view(meshes, size)
         return out
 
     def side_view(self, meshes, size: int):
-        """(size,size,3) BGR inset: meshes [(vertices, faces, joints, hand)] seen from the side,
-        with their 3D skeletons; a label says which side."""
+        """(size,size,3) BGR inset: meshes [(vertices, faces, joints, hand)] seen from the side
+        (side_view_transform), with their 3D skeletons; a label says where the camera is."""
         points = np.concatenate([v for v, *_ in meshes]) if meshes else np.zeros((0, 3))
         R, t, span = side_view_transform(points)
         K = side_K(size, span)
         if meshes:
-            rgb, _ = self._render(
-                "side", size, size, [(v @ R.T + t, f, MESH_COLOURS.get(hand["handedness"], MESH_COLOURS["right"]))
-                 for v, f, _, hand in meshes], K, background=SIDE_BACKGROUND)
+            rgb, _ = self._render("side", size, size, [(v @ R.T + t, f, mesh_colour(hand)) for v, f, _, hand in meshes],
+                                  K, background=SIDE_BACKGROUND)
             inset = np.ascontiguousarray(rgb[..., ::-1])
             for _, _, joints, _ in meshes:
                 draw_skeleton(inset, project(joints @ R.T + t, K), thickness=1, radius=1)

@@ -212,6 +212,17 @@ def test_demo_writes_one_annotated_frame_per_input_frame(tmp_path, run_dir):
     assert f"drew {CLIP_FRAMES} frame(s), {CLIP_FRAMES} with their pose" in r.stdout, r.stdout
 
 
+def test_webcam_graph_writes_every_camera_frame(tmp_path, run_dir):
+    """launch/webcam.yaml with a video file as the camera (it plays at its fps, then ends): a
+    latest-only detector, yet the MP4 holds every camera frame; bag:= switches the recorder on
+    (off by default: tests/test_launch.py)."""
+    video, bag = tmp_path / "cam.mp4", tmp_path / "cam.mcap"
+    r = handlaunch([ROOT / "launch/webcam.yaml", f"device:={ROOT / 'data/demo/hand_clip.mp4'}", f"video:={video}",
+                    f"bag:={bag}"], run_dir, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert video_frames(video) == CLIP_FRAMES and bag.exists()
+
+
 def test_sigint_leaves_a_finished_mp4(tmp_path, run_dir):
     video = tmp_path / "cut.mp4"
     proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", ROOT / "launch/demo.yaml", f"video:={video}",
