@@ -24,6 +24,7 @@ Params:
 """
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -50,11 +51,16 @@ class VideoOut:
 
     def __init__(self, path: str, fps: float):
         self.path, self.fps, self.writer, self.size, self.frames = Path(path).expanduser(), float(fps), None, None, 0
+        try:                                          # a bad path fails now, not at the first frame
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise RuntimeError(f"video {self.path}: cannot make its folder ({e.strerror})") from None
+        if not os.access(self.path.parent, os.W_OK) or self.path.is_dir():
+            raise RuntimeError(f"video {self.path}: cannot be written (no permission, or a folder)")
 
     def write(self, frame) -> None:
         h, w = frame.shape[:2]
         if self.writer is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
             self.size = (w, h)
             self.writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, self.size)
             if not self.writer.isOpened():
