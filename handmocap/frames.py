@@ -14,6 +14,7 @@ import cv2  # noqa: E402  (reads the variable above when it first opens a video)
 import numpy as np
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".webp", ".tif", ".tiff"}
+MISSING_FRAMES_SLACK = 0.05   # share of the container's frame count a video may fall short of
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".flv"}
 
 
@@ -51,6 +52,13 @@ class VideoFrames:
                 raise ValueError(f"video {self.path}: no frame could be decoded"
                                  + (f" after {self.start_frame} skipped" if self.start_frame else
                                     " (corrupt or unsupported)"))
+            end = self.start_frame + n
+            # OpenCV ends a video at its first undecodable packet, as if it were the end: a file
+            # corrupt in the middle would otherwise replay part of itself and exit 0. The
+            # container's count is an estimate for some formats (duration x fps), hence the slack.
+            if self.frame_count and self.frame_count - end > max(2, MISSING_FRAMES_SLACK * self.frame_count):
+                raise ValueError(f"video {self.path}: decoding stopped at frame {end} of {self.frame_count} "
+                                 f"(the file is corrupt or cut short there)")
         finally:
             cap.release()
 

@@ -1,11 +1,13 @@
 """The one way the project opens its ONNX models (CPU, onnxruntime; no torch at run time)."""
+import re
 from pathlib import Path
 
 
 def open_session(path: Path, what: str, made_by: str, threads: int = 1):
     """An onnxruntime CPU session of `path`, `threads` intra-op threads (1 is fastest per call
     on a busy 2-core machine); a missing file is one clear error naming it and the command
-    that makes it (`made_by`)."""
+    that makes it (`made_by`); a file onnxruntime cannot load (corrupt, half-written while a
+    training run exports it) is one ValueError naming it."""
     import onnxruntime as ort   # imported here: nodes that never run a model start faster
     path = Path(path)
     if not path.is_file():
@@ -16,4 +18,9 @@ def open_session(path: Path, what: str, made_by: str, threads: int = 1):
     opts.inter_op_num_threads = 1
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    try:
+        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    except Exception as e:   # onnxruntime's own exception types (InvalidProtobuf, Fail, ...) are no OSError
+        reason = re.sub(r"^\[ONNXRuntimeError\] : \d+ : ", "", str(e).strip().splitlines()[0] if str(e).strip() else "")
+        raise ValueError(f"{what} model {path} cannot be loaded (corrupt, cut short, or not an ONNX model): "
+                         f"{reason[:200] or type(e).__name__}; make it again with `{made_by}`") from None

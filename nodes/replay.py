@@ -40,8 +40,29 @@ def bag_frames(path: Path, start_s: float):
             yield log_ns, m["data"], info
 
 
+def for_frames(calib, w: int, h: int, path) -> camera_info.Intrinsics:
+    """Intrinsics for w x h frames: the calibration scaled to them (an error names its file),
+    else the default field of view."""
+    if calib is None:
+        return camera_info.default_intrinsics(w, h)
+    try:
+        return calib.for_size(w, h)
+    except ValueError as e:
+        raise ValueError(f"calibration file {path}: {e}") from None
+
+
 def main() -> None:
     node = Node("replay", params=PARAMS)
+    # closed on every way out: a source that fails mid-stream (a video corrupt halfway) must
+    # still flush and release its zero-copy frames, or libzmq aborts the process at exit
+    # ("Bad address (src/tcp.cpp:227)", SIGABRT) after the one error line
+    try:
+        replay(node)
+    finally:
+        node.close()
+
+
+def replay(node: Node) -> None:
     p = node.params
     if not p["source"]:
         raise ValueError("replay needs a source: a video file, an image folder or a .mcap bag (source:=PATH)")
@@ -73,7 +94,7 @@ def main() -> None:
             if calib is None and bag_info is not None:
                 info = bag_info
             else:
-                intr = calib.for_size(w, h) if calib is not None else camera_info.default_intrinsics(w, h)
+                intr = for_frames(calib, w, h, p["calibration"])
                 info = camera_info.camera_info_message(intr.K, intr.distortion, w, h, intr.source)
             stamp = time.time_ns()
             node.publish("/camera/image", image_message(frame), stamp_ns=stamp, frame_id=p["frame_id"])
@@ -82,7 +103,6 @@ def main() -> None:
         if not p["loop"] or t_first is None:
             break
     node.log.info("replayed %d frame(s) from %s", sent, source)
-    node.close()
 
 
 if __name__ == "__main__":
