@@ -252,8 +252,10 @@ class HandDetector:
         return inside or box_iou(cb, box)[0, 0] >= 0.3
 
     # -------------------------------------------------------------- per frame
-    def _run(self, image_rgb, tracks):
-        crops = np.stack([t.crop.cut(image_rgb) for t in tracks])
+    def _run(self, image_bgr, tracks):
+        # cut from the BGR frame and reverse the channels of the crops only: cutting from a
+        # reversed-channel view of the frame made OpenCV copy the whole frame for each crop
+        crops = np.ascontiguousarray(np.stack([t.crop.cut(image_bgr) for t in tracks])[..., ::-1])
         self.stats["crops"] += len(tracks)
         return self.detnet(crops)
 
@@ -265,8 +267,7 @@ class HandDetector:
         self.lost_last_frame = False
         if not self.tracks:
             return []
-        image_rgb = image_bgr[..., ::-1]
-        out = self._run(image_rgb, self.tracks)
+        out = self._run(image_bgr, self.tracks)
         if new:   # refine a new track's crop from its own first prediction, once
             idx = [i for i, t in enumerate(self.tracks) if t in new]
             for i in idx:
@@ -275,7 +276,7 @@ class HandDetector:
                     right_seen = float(out["handedness"][i])
                     t.add_handedness(1.0 - right_seen if t.crop.mirrored else right_seen)
                     t.crop = crop_for_joints(t.crop.to_frame(out["uv"][i]), not t.is_right, self.crop_scale)
-            again = self._run(image_rgb, [self.tracks[i] for i in idx])
+            again = self._run(image_bgr, [self.tracks[i] for i in idx])
             for k, i in enumerate(idx):
                 for key in out:
                     out[key][i] = again[key][k]

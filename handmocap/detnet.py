@@ -147,20 +147,26 @@ class DetNet(nn.Module):
         self.heat_head = Head(c + 2, mid, J, separable)
         self.delta_head = Head(c + 2 + J, mid, 3 * J, separable)
         self.loc_head = Head(c + 2 + 4 * J, mid, 3 * J, separable)
-        self.global_head = nn.Sequential(nn.Linear(c, 64), nn.ReLU(inplace=True), nn.Linear(64, 2))
+        self.presence_head = nn.Sequential(nn.Linear(c, 64), nn.ReLU(inplace=True), nn.Linear(64, 1))
+        # Handedness is chirality: which side of the palm the thumb lies on. A global mean
+        # of the features throws that layout away (it stayed at chance), so this head reads
+        # a coarse 4x4 map of a few channels instead.
+        self.chirality = conv_bn(c, 8, 1)
+        self.handedness_head = nn.Sequential(nn.Linear(8 * 16, 64), nn.ReLU(inplace=True), nn.Linear(64, 1))
 
     def forward(self, image):
         """image (N,3,128,128) RGB [0,1] -> dict of maps (see module docstring)."""
         feat = self.backbone(image * 2.0 - 1.0)
         n, _, g, _ = feat.shape
         x = torch.cat([feat, coord_channels(n, g, feat.device, feat.dtype)], 1)
-        heat = torch.sigmoid(self.heat_head(x))
+        heat_logits = self.heat_head(x)
+        heat = torch.sigmoid(heat_logits)
         delta = self.delta_head(torch.cat([x, heat], 1))
         loc = self.loc_head(torch.cat([x, heat, delta], 1))
-        logits = self.global_head(feat.mean((2, 3)))
-        return {"heatmap": heat, "delta": delta.view(n, NUM_JOINTS, 3, g, g),
-                "location": loc.view(n, NUM_JOINTS, 3, g, g),
-                "presence": logits[:, 0], "handedness": logits[:, 1]}
+        presence = self.presence_head(feat.mean((2, 3)))[:, 0]
+        handedness = self.handedness_head(F.adaptive_avg_pool2d(self.chirality(feat), 4).flatten(1))[:, 0]
+        return {"heatmap": heat, "heat_logits": heat_logits, "delta": delta.view(n, NUM_JOINTS, 3, g, g),
+                "location": loc.view(n, NUM_JOINTS, 3, g, g), "presence": presence, "handedness": handedness}
 
 
 # ------------------------------------------------------------------ read-out
