@@ -162,11 +162,8 @@ class Overlay:
         return r
 
     def _render(self, key: str, width: int, height: int, meshes, K, **kw):
-        """One MeshRenderer.render in that renderer's own GL context: each MeshRenderer has a
-        context of its own and GL draws into whichever is current, so it is made current here."""
-        r = self._renderer(key, width, height)
-        with r.ctx:
-            return r.render(meshes, K, **kw)
+        """One MeshRenderer.render (each renderer draws in its own GL context)."""
+        return self._renderer(key, width, height).render(meshes, K, **kw)
 
     def check(self, width=640, height=480) -> None:
         """Make the renderers now (fails with RuntimeError naming the cause, e.g. no EGL)."""

@@ -118,6 +118,10 @@ class MeshRenderer:
             color (3,) or (V,3) in [0,1] (default a skin tone).
         Returns rgb (H,W,3) uint8 and depth (H,W) float32 (camera z, 0 = background).
         """
+        with self.ctx:   # several renderers in one process: draw into this one's context
+            return self._render(meshes, K, key_light, background, ambient, specular, shininess)
+
+    def _render(self, meshes, K, key_light, background, ambient, specular, shininess):
         self.program["proj"].write(projection_matrix(K, self.width, self.height, self.near, self.far)
                                    .T.astype("f4").tobytes())
         self.program["key_dir"].value = tuple(float(x) for x in key_light)
