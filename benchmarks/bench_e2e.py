@@ -171,9 +171,9 @@ def main():
 
     n = args.frames
     graph_cpu_ms = 1e3 * (fast["cpu_s"] - short["cpu_s"]) / (n - WARMUP_FRAMES)
-    lat_live, lat_fast = latency_ms(live), latency_ms(fast)
+    lat_live = latency_ms(live)
     p50, p95 = np.percentile(lat_live[WARMUP_FRAMES:], [50, 95])
-    fps_fast, fps_live = throughput(fast), throughput(live)
+    fps_fast = throughput(fast)
     ip_wall, ip_cpu = float(np.median(inproc["wall_ms"])), float(np.median(inproc["cpu_ms"]))
     over_latency = p50 - ip_wall
     over_cpu = graph_cpu_ms - ip_cpu
@@ -192,8 +192,8 @@ def main():
     print(f"{'in-process tracker':20s} {len(inproc['wall_ms']):6d} {inproc['hands'].mean():11.2f} "
           f"{1e3 / ip_wall:9.1f} {ip_wall:8.1f} {np.percentile(inproc['wall_ms'], 95):8.1f} "
           f"{inproc['wall_ms'].max():8.1f} {ip_wall:9.2f} {ip_cpu:13.2f}")
-    print(f"(in-process: p50/p95/max are per-frame wall times; graph unthrottled: p50/p95/max are queueing, "
-          f"not latency; graph @30 fps throughput is the source's 30 fps)")
+    print("(in-process: p50/p95/max are per-frame wall times; graph unthrottled: p50/p95/max are queueing, "
+          "not latency; graph @30 fps throughput is the source's 30 fps)")
     print(f"start-up at 30 fps: first {WARMUP_FRAMES} frames' latency max {lat_live[:WARMUP_FRAMES].max():.0f} ms, "
           f"p50 {np.median(lat_live[:WARMUP_FRAMES]):.0f} ms (left out of the rows above)")
     print(f"graph CPU per frame: ({fast['cpu_s']:.2f} s over {n} frames - {short['cpu_s']:.2f} s over "

@@ -28,6 +28,44 @@ def graph_env(run_dir: Path, **extra) -> dict:
     return env
 
 
+def draw_bar_and_number(i, img):
+    """Test frame i: a red bar 20 + 20 i px wide from the left edge and the number i, so every
+    frame differs (drawn into img, a (H,W,3) uint8 BGR canvas)."""
+    import cv2
+    img[:, : 20 + 20 * i] = (0, 0, 255)
+    cv2.putText(img, str(i), (150, 140), cv2.FONT_HERSHEY_SIMPLEX, 2, (255, 255, 255), 3)
+
+
+def write_test_video(path, n, size=(320, 240), fourcc="MJPG", draw=draw_bar_and_number, background=0,
+                     folder=None):
+    """Write an n-frame 30 fps test video to `path` (size = (width, height) px; fourcc e.g.
+    MJPG in .avi, mp4v in .mp4): frame i is `draw(i, img)` on a (H,W,3) uint8 canvas filled
+    with `background`; with `folder`, each frame is also saved there as NNNN.png. Returns the
+    frames as OpenCV decodes the written file: a list of n (H,W,3) uint8 BGR images."""
+    import cv2
+    import numpy as np
+    w, h = size
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 30, (w, h))
+    if folder is not None:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        img = np.full((h, w, 3), background, np.uint8)
+        draw(i, img)
+        writer.write(img)
+        if folder is not None:
+            cv2.imwrite(str(Path(folder) / f"{i:04d}.png"), img)
+    writer.release()
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            break
+        frames.append(f)
+    assert len(frames) == n, f"{path}: wrote {n} frames, read back {len(frames)}"
+    return frames
+
+
 def handlaunch(args, run_dir, timeout=60, **kw):
     return subprocess.run([sys.executable, "-m", "handmocap.launch", *map(str, args)], env=graph_env(run_dir),
                           capture_output=True, text=True, timeout=timeout, **kw)

@@ -13,6 +13,7 @@ from handmocap import codec
 from handmocap.camera_info import (Intrinsics, camera_info_message, default_K, intrinsics_for_frames,
                                    load_calibration, scale_K)
 from handmocap.nodes import camera
+from conftest import write_test_video
 from source_nodes import run_failing, run_source
 
 K_1280 = np.array([[900.0, 0.0, 641.25], [0.0, 902.0, 357.5], [0.0, 0.0, 1.0]])
@@ -228,22 +229,7 @@ def test_file_source_ends_without_error():
 def video(tmp_path_factory):
     """A 12-frame 320x240 MJPG video whose frames differ; returns (path, decoded frames)."""
     path = tmp_path_factory.mktemp("video") / "clip.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30, (320, 240))
-    for i in range(12):
-        img = np.zeros((240, 320, 3), np.uint8)
-        img[:, : 20 + 20 * i] = (0, 0, 255)
-        cv2.putText(img, str(i), (150, 140), cv2.FONT_HERSHEY_SIMPLEX, 2, (255, 255, 255), 3)
-        writer.write(img)
-    writer.release()
-    cap = cv2.VideoCapture(str(path))
-    frames = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        frames.append(f)
-    assert len(frames) == 12
-    return str(path), frames
+    return str(path), write_test_video(path, 12)
 
 
 def test_device_that_cannot_be_opened_is_one_error_line():

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import time
 
-import cv2
 import numpy as np
 import pytest
 
@@ -17,6 +16,7 @@ dai = pytest.importorskip("depthai", reason="depthai is an optional extra: pip i
 
 from handmocap import codec  # noqa: E402
 from handmocap.nodes import depthai as oak  # noqa: E402
+from conftest import write_test_video  # noqa: E402
 from source_nodes import run_failing, run_source  # noqa: E402
 
 CAM_A = dai.CameraBoardSocket.CAM_A
@@ -37,15 +37,7 @@ def _calibration(model=None):
 def video(tmp_path_factory):
     """A 10-frame 320x180 MJPG video; returns (path, frames as OpenCV decodes them)."""
     path = tmp_path_factory.mktemp("oak") / "CameraCAM_A.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30, (320, 180))
-    for i in range(10):
-        img = np.zeros((180, 320, 3), np.uint8)
-        img[:, : 30 * (i + 1)] = (255, 0, 0)
-        writer.write(img)
-    writer.release()
-    cap = cv2.VideoCapture(str(path))
-    frames = [cap.read()[1] for _ in range(10)]
-    return str(path), frames
+    return str(path), write_test_video(path, 10, size=(320, 180))
 
 
 @pytest.fixture(scope="module")

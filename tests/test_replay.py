@@ -8,21 +8,15 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import ROOT, graph_env, handlaunch
+from conftest import ROOT, graph_env, handlaunch, write_test_video
 
 
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory):
-    """A 90-frame 320x240 video and the same frames as a folder of PNGs."""
+    """A 90-frame 320x240 video of a moving red disc (no hand) and the same frames as a folder of PNGs."""
     d = tmp_path_factory.mktemp("clip")
-    writer = cv2.VideoWriter(str(d / "clip.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30, (320, 240))
-    (d / "frames").mkdir()
-    for i in range(90):
-        img = np.full((240, 320, 3), 40, np.uint8)
-        cv2.circle(img, (20 + 3 * i, 120), 25, (0, 0, 255), -1)
-        writer.write(img)
-        cv2.imwrite(str(d / "frames" / f"{i:04d}.png"), img)
-    writer.release()
+    write_test_video(d / "clip.mp4", 90, fourcc="mp4v", background=40, folder=d / "frames",
+                     draw=lambda i, img: cv2.circle(img, (20 + 3 * i, 120), 25, (0, 0, 255), -1))
     return d
 
 
