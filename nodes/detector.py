@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from handmocap.detector import CROP_SCALE, HandDetector
+from handmocap.detector import CROP, CROP_SCALE, DETNET_PATH, HandDetector
 from handmocap.node import Node, run
 from handmocap.skeleton import normalize_joints
 
@@ -40,14 +40,35 @@ def frame_bgr(image_msg):
     return frame
 
 
+def warm_up(detector: HandDetector, params: dict) -> None:
+    """Run each network once on blank input before the graph starts: onnxruntime sets up its
+    buffers on a session's first run (tens of ms here), which would otherwise hold up the
+    first frames. A file that loads but is not the network it should be fails here, as one
+    error line naming it."""
+    try:
+        detector.detnet(np.zeros((1, CROP, CROP, 3), np.uint8))
+    except Exception as e:   # onnxruntime's errors (wrong input name or shape) are no ValueError
+        raise ValueError(f"DetNet model {params['detnet'] or DETNET_PATH} does not take (N,128,128,3) crops: "
+                         f"{str(e).splitlines()[0][:200]}") from None
+    if detector.finder is not None:
+        try:
+            detector.finder.find(np.zeros((480, 640, 3), np.uint8))
+        except Exception as e:
+            raise ValueError(f"hand finder model {params['finder'] or 'models/finder.onnx'} does not take a "
+                             f"frame: {str(e).splitlines()[0][:200]}") from None
+
+
 def main() -> None:
     node = Node("detector", params=PARAMS)
     p = node.params
+    # topics first, models second: the graph's other nodes see /hand/keypoints while the models
+    # load and are connected when the first frame comes (else the first publish waits for them)
+    node.subscribe("/camera/image", "Image", mode="all" if p["every_frame"] else "latest")
+    node.advertise("/hand/keypoints", "HandKeypoints")
     detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]), max_hands=int(p["max_hands"]),
                                  presence_threshold=float(p["presence_threshold"]),
                                  redetect_every=int(p["redetect_every"]), crop_scale=float(p["crop_scale"]))
-    node.subscribe("/camera/image", "Image", mode="all" if p["every_frame"] else "latest")
-    node.advertise("/hand/keypoints", "HandKeypoints")
+    warm_up(detector, p)
     for msg in node:
         try:
             frame = frame_bgr(msg.data)

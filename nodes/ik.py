@@ -30,12 +30,19 @@ PARAMS = {"model": None, "iknet": None, "threads": 1, **POSE_DEFAULTS}
 def main() -> None:
     node = Node("ik", params=PARAMS)
     p = node.params
-    model = HandModel.load(p["model"])
-    estimator = PoseEstimator(IKSolver.load(p["iknet"], threads=int(p["threads"]), model=model), model, p)
+    # topics first, models second: subscribers of /hand/pose connect while the models load
     node.subscribe("/hand/keypoints", "HandKeypoints", mode="all")   # every frame's pose is recorded
     node.subscribe("/camera/info", "CameraInfo", mode="all")         # same socket: in order with keypoints
     node.subscribe("/hand/shape", "HandShape", mode="latest")
     node.advertise("/hand/pose", "HandPose")
+    model = HandModel.load(p["model"])
+    solver = IKSolver.load(p["iknet"], threads=int(p["threads"]), model=model)
+    try:   # onnxruntime sets up its buffers on a session's first run: not on the first frame
+        solver.solve(solver.rest)
+    except Exception as e:   # a file that loads but is not IKNet; onnxruntime's errors are no ValueError
+        raise ValueError(f"IKNet model {p['iknet'] or 'models/iknet.onnx'} does not take IKNet's input: "
+                         f"{str(e).splitlines()[0][:200]}") from None
+    estimator = PoseEstimator(solver, model, p)
     K = None
     for msg in node:
         if msg.type == "CameraInfo":

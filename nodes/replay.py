@@ -11,6 +11,7 @@ get it at once (a latched topic by repetition).
 """
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -74,9 +75,13 @@ def replay(node: Node) -> None:
     is_bag = source.suffix == ".mcap"
     if not is_bag:
         frames = open_frames(source, p["fps"], float(p["start"]))   # fails now on a bad source
+    if "HANDMOCAP_LAUNCH_ID" in os.environ:
+        # wait for the graph here rather than in the first publish: the first stamp and the
+        # pacing clock then start when every node is up (else frame 0's latency counts the
+        # graph's start-up, and the frames due meanwhile go out in one burst that queues)
+        node.wait_for_graph()
     sent = 0
     while node.ok():
-        t_start = time.monotonic()
         if is_bag:
             seq = ((ns / 1e9, f, info) for ns, f, info in bag_frames(source, float(p["start"])))
         else:
@@ -85,7 +90,8 @@ def replay(node: Node) -> None:
         for t_src, frame, bag_info in seq:
             if not node.ok():
                 break
-            t_first = t_src if t_first is None else t_first
+            if t_first is None:   # the clock starts with the first frame in hand
+                t_first, t_start = t_src, time.monotonic()
             if rate > 0:
                 delay = t_start + (t_src - t_first) / rate - time.monotonic()
                 if delay > 0:

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import DEMO_CLIP, chain_yaml, graph_env, handlaunch, pose_latencies_ms, read_bag
+from conftest import DEMO_CLIP, ROOT, chain_yaml, graph_env, handlaunch, pose_latencies_ms, read_bag
 
 FRAME_PERIOD_S = 1 / 30
 MAX_RESPAWN_GAP_S = 20.0     # capture time without /hand/pose around a killed detector; measured 0.7-1.4 s
@@ -153,6 +153,8 @@ BAD_INPUTS = {
                        "detector", ["nope.onnx", "not found", "handtrain detnet"]),
     "corrupt DetNet": (lambda d: {"detector_params": f", detnet: {(d / 'bad.onnx').write_bytes(b'xx' * 99) and d / 'bad.onnx'}"},
                        "detector", ["bad.onnx", "cannot be loaded", "corrupt"]),
+    "another network as DetNet": (lambda d: {"detector_params": f", detnet: {ROOT / 'models' / 'finder.onnx'}"},
+                                  "detector", ["finder.onnx", "does not take (N,128,128,3) crops"]),
     "camera that can't be opened": (lambda d: {"source_entry": "camera: {node: camera, params: {device: /dev/video99}, "
                                                                "required: true}"},
                                     "camera", ["/dev/video99", "no such device"]),
