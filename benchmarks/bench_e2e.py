@@ -1,6 +1,6 @@
 """The whole graph against the same pipeline in one process, on 640x480 frames of one hand.
 
-    python benchmarks/bench_e2e.py [--frames 300] [--record-all]
+    python benchmarks/bench_e2e.py [--frames 300] [--record-all] [--max-hands 2]
 
 Frames: the rendered demo clip (data/demo/hand_clip.mp4, 640x480, 30 fps, one right hand)
 played forwards and backwards until `--frames` long (no jump where it repeats, so the hand
@@ -88,7 +88,7 @@ def children_cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def run_graph(tmp: Path, clip: Path, rate: float, record_all: bool, name: str) -> dict:
+def run_graph(tmp: Path, clip: Path, rate: float, record_all: bool, name: str, max_hands: int) -> dict:
     """Launch the chain on `clip`; return pose stamps and receipt times (ns), the CPU seconds
     of the launcher and all its nodes, and the wall time of the run."""
     from handmocap.bag import iter_messages
@@ -98,7 +98,7 @@ def run_graph(tmp: Path, clip: Path, rate: float, record_all: bool, name: str) -
     (tmp / f"{name}.yaml").write_text(f"""
 nodes:
   replay: {{node: replay, params: {{source: "{clip}", rate: {rate}}}, required: true}}
-  detector: {{node: detector, params: {{every_frame: true}}, required: true}}
+  detector: {{node: detector, params: {{every_frame: true, max_hands: {max_hands}}}, required: true}}
   shape: {{node: shape}}
   ik: {{node: ik, required: true}}
   recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true{topics}}}, required: true}}
@@ -135,10 +135,10 @@ def throughput(run: dict) -> float:
     return (len(t) - 1) / ((t[-1] - t[0]) / 1e9)
 
 
-def in_process(frames: list[np.ndarray]) -> dict:
+def in_process(frames: list[np.ndarray], max_hands: int) -> dict:
     """HandTracker.process per frame: wall and CPU ms, after a warm-up pass."""
     from handmocap.tracker import HandTracker
-    tracker = HandTracker()
+    tracker = HandTracker(max_hands=max_hands)
     for f in frames[:60]:
         tracker.process(f)
     tracker.reset()
@@ -155,16 +155,18 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=300, help="frames per graph run (>= 90)")
     ap.add_argument("--record-all", action="store_true", help="the recorder records every topic, as demo.yaml")
+    ap.add_argument("--max-hands", type=int, default=2, help="the detector's max_hands (2: the product's default; "
+                    "1: never a second, spurious track on this one-hand clip)")
     args = ap.parse_args()
     load0 = os.getloadavg()
     tmp = Path(tempfile.mkdtemp(prefix="bench_e2e"))
     try:
         frames, decode_ms = make_clip(tmp / "clip.mp4", args.frames)
         make_clip(tmp / "short.mp4", WARMUP_FRAMES)
-        live = run_graph(tmp, tmp / "clip.mp4", 1.0, args.record_all, "live")
-        fast = run_graph(tmp, tmp / "clip.mp4", 0.0, args.record_all, "fast")
-        short = run_graph(tmp, tmp / "short.mp4", 0.0, args.record_all, "short")
-        inproc = in_process(frames)
+        live = run_graph(tmp, tmp / "clip.mp4", 1.0, args.record_all, "live", args.max_hands)
+        fast = run_graph(tmp, tmp / "clip.mp4", 0.0, args.record_all, "fast", args.max_hands)
+        short = run_graph(tmp, tmp / "short.mp4", 0.0, args.record_all, "short", args.max_hands)
+        inproc = in_process(frames, args.max_hands)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     load1 = os.getloadavg()
@@ -179,7 +181,7 @@ def main():
     over_cpu = graph_cpu_ms - ip_cpu
     over_wall = 1e3 / fps_fast - ip_wall
 
-    print(f"load average {load0[0]:.2f} at start; {n} frames of 640x480, one hand; "
+    print(f"load average {load0[0]:.2f} at start; {n} frames of 640x480, one hand; max_hands {args.max_hands}; "
           f"recorder: {'every topic' if args.record_all else '/hand/pose only'}")
     print(f"{'row':20s} {'poses':>6s} {'hands/frame':>11s} {'frames/s':>9s} {'p50 ms':>8s} {'p95 ms':>8s} "
           f"{'max ms':>8s} {'ms/frame':>9s} {'CPU ms/frame':>13s}")
