@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .kinematics import PARENTS
+from .kinematics import FRAME_BONE, FRAME_PARENTS, PARENTS
 from .onnx_models import open_session
 from .rotations import matrix_to_quat, quat_multiply, quat_normalize, quat_to_matrix
 from .skeleton import NON_TIP_JOINTS, NUM_JOINTS, normalize_joints
@@ -150,12 +150,42 @@ def analytic_ik(xyz_rel, rest):
     return matrix_to_quat(frames[:, BONE_PARENT_FRAME])
 
 
+# bone j >= 1 that is not a palm bone ends at a finger joint's child: q_j = G_parent(j). In
+# FINGER_JOINTS order the 15 finger frames are the rotations of bones 2,3,4, 6,7,8, ...
+_FINGER_FRAME_BONES = np.array([j + 1 for j in NON_TIP_JOINTS[1:]])
+
+
 def clamp_to_limits(quats, limits):
     """(N,21,4) global bone quaternions -> the same with every finger joint's (flexion,
-    abduction, twist) clipped into `limits` (a JointLimits); the wrist is kept. Joints already
-    inside come back unchanged (to rounding)."""
-    from .kinematics import global_quats_to_relative, relative_to_global_quats
-    quats = np.asarray(quats, dtype=np.float64)
-    angles = np.clip(limits.angles(quats), limits.limits[..., 0], limits.limits[..., 1])
-    wrist = global_quats_to_relative(quats)[..., 0, :]
-    return relative_to_global_quats(limits.pose_from_angles(angles, wrist))
+    abduction, twist) clipped into `limits` (a JointLimits); the wrist is kept. The result is
+    normalized (w >= 0) and the five palm bones carry the wrist's rotation (the model's rigid
+    palm). Joints inside their limits keep their relative rotation exactly; when no joint of
+    any hand is outside, the input comes back as it is (after that normalization).
+
+    Straight from the quaternions to the 15 relative rotation matrices and anatomical angles,
+    and back only for the hands that have a joint outside: no axis-angle round trip."""
+    shape = np.shape(quats)
+    q = quat_normalize(np.reshape(quats, (-1, NUM_JOINTS, 4)))             # (N,21,4)
+    q[:, PALM_JOINTS[1:]] = q[:, :1]
+    frames = quat_to_matrix(q[:, FRAME_BONE])                               # (N,16,3,3) joint frames G
+    rel = np.swapaxes(frames[:, FRAME_PARENTS[1:]], -1, -2) @ frames[:, 1:]   # (N,15,3,3) R = G_parentᵀ G
+    angles = limits.angles_from_relative(rel)                               # (N,15,3)
+    clipped = np.clip(angles, limits.limits[..., 0], limits.limits[..., 1])
+    outside = np.any(clipped != angles, axis=-1)                            # (N,15) joints to change
+    hands = np.flatnonzero(np.any(outside, axis=-1))                        # (M,) hands to change
+    if len(hands):
+        rel = np.where(outside[hands, :, None, None], limits.relative_from_angles(clipped[hands]), rel[hands])
+        q[hands[:, None], _FINGER_FRAME_BONES] = matrix_to_quat(_finger_frames(frames[hands, 0], rel))
+    return q.reshape(shape)
+
+
+def _finger_frames(wrist, rel):
+    """Wrist frames (M,3,3) and finger relative rotations (M,15,3,3) -> the 15 global finger
+    joint frames (M,15,3,3), G = G_parent R, down the five chains at once (three steps)."""
+    rel = rel.reshape(len(rel), 5, 3, 3, 3)                                 # (M, finger, level, 3, 3)
+    g = np.broadcast_to(wrist[:, None], rel.shape[:2] + (3, 3))
+    levels = []
+    for level in range(3):
+        g = g @ rel[:, :, level]
+        levels.append(g)
+    return np.stack(levels, axis=2).reshape(len(rel), 15, 3, 3)

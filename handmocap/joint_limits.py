@@ -37,7 +37,7 @@ ranges are broad because its two axes are not orthogonal and the literature spre
 import numpy as np
 
 from .kinematics import as_matrices, frames_to_relative
-from .rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from .rotations import matrix_to_axis_angle
 from .skeleton import NON_TIP_JOINTS, PARENTS
 
 FINGER_JOINTS = NON_TIP_JOINTS[1:]          # the 15 joints with limits: 1,2,3,5,6,7,9,...
@@ -63,7 +63,6 @@ LIMITS_DEG = {
 LIMITS = np.radians(np.array([LIMITS_DEG[j] for j in FINGER_JOINTS], dtype=np.float64))   # (15,3,2)
 
 _FINGER_CHAINS = ((1, 2, 3, 4), (5, 6, 7, 8), (9, 10, 11, 12), (13, 14, 15, 16), (17, 18, 19, 20))
-_X, _Y, _Z = np.eye(3)
 
 
 def local_frames(rest):
@@ -95,9 +94,18 @@ def local_frames(rest):
 
 
 def _euler_xyz_to_matrix(angles):
-    """(...,3) (x, y, z) angles -> (...,3,3) Rx(x) Ry(y) Rz(z)."""
-    return (axis_angle_to_matrix(angles[..., :1] * _X) @ axis_angle_to_matrix(angles[..., 1:2] * _Y)
-            @ axis_angle_to_matrix(angles[..., 2:] * _Z))
+    """(...,3) (x, y, z) angles -> (...,3,3) Rx(x) Ry(y) Rz(z), written out (one stack of
+    nine products instead of three axis-angle -> quaternion -> matrix conversions)."""
+    angles = np.asarray(angles, dtype=np.float64)
+    c, s = np.cos(angles), np.sin(angles)
+    cx, cy, cz = c[..., 0], c[..., 1], c[..., 2]
+    sx, sy, sz = s[..., 0], s[..., 1], s[..., 2]
+    sx_sy, cx_sy = sx * sy, cx * sy
+    return np.stack([
+        cy * cz, -cy * sz, sy,
+        sx_sy * cz + cx * sz, cx * cz - sx_sy * sz, -sx * cy,
+        sx * sz - cx_sy * cz, cx_sy * sz + sx * cz, cx * cy,
+    ], axis=-1).reshape(angles.shape[:-1] + (3, 3))
 
 
 def _matrix_to_euler_xyz(L):
@@ -129,21 +137,29 @@ class JointLimits:
 
         pose: relative (...,16,3|4|3x3) or global bone rotations (...,21,4|3x3).
         """
-        rel = _relative_matrices(pose)[..., 1:, :, :]                     # (...,15,3,3)
+        return self.angles_from_relative(_relative_matrices(pose)[..., 1:, :, :])
+
+    def angles_from_relative(self, rel):
+        """(..., 15, 3, 3) relative rotations of the finger joints (model axes) -> (..., 15, 3)
+        anatomical angles: L = Fᵀ R F read as Rx(flexion) Ry(abduction) Rz(twist)."""
         local = np.swapaxes(self.frames, -1, -2) @ rel @ self.frames
         angles = _matrix_to_euler_xyz(local)
         angles[..., 0] += self.rest_flexion
         return angles
+
+    def relative_from_angles(self, angles):
+        """(..., 15, 3) anatomical angles -> (..., 15, 3, 3) relative rotations R = F L Fᵀ of the
+        finger joints (model axes); the inverse of angles_from_relative."""
+        angles = np.array(angles, dtype=np.float64)
+        angles[..., 0] -= self.rest_flexion
+        return self.frames @ _euler_xyz_to_matrix(angles) @ np.swapaxes(self.frames, -1, -2)
 
     def pose_from_angles(self, angles, wrist=None):
         """(..., 15, 3) anatomical angles (radians) -> (..., 16, 3) relative axis-angle pose.
 
         wrist: optional (..., 3) axis-angle global rotation of the hand (default none).
         """
-        angles = np.array(angles, dtype=np.float64)
-        angles[..., 0] -= self.rest_flexion
-        rel = self.frames @ _euler_xyz_to_matrix(angles) @ np.swapaxes(self.frames, -1, -2)
-        pose = matrix_to_axis_angle(rel)
+        pose = matrix_to_axis_angle(self.relative_from_angles(angles))
         wrist = np.zeros(pose.shape[:-2] + (3,)) if wrist is None else np.broadcast_to(wrist, pose.shape[:-2] + (3,))
         return np.concatenate([wrist[..., None, :], pose], axis=-2)
 

@@ -21,21 +21,28 @@ _EPS = 1e-12
 def quat_normalize(q):
     """(..., 4) -> (..., 4) unit quaternions with w >= 0."""
     q = np.asarray(q, dtype=np.float64)
-    q = q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), _EPS)
-    return np.where(q[..., :1] < 0, -q, q)
+    norm = np.sqrt(np.sum(q * q, axis=-1, keepdims=True))
+    # one scale per quaternion: 1/|q|, negated where w < 0 (q and -q are one rotation)
+    return q * (np.where(q[..., :1] < 0, -1.0, 1.0) / np.maximum(norm, _EPS))
+
+
+# Hamilton product as a bilinear form: (a * b)_k = sum_ij _PRODUCT[k, i, j] a_i b_j
+_PRODUCT = np.zeros((4, 4, 4))
+for _k, _i, _j, _sign in [(0, 0, 0, 1), (0, 1, 1, -1), (0, 2, 2, -1), (0, 3, 3, -1),
+                          (1, 0, 1, 1), (1, 1, 0, 1), (1, 2, 3, 1), (1, 3, 2, -1),
+                          (2, 0, 2, 1), (2, 1, 3, -1), (2, 2, 0, 1), (2, 3, 1, 1),
+                          (3, 0, 3, 1), (3, 1, 2, 1), (3, 2, 1, -1), (3, 3, 0, 1)]:
+    _PRODUCT[_k, _i, _j] = _sign
+_PRODUCT_FLAT = _PRODUCT.reshape(4, 16).T.copy()          # (16, 4): outer(a, b).ravel() @ it
 
 
 def quat_multiply(a, b):
-    """Hamilton product a * b of (..., 4) quaternions (broadcasting): rotate by b, then a."""
+    """Hamilton product a * b of (..., 4) quaternions (broadcasting): rotate by b, then a.
+    Computed as the 16 products a_i b_j (one outer product) summed with signs (one matmul):
+    two numpy calls instead of sixteen products and a stack, exact (coefficients are +-1)."""
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], axis=-1)
+    outer = a[..., :, None] * b[..., None, :]                                  # (..., 4, 4)
+    return outer.reshape(outer.shape[:-2] + (16,)) @ _PRODUCT_FLAT
 
 
 def quat_conjugate(q):
@@ -59,41 +66,51 @@ def quat_rotate(q, v):
     return v + w * t + np.cross(u, t)
 
 
+# R = I + P @ _Q2M with P = (2 / |q|^2) outer(q, q) flattened (w, x, y, z order):
+# R00 = 1 - (P_yy + P_zz), R01 = P_xy - P_wz, R02 = P_xz + P_wy, and so on
+_Q2M = np.zeros((16, 9))
+for _r, _terms in enumerate([((2, 2, -1), (3, 3, -1)), ((1, 2, 1), (0, 3, -1)), ((1, 3, 1), (0, 2, 1)),
+                             ((1, 2, 1), (0, 3, 1)), ((1, 1, -1), (3, 3, -1)), ((2, 3, 1), (0, 1, -1)),
+                             ((1, 3, 1), (0, 2, -1)), ((2, 3, 1), (0, 1, 1)), ((1, 1, -1), (2, 2, -1))]):
+    for _i, _j, _sign in _terms:
+        _Q2M[4 * _i + _j, _r] = _sign
+_EYE_FLAT = np.eye(3).ravel()
+
+
 def quat_to_matrix(q):
-    """(..., 4) quaternions (normalised here) -> (..., 3, 3) rotation matrices."""
+    """(..., 4) quaternions (any norm: divided out here) -> (..., 3, 3) rotation matrices.
+    One outer product and one matmul with a constant (16, 9) table (exact: +-1 entries)."""
     q = np.asarray(q, dtype=np.float64)
-    q = q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), _EPS)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], axis=-1).reshape(q.shape[:-1] + (3, 3))
+    scale = 2.0 / np.maximum(np.sum(q * q, axis=-1), _EPS * _EPS)               # (...,)
+    outer = (q[..., :, None] * q[..., None, :]) * scale[..., None, None]      # (..., 4, 4)
+    return (_EYE_FLAT + outer.reshape(q.shape[:-1] + (16,)) @ _Q2M).reshape(q.shape[:-1] + (3, 3))
+
+
+# Shepperd's method: the symmetric 4x4 matrix K = 4 q qᵀ read off R, K_flat = _M2Q_CONST + R_flat @ _M2Q.
+# Diagonal 4w^2 = 1 + m00 + m11 + m22, 4x^2 = 1 + m00 - m11 - m22, ...; off-diagonal 4wx = m21 - m12, ...
+_M2Q = np.zeros((9, 16))
+_M2Q_CONST = np.zeros(16)
+for _row, _col, _terms in [(0, 0, ((0, 1), (4, 1), (8, 1))), (1, 1, ((0, 1), (4, -1), (8, -1))),
+                           (2, 2, ((0, -1), (4, 1), (8, -1))), (3, 3, ((0, -1), (4, -1), (8, 1))),
+                           (0, 1, ((7, 1), (5, -1))), (0, 2, ((2, 1), (6, -1))), (0, 3, ((3, 1), (1, -1))),
+                           (1, 2, ((3, 1), (1, 1))), (1, 3, ((2, 1), (6, 1))), (2, 3, ((7, 1), (5, 1)))]:
+    for _m, _sign in _terms:
+        _M2Q[_m, 4 * _row + _col] = _M2Q[_m, 4 * _col + _row] = _sign
+    if _row == _col:
+        _M2Q_CONST[5 * _row] = 1.0
 
 
 def matrix_to_quat(R):
     """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions, w >= 0.
 
-    Uses whichever of w, x, y, z is largest to divide by (Shepperd's method), so it stays
-    accurate for every rotation angle, including 180 degrees.
+    Shepperd's method: row i of K = 4 q qᵀ is 4 q_i q; the row whose diagonal entry
+    (4 q_i^2) is largest is taken and normalized, so it stays accurate for every rotation
+    angle, including 180 degrees. K comes from R in one matmul with a constant table.
     """
     R = np.asarray(R, dtype=np.float64)
-    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
-    # 4*w^2, 4*x^2, 4*y^2, 4*z^2
-    sq = np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22,
-                   1 - m00 + m11 - m22, 1 - m00 - m11 + m22], axis=-1)
-    best = np.argmax(sq, axis=-1)
-    s = np.sqrt(np.maximum(np.take_along_axis(sq, best[..., None], -1)[..., 0], _EPS))  # 2*|largest|
-    d21, d02, d10 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
-    s21, s02, s10 = R[..., 2, 1] + R[..., 1, 2], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 0] + R[..., 0, 1]
-    candidates = np.stack([
-        np.stack([s * s, d21, d02, d10], -1),
-        np.stack([d21, s * s, s10, s02], -1),
-        np.stack([d02, s10, s * s, s21], -1),
-        np.stack([d10, s02, s21, s * s], -1),
-    ], axis=-2) / (2.0 * s[..., None, None])
-    q = np.take_along_axis(candidates, best[..., None, None], -2)[..., 0, :]
-    return quat_normalize(q)
+    K = (_M2Q_CONST + R.reshape(R.shape[:-2] + (9,)) @ _M2Q).reshape(R.shape[:-2] + (4, 4))
+    best = np.argmax(K[..., [0, 1, 2, 3], [0, 1, 2, 3]], axis=-1)                # (...,)
+    return quat_normalize(np.take_along_axis(K, best[..., None, None], axis=-2)[..., 0, :])
 
 
 def axis_angle_to_quat(r):

@@ -7,10 +7,10 @@ from handmocap.hand_model import HandModel
 from handmocap.ik_solver import (DEFAULT_MODEL, IKSolver, analytic_ik, canonical_frame, clamp_to_limits, iknet_inputs,
                                  iknet_outputs)
 from handmocap.joint_limits import JointLimits
-from handmocap.kinematics import forward_kinematics
+from handmocap.kinematics import forward_kinematics, relative_to_global_quats
 from handmocap.one_euro import OneEuroFilter
 from handmocap.pose_data import PoseSampler, corrupt_joints
-from handmocap.rotations import matrix_to_quat, quat_angle_between, quat_to_matrix
+from handmocap.rotations import matrix_to_quat, quat_angle_between, quat_normalize, quat_to_matrix
 from handmocap.skeleton import normalize_joints
 
 MODEL = HandModel.load()
@@ -137,6 +137,33 @@ def test_clamp_to_limits_keeps_valid_joints_and_fixes_the_rest():
     fixed = clamp_to_limits(bad, limits)
     assert limits.within(fixed).all()
     np.testing.assert_allclose(np.abs(np.sum(fixed[:, 0] * bad[:, 0], -1)), 1, atol=1e-9)   # wrist kept
+
+
+def _clamp_reference(quats, limits):
+    """The first clamp_to_limits (axis-angle round trip through the relative pose), kept as
+    the reference the fast one must equal."""
+    from handmocap.kinematics import global_quats_to_relative, relative_to_global_quats
+    angles = np.clip(limits.angles(quats), limits.limits[..., 0], limits.limits[..., 1])
+    wrist = global_quats_to_relative(quats)[..., 0, :]
+    return relative_to_global_quats(limits.pose_from_angles(angles, wrist))
+
+
+def test_clamp_to_limits_equals_the_axis_angle_round_trip():
+    limits = JointLimits.for_model(MODEL)
+    d = samples(300, 15)
+    noisy = analytic_ik(corrupt_joints(d["xyz"], np.random.default_rng(16)), d["rest"])
+    wild = np.random.default_rng(17).normal(size=(200, 21, 4))
+    for quats in (d["quats"], noisy, wild, np.concatenate([d["quats"][:5], noisy[:5]])):
+        fast, ref = clamp_to_limits(quats, limits), _clamp_reference(quats, limits)
+        np.testing.assert_allclose(fast, ref, atol=1e-12)
+    # inside the limits: returned as given (normalized), whatever the other hands of the batch
+    lo, hi = limits.limits[..., 0], limits.limits[..., 1]       # well inside (sampled poses may touch a limit)
+    middle = lo + (hi - lo) * np.random.default_rng(18).uniform(0.2, 0.8, (3,) + lo.shape)
+    inside = quat_normalize(relative_to_global_quats(limits.pose_from_angles(middle, d["pose16"][:3, 0])))
+    np.testing.assert_array_equal(clamp_to_limits(inside, limits), quat_normalize(inside))
+    batch = clamp_to_limits(np.concatenate([noisy[:7], inside[:1]]), limits)
+    np.testing.assert_array_equal(batch[-1], quat_normalize(inside[0]))
+    np.testing.assert_array_equal(batch[3], clamp_to_limits(noisy[3], limits))        # (21,4) in, (21,4) out
 
 
 def test_palm_frame_is_a_rotation_that_follows_the_hand():
