@@ -1,6 +1,8 @@
 """Evaluate IKNet (the exported ONNX model, as shipped) beside the analytic IK baseline.
 
-    python -m handmocap.eval_iknet [--model models/iknet.onnx] [--n 10000]
+    python -m handmocap.eval_iknet [--model int8|float32|PATH] [--n 10000]
+
+(default: the file IKSolver.load opens by default, models/iknet_int8.onnx)
 
 Data, none of it seen in training:
 * synthetic: n poses from PoseSampler with seed EVAL_SEED (training batches use
@@ -24,7 +26,7 @@ import time
 import numpy as np
 
 from .hand_model import HandModel
-from .ik_solver import DEFAULT_MODEL, IKSolver, analytic_ik, clamp_to_limits
+from .ik_solver import IKSolver, analytic_ik, clamp_to_limits, model_path
 from .joint_limits import JointLimits
 from .kinematics import bone_rotations_to_frames, forward_kinematics, frames_to_bone_rotations
 from .pose_data import REAL_EVAL, SHARED_DATA, PositionPairs, PoseSampler, corrupt_joints, load_real_sequences
@@ -98,12 +100,13 @@ def format_table(results, noise_mm):
 
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m handmocap.eval_iknet", description=__doc__.splitlines()[0])
-    p.add_argument("--model", default=str(DEFAULT_MODEL))
+    p.add_argument("--model", default=None, help="int8 (default), float32 or an ONNX path")
     p.add_argument("--n", type=int, default=10000)
     p.add_argument("--threads", type=int, default=2)
     args = p.parse_args(argv)
     t0 = time.perf_counter()
     results, noise_mm = evaluate(IKSolver.load(args.model, threads=args.threads), args.n)
+    print(f"model: {model_path(args.model)}")
     print(format_table(results, noise_mm))
     print(f"({time.perf_counter() - t0:.1f} s)")
 

@@ -1,10 +1,16 @@
 """Inverse kinematics: global joint rotations from 3D joints (paper Sec. 3.3), no torch.
 
-IKSolver runs IKNet (models/iknet.onnx, made by `handtrain iknet`) in onnxruntime:
+IKSolver runs IKNet in onnxruntime:
 
-    solver = IKSolver.load()
+    solver = IKSolver.load()                 # models/iknet_int8.onnx; "float32": models/iknet.onnx
     quats = solver.solve(xyz_rel)            # (N,21,3) -> (N,21,4), w >= 0
     _, joints = HandModel.load().forward(quats[0], beta)
+
+Two files of one network: models/iknet.onnx (float32, written by `handtrain iknet`) and
+models/iknet_int8.onnx (static int8 with fixed activation ranges, made from it by
+`python -m handmocap.quantize_iknet`; each row of a batch is computed on its own). The
+int8 file is the default: a quarter of the weights to stream per hand (about 0.3 ms
+instead of 1 ms at batch 1) for about 0.1 deg more rotation error (models/README.md).
 
 Input encoding (the paper's I = [X, D, X_ref, D_ref], 4 x 21 x 3 = 252 values):
 X joints and X_ref rest joints, both root-relative (joint 9) and scale-normalized
@@ -21,18 +27,23 @@ analytic_ik is the baseline for the evaluation table: the wrist from the palm jo
 (Kabsch), then each finger bone the smallest rotation (no twist) that turns its rest
 direction into the observed one, in its parent's frame.
 """
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from .kinematics import FRAME_BONE, FRAME_PARENTS, PARENTS
 from .onnx_models import open_session
-from .rotations import matrix_to_quat, quat_multiply, quat_normalize, quat_to_matrix
+from .rotations import matrix_to_quat, quat_left_matrix, quat_normalize, quat_to_matrix
 from .skeleton import NON_TIP_JOINTS, NUM_JOINTS, normalize_joints
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
-DEFAULT_MODEL = MODELS_DIR / "iknet.onnx"
+FLOAT32_MODEL = MODELS_DIR / "iknet.onnx"          # written by `handtrain iknet`
+INT8_MODEL = MODELS_DIR / "iknet_int8.onnx"        # made from it by `python -m handmocap.quantize_iknet`
+DEFAULT_MODEL = INT8_MODEL
+MODEL_NAMES = {"int8": INT8_MODEL, "float32": FLOAT32_MODEL}   # short names for IKSolver.load / the ik node
 PALM_JOINTS = [0, 1, 5, 9, 13, 17]          # rigid with the wrist frame (q_1 = q_5 = ... = q_0)
+_WITH_RIGID_PALM = np.array([0 if j in PALM_JOINTS else j for j in range(21)])   # network row per bone
 BONE_PARENT_FRAME = np.maximum(PARENTS, 0)  # q_0 = G_0, q_j = G_parent(j)
 NUM_INPUTS = 4 * NUM_JOINTS * 3
 
@@ -43,40 +54,83 @@ def bone_vectors(xyz):
     return xyz - xyz[..., np.maximum(PARENTS, 0), :]
 
 
+# (42, 21): joints then bone vectors, [X; D] = _JOINTS_AND_BONES @ X (entries 0, +-1: exact)
+_JOINTS_AND_BONES = np.concatenate([np.eye(NUM_JOINTS), np.eye(NUM_JOINTS) - np.eye(NUM_JOINTS)[np.maximum(PARENTS, 0)]])
+_JOINTS_AND_BONES[NUM_JOINTS] = 0.0                 # the root has no bone
+_NEXT, _PREV = [1, 2, 0], [2, 0, 1]
+
+
+def _cross(a, b):
+    """(..., 3) x (..., 3) -> (..., 3) cross product (np.cross costs several times more on tiny arrays)."""
+    return a[..., _NEXT] * b[..., _PREV] - a[..., _PREV] * b[..., _NEXT]
+
+
+def _unit(v):
+    """(..., 3) vectors -> unit vectors (zero vectors stay zero)."""
+    return v / np.maximum(np.sqrt(np.sum(v * v, axis=-1, keepdims=True)), 1e-12)
+
+
 def canonical_frame(xyz):
     """(..., 3, 3) palm frames, columns (e_x, e_y, e_z) in camera axes: e_y along 9 -> 0
     (the reference bone, toward the wrist), e_x across the knuckles 17 -> 5 made
     orthogonal to it, e_z = e_x x e_y. For the hand model at rest this is about identity."""
     xyz = np.asarray(xyz, dtype=np.float64)
-    e_y = xyz[..., 0, :] - xyz[..., 9, :]
-    e_y = e_y / np.maximum(np.linalg.norm(e_y, axis=-1, keepdims=True), 1e-12)
+    e_y = _unit(xyz[..., 0, :] - xyz[..., 9, :])
     across = xyz[..., 5, :] - xyz[..., 17, :]
-    e_x = across - np.sum(across * e_y, axis=-1, keepdims=True) * e_y
-    e_x = e_x / np.maximum(np.linalg.norm(e_x, axis=-1, keepdims=True), 1e-12)
-    return np.stack([e_x, e_y, np.cross(e_x, e_y)], axis=-1)
+    e_x = _unit(across - np.sum(across * e_y, axis=-1, keepdims=True) * e_y)
+    return np.stack([e_x, e_y, _cross(e_x, e_y)], axis=-1)
 
 
-def iknet_inputs(xyz, rest):
+def rest_features(rest):
+    """(..., 21, 3) normalized rest joints -> (..., 42, 3) [X_ref; D_ref], the rest half of
+    the network input (depends on the person only: callers may keep it between frames)."""
+    return _JOINTS_AND_BONES @ np.asarray(rest, dtype=np.float64)
+
+
+def iknet_inputs(xyz, rest, rest_part=None):
     """Network input (N, 252) float32 and palm frames F (N, 3, 3).
 
-    xyz (N,21,3) joints (normalized here); rest (N,21,3) or (21,3) normalized rest joints.
-    The joints enter in the palm frame: x_c = Fᵀ x.
+    xyz (N,21,3) joints (normalized here); rest (N,21,3) or (21,3) normalized rest joints
+    (or rest_part, their rest_features, instead). The joints enter in the palm frame:
+    x_c = Fᵀ x; input [X_c; D_c; X_ref; D_ref] row by row.
     """
     xyz = normalize_joints(xyz)
     frame = canonical_frame(xyz)
-    xyz_c = xyz @ frame                                                      # rows: (Fᵀ x)ᵀ
-    rest = np.broadcast_to(np.asarray(rest, dtype=np.float64), xyz.shape)
-    features = np.concatenate([xyz_c, bone_vectors(xyz_c), rest, bone_vectors(rest)], axis=-2)
-    return features.reshape(len(xyz), NUM_INPUTS).astype(np.float32), frame
+    features = np.empty((len(xyz), 4 * NUM_JOINTS, 3), dtype=np.float32)   # (N,84,3), filled in place
+    features[:, :2 * NUM_JOINTS] = _JOINTS_AND_BONES @ (xyz @ frame)         # rows (Fᵀ x)ᵀ, then bones
+    features[:, 2 * NUM_JOINTS:] = rest_features(rest) if rest_part is None else rest_part
+    return features.reshape(len(xyz), NUM_INPUTS), frame
 
 
 def iknet_outputs(raw, frame):
     """Raw network output (N, 84) in the palm frame -> (N,21,4) unit quaternions in camera
     axes (R = F R_c), w >= 0. The palm bones 0 -> 1, 5, 9, 13, 17 get the wrist's rotation,
     as the hand model's rigid palm has it (HandModel.forward uses q_0 for them)."""
-    q_c = np.asarray(raw, dtype=np.float64).reshape(-1, NUM_JOINTS, 4).copy()
-    q_c[:, PALM_JOINTS[1:]] = q_c[:, :1]
-    return quat_normalize(quat_multiply(matrix_to_quat(frame)[:, None], q_c))
+    q_c = np.asarray(raw, dtype=np.float64).reshape(-1, NUM_JOINTS, 4)[:, _WITH_RIGID_PALM]
+    left = quat_left_matrix(matrix_to_quat(frame))                           # (N,4,4): q_F * q = L q
+    return quat_normalize(q_c @ np.swapaxes(left, -1, -2))
+
+
+def model_path(path=None):
+    """IKNet file for IKSolver.load: None -> DEFAULT_MODEL (int8); "int8" / "float32" -> the
+    bundled files; anything else is a path."""
+    if path is None:
+        return DEFAULT_MODEL
+    return MODEL_NAMES.get(str(path), Path(path))
+
+
+def stale_quantization(session, path):
+    """A line saying that the int8 file `path` was made from another float32 IKNet than the
+    one beside it (retrained without `python -m handmocap.quantize_iknet`), else None."""
+    meta = session.get_modelmeta().custom_metadata_map
+    source = Path(path).parent / meta.get("source_name", "")
+    if "source_sha256" not in meta or not source.is_file() or source == Path(path):
+        return None
+    from .quantize_iknet import file_sha256
+    if file_sha256(source) == meta["source_sha256"]:
+        return None
+    return (f"{path} was quantized from another {source.name} than the one beside it: make it again with "
+            f"`python -m handmocap.quantize_iknet` (or load \"float32\")")
 
 
 class IKSolver:
@@ -87,16 +141,38 @@ class IKSolver:
         self.session = session
         self.input_name = session.get_inputs()[0].name
         self.rest = normalize_joints(rest)
+        self.rest_part = rest_features(self.rest)
+        self._last_rest = (None, None)       # (rest as given, its rest_features): one person per call site
 
     @classmethod
     def load(cls, path=None, threads=1, model=None):
-        """IKNet from `path` (default models/iknet.onnx); the default rest pose is the hand
-        model's (model, default the bundled one) at beta = 0."""
-        session = open_session(DEFAULT_MODEL if path is None else path, "IKNet", "handtrain iknet", threads)
+        """IKNet from `path`: None for the default (models/iknet_int8.onnx), "int8" or
+        "float32" for the bundled files, or a file. The default rest pose is the hand model's
+        (model, default the bundled one) at beta = 0. Warns when an int8 file is older than
+        the float32 network beside it."""
+        path = model_path(path)
+        made_by = "python -m handmocap.quantize_iknet" if path == INT8_MODEL else "handtrain iknet"
+        session = open_session(path, "IKNet", made_by, threads)
+        stale = stale_quantization(session, path)
+        if stale:
+            warnings.warn(stale, stacklevel=2)
         if model is None:
             from .hand_model import HandModel
             model = HandModel.load()
         return cls(session, model.rest_joints())
+
+    def _rest_part(self, rest):
+        """rest_features of the normalized rest (21,3) or (N,21,3); the last one is kept,
+        since a tracked person's rest pose comes back unchanged frame after frame."""
+        if rest is None:
+            return self.rest_part
+        rest = np.asarray(rest, dtype=np.float64)
+        last, part = self._last_rest
+        if last is not None and last.shape == rest.shape and np.array_equal(last, rest):
+            return part
+        part = rest_features(normalize_joints(rest))
+        self._last_rest = (rest.copy(), part)
+        return part
 
     def solve(self, xyz_rel, rest=None):
         """Global bone quaternions (N,21,4) (w,x,y,z), w >= 0, for joints xyz_rel (N,21,3)
@@ -104,8 +180,7 @@ class IKSolver:
         or (N,21,3): the person's rest joints (any scale/origin; default the average hand).
         A (21,3) input gives a (1,21,4) output."""
         xyz = np.asarray(xyz_rel, dtype=np.float64).reshape(-1, NUM_JOINTS, 3)
-        rest = self.rest if rest is None else normalize_joints(rest)
-        features, frame = iknet_inputs(xyz, rest)
+        features, frame = iknet_inputs(xyz, None, rest_part=self._rest_part(rest))
         raw = self.session.run(None, {self.input_name: features})[0]
         return iknet_outputs(raw, frame)
 

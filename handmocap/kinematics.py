@@ -30,6 +30,14 @@ FRAME_PARENTS = np.array([-1 if PARENTS[j] < 0 else NON_TIP_JOINTS.index(int(PAR
 BONE_FRAME = np.array([0] + [NON_TIP_JOINTS.index(int(PARENTS[j])) for j in range(1, NUM_JOINTS)])
 # for each joint frame, which bone rotation defines it: G_0 = q_0, G_i = q_(i+1)
 FRAME_BONE = np.array([0] + [j + 1 for j in NON_TIP_JOINTS[1:]])
+# bone rotations as HandModel.forward uses them (rigid palm: bones 1, 5, 9, 13, 17 take q_0):
+# frames_to_bone_rotations(bone_rotations_to_frames(q)) == q[..., RIGID_PALM_BONES]
+RIGID_PALM_BONES = FRAME_BONE[BONE_FRAME]
+# joints by depth in the tree (1: wrist's children, ..., 4: tips): FK places a level at a time
+_DEPTH = np.zeros(NUM_JOINTS, dtype=int)
+for _j in range(1, NUM_JOINTS):
+    _DEPTH[_j] = _DEPTH[PARENTS[_j]] + 1
+FK_LEVELS = [np.flatnonzero(_DEPTH == d) for d in range(1, _DEPTH.max() + 1)]
 # MANO's 16 rotating joints as indices into NON_TIP: pose_mano = pose16[..., POSE16_TO_MANO, :]
 POSE16_TO_MANO = np.array([NON_TIP_JOINTS.index(int(j)) for j in MANO_ORDER[:16]])
 POSE16_FROM_MANO = np.argsort(POSE16_TO_MANO)
@@ -83,7 +91,8 @@ def relative_to_global_quats(pose):
 
 
 def global_quats_to_relative(quats):
-    """(..., 21, 4) global bone quaternions -> (..., 16, 3) relative axis-angle pose."""
+    """(..., 21, 4) global bone quaternions (or (..., 21, 3, 3) matrices) -> (..., 16, 3)
+    relative axis-angle pose."""
     return matrix_to_axis_angle(frames_to_relative(bone_rotations_to_frames(as_matrices(quats))))
 
 
@@ -98,11 +107,11 @@ def forward_kinematics(bones, rest):
     rest = np.asarray(rest, dtype=np.float64)
     offsets = rest - rest[..., np.maximum(PARENTS, 0), :]          # rest bones parent -> j
     bone_vecs = (R @ offsets[..., None])[..., 0]
-    shape = np.broadcast_shapes(bone_vecs.shape, rest.shape)
-    joints = [np.broadcast_to(rest[..., 0, :], shape[:-2] + (3,))]
-    for j in range(1, NUM_JOINTS):
-        joints.append(joints[PARENTS[j]] + bone_vecs[..., j, :])
-    return np.stack(joints, axis=-2)
+    joints = np.empty(np.broadcast_shapes(bone_vecs.shape, rest.shape))
+    joints[..., 0, :] = rest[..., 0, :]
+    for level in FK_LEVELS:          # x_j = x_parent(j) + q_j (rest_j - rest_parent(j)), a tree level at a time
+        joints[..., level, :] = joints[..., PARENTS[level], :] + bone_vecs[..., level, :]
+    return joints
 
 
 def forward_kinematics_relative(pose, rest):

@@ -24,11 +24,10 @@ import numpy as np
 
 from .ik_solver import clamp_to_limits
 from .joint_limits import JointLimits
-from .kinematics import (as_matrices, bone_rotations_to_frames, forward_kinematics,
-                         frames_to_bone_rotations, global_quats_to_relative)
+from .kinematics import RIGID_PALM_BONES, as_matrices, forward_kinematics, global_quats_to_relative
 from .one_euro import OneEuroFilter
-from .rotations import mirror_points, quat_normalize
-from .skeleton import ROOT
+from .rotations import mirror_points, quat_normalize, quat_to_matrix
+from .skeleton import REF_BONE, ROOT
 from .translation import camera_joints_from_keypoints
 
 # Settings of PoseEstimator (the ik node's parameters): filter cut-offs in Hz (handmocap/one_euro.py),
@@ -37,11 +36,12 @@ POSE_DEFAULTS = {"clamp_to_limits": True, "smooth": True, "rot_min_cutoff": 1.0,
                  "root_min_cutoff": 0.5, "root_beta": 2.0, "d_cutoff": 1.0, "reset_after_s": 0.5}
 
 
-def posed_joints(quats, model, beta):
+def posed_joints(quats, model, beta, rest=None):
     """(21,3) joints in metres, right-hand model frame (wrist at the rest wrist), from bone
-    quaternions (21,4), with the model's rigid palm (as HandModel.forward)."""
-    bones = frames_to_bone_rotations(bone_rotations_to_frames(as_matrices(quats)))
-    return forward_kinematics(bones, model.rest_joints(beta))
+    quaternions (21,4) or matrices (21,3,3), with the model's rigid palm (as HandModel.forward).
+    rest: the model's rest joints at beta (metres), when the caller has them."""
+    bones = as_matrices(quats)[..., RIGID_PALM_BONES, :, :]
+    return forward_kinematics(bones, model.rest_joints(beta) if rest is None else rest)
 
 
 def solve_rotations(xyz_rel, handedness, rest, solver, limits=None):
@@ -55,8 +55,10 @@ def solve_rotations(xyz_rel, handedness, rest, solver, limits=None):
 def pose_fields(hand, quats, beta, K, model):
     """HandPose hand (float32 arrays) from one HandKeypoints hand and its (already solved,
     maybe smoothed) right-model quaternions; root is Eq. 5's, before any smoothing."""
-    ref_m = float(model.ref_bone_length(beta))
-    joints = posed_joints(quats, model, beta)
+    rest = model.rest_joints(beta)                                          # (21,3) m
+    ref_m = float(np.linalg.norm(rest[REF_BONE[1]] - rest[REF_BONE[0]]))   # = model.ref_bone_length(beta)
+    R = quat_to_matrix(quats)                       # (21,3,3), shared by FK and the relative pose
+    joints = posed_joints(R, model, beta, rest)
     rel = joints - joints[ROOT]
     if hand["handedness"] == "left":
         rel = mirror_points(rel)
@@ -64,7 +66,7 @@ def pose_fields(hand, quats, beta, K, model):
     return {"track_id": int(hand["track_id"]), "handedness": hand["handedness"], "score": float(hand["score"]),
             "xyz": (root + rel).astype(np.float32), "root": root.astype(np.float32),
             "quat": quat_normalize(quats).astype(np.float32),
-            "pose": global_quats_to_relative(quats).astype(np.float32),
+            "pose": global_quats_to_relative(R).astype(np.float32),
             "beta": np.asarray(beta, dtype=np.float32), "uv": np.asarray(hand["uv"], dtype=np.float32),
             "translation_valid": bool(valid)}
 

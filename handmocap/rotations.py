@@ -45,6 +45,16 @@ def quat_multiply(a, b):
     return outer.reshape(outer.shape[:-2] + (16,)) @ _PRODUCT_FLAT
 
 
+_LEFT = np.swapaxes(_PRODUCT, 0, 1).reshape(4, 16).copy()                   # (i, k*4 + j)
+
+
+def quat_left_matrix(q):
+    """(..., 4) -> (..., 4, 4) L(q) with q * p = L(q) @ p: applying one rotation to many
+    quaternions is then one matmul (p rows: p @ L(q)ᵀ)."""
+    q = np.asarray(q, dtype=np.float64)
+    return (q @ _LEFT).reshape(q.shape[:-1] + (4, 4))
+
+
 def quat_conjugate(q):
     """(..., 4) conjugate; for unit quaternions this is the inverse rotation."""
     q = np.asarray(q, dtype=np.float64)
@@ -108,9 +118,10 @@ def matrix_to_quat(R):
     angle, including 180 degrees. K comes from R in one matmul with a constant table.
     """
     R = np.asarray(R, dtype=np.float64)
-    K = (_M2Q_CONST + R.reshape(R.shape[:-2] + (9,)) @ _M2Q).reshape(R.shape[:-2] + (4, 4))
-    best = np.argmax(K[..., [0, 1, 2, 3], [0, 1, 2, 3]], axis=-1)                # (...,)
-    return quat_normalize(np.take_along_axis(K, best[..., None, None], axis=-2)[..., 0, :])
+    K = _M2Q_CONST + R.reshape(-1, 9) @ _M2Q                                   # (M,16): K flattened
+    best = np.argmax(K[:, ::5], axis=-1)                                       # (M,) largest 4 q_i^2
+    q = K.reshape(-1, 4, 4)[np.arange(len(K)), best]                           # (M,4) rows 4 q_i q
+    return quat_normalize(q).reshape(R.shape[:-2] + (4,))
 
 
 def axis_angle_to_quat(r):

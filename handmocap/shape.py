@@ -10,8 +10,6 @@ ShapeFitter solves the damped linear least squares at beta = 0 in closed form (o
 precomputed (B, n_bones) matrix), then takes Gauss-Newton steps with the exact ratios and
 Jacobian at the current beta (a B x B solve each).
 """
-from collections import deque
-
 import numpy as np
 
 from .skeleton import BONES, FINGER_TIPS, REF_BONE, normalize_joints
@@ -95,6 +93,58 @@ class ShapeFitter:
         return self.ratios_and_jacobian(np.asarray(beta, dtype=np.float64))[0]
 
 
+class RecentRows:
+    """The last `window` rows (C,) in arrival order, as one contiguous (n, C) array view.
+
+    A deque of rows had to be stacked into an array on every frame (60 us for 600 frames);
+    here rows are written into a buffer of twice the window, and the live block is moved
+    back to the start when it reaches the end (once per `window` rows)."""
+
+    def __init__(self, window, columns):
+        self.window = window
+        self.buffer = np.empty((2 * window, columns))
+        self.start = self.stop = 0
+
+    def __len__(self):
+        return self.stop - self.start
+
+    def append(self, row):
+        if self.stop == len(self.buffer):
+            self.buffer[:len(self)] = self.buffer[self.start:self.stop]
+            self.start, self.stop = 0, len(self)
+        self.buffer[self.stop] = row
+        self.stop += 1
+        if len(self) > self.window:
+            self.start += 1
+
+    def clear(self):
+        self.start = self.stop = 0
+
+    def rows(self):
+        """(n, C) view, oldest first (valid until the next append)."""
+        return self.buffer[self.start:self.stop]
+
+
+def _middle(x):
+    """The order statistics np.median averages, per column of (n, C) finite data: (lo, hi)
+    (C,) each, equal when n is odd. One partition for both median(x) and median(f(x)) of
+    any increasing f."""
+    n = len(x)
+    k = [n // 2 - 1, n // 2] if n % 2 == 0 else [n // 2]
+    part = np.partition(x, k, axis=0)
+    return part[k[0]], part[k[-1]]
+
+
+def _median_of(lo, hi):
+    """np.median's value from its middle order statistics (the mean of the two, or the one)."""
+    return lo if lo is hi else (lo + hi) / 2.0
+
+
+def _column_median(x):
+    """np.median(x, axis=0) for finite (n, C) x (the same value, without its overhead)."""
+    return _median_of(*_middle(x))
+
+
 class ShapeTracker:
     """Running shape estimate for one tracked hand (shape is constant per person).
 
@@ -103,7 +153,7 @@ class ShapeTracker:
     median are dropped: outlier frames), minus the bias that joint noise adds to squared
     lengths (3 sigma_d^2, sigma_d^2 estimated from how much rigid bones' lengths vary over
     frames), then fits beta to the ratios of those lengths. Frames are kept in a window
-    of `window` (a deque), so a re-identified track recovers.
+    of `window` (RecentRows), so a re-identified track recovers.
 
     >>> tracker = ShapeTracker(ShapeFitter(HandModel.load()))
     >>> beta, n = tracker.update(xyz_rel)     # per frame
@@ -112,17 +162,24 @@ class ShapeTracker:
     def __init__(self, fitter, window=600, trim=3.0, min_frames_for_noise=8, prior_until_noise_known=1e-3):
         self.fitter = fitter
         self.prior_until_noise_known = prior_until_noise_known   # strong shrinkage for the first frames
-        self.sq_lengths = deque(maxlen=window)
+        # per frame: squared bone lengths (20) and the lengths (20), kept side by side so the
+        # square roots are taken once per frame, not over the whole window every frame
+        self.frames = RecentRows(window, 2 * len(BONES))
         self.trim = trim
         self.min_frames_for_noise = min_frames_for_noise
         self.beta = np.zeros(fitter.num_betas)
 
     @property
     def n_samples(self):
-        return len(self.sq_lengths)
+        return len(self.frames)
+
+    @property
+    def sq_lengths(self):
+        """(n, 20) squared bone lengths of the frames in the window, oldest first."""
+        return self.frames.rows()[:, :len(BONES)]
 
     def reset(self):
-        self.sq_lengths.clear()
+        self.frames.clear()
         self.beta = np.zeros(self.fitter.num_betas)
 
     def update(self, xyz):
@@ -132,7 +189,7 @@ class ShapeTracker:
         if np.all(np.isfinite(sq)) and sq[_REF_INDEX] > 0:
             # not rescaled per frame: rescaling by a noisy reference bone would spread its
             # noise over every bone; bones are rigid in any fixed unit (normalized or metres)
-            self.sq_lengths.append(sq)
+            self.frames.append(np.concatenate([sq, np.sqrt(sq)]))
             ratios, ratio_var = self.ratios()
             # MAP weight of the N(0, I) prior on beta: variance of the averaged ratios
             self.beta = self.fitter.fit_ratios(ratios, prior=max(self.fitter.prior, ratio_var / self.n_samples))
@@ -140,18 +197,22 @@ class ShapeTracker:
 
     def ratios(self):
         """Current robust bone-ratio estimate (20,) and the per-frame ratio noise variance."""
-        sq = np.asarray(self.sq_lengths)                                       # (n,20)
+        both = self.frames.rows()
+        sq, lengths = both[:, :len(BONES)], both[:, len(BONES):]                 # (n,20) each
         if len(sq) < self.min_frames_for_noise:
             ratios = np.sqrt(np.median(sq, axis=0) / np.median(sq[:, _REF_INDEX]))
             return ratios, self.prior_until_noise_known
-        med = np.median(sq, axis=0)
-        spread = 1.4826 * np.median(np.abs(sq - med), axis=0) + 1e-12
-        keep = np.abs(sq - med) <= self.trim * spread
+        # lengths = sqrt(sq) keeps the order: one partition gives both medians (np.median's values)
+        lo, hi = _middle(sq)
+        med = _median_of(lo, hi)
+        lmed = _median_of(np.sqrt(lo), np.sqrt(hi))
+        deviation = np.abs(both - np.concatenate([med, lmed]))                  # (n,40)
+        mad = _column_median(deviation)                                         # MAD of sq, of lengths
+        spread = 1.4826 * mad[:len(BONES)] + 1e-12
+        keep = deviation[:, :len(BONES)] <= self.trim * spread
         mean_sq = np.sum(sq * keep, axis=0) / np.maximum(keep.sum(0), 1)
         # noise per bone-vector coordinate from the spread of lengths of rigid bones
-        lengths = np.sqrt(sq)
-        lmed = np.median(lengths, axis=0)
-        noise_var = np.median((1.4826 * np.median(np.abs(lengths - lmed), axis=0)) ** 2)
+        noise_var = np.median((1.4826 * mad[len(BONES):]) ** 2)
         corrected = np.maximum(mean_sq - 3.0 * noise_var, 0.05 * mean_sq)
         # a ratio l/l_ref carries the noise of both lengths: var ≈ sigma_d^2 (1 + r^2) / l_ref^2
         ratio_var = 2.0 * noise_var / corrected[_REF_INDEX]

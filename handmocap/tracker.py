@@ -1,6 +1,6 @@
 """HandTracker: the whole image-to-pose pipeline in one process, like MediaPipe's HandLandmarker.
 
-    tracker = HandTracker()                          # models/detnet.onnx, finder.onnx, iknet.onnx
+    tracker = HandTracker()                          # models/detnet.onnx, finder.onnx, iknet_int8.onnx
     for frame in frames:
         hands = tracker.process(frame_bgr, K=None, stamp_ns=None)
         # each hand: track_id, handedness, score, xyz (21,3) m camera frame, root (3,),
@@ -30,7 +30,8 @@ from .skeleton import ROOT
 
 class HandTracker:
     """detnet, finder, iknet, model: paths (None: the bundled ones; finder "none": no
-    finder, the centre square is tried instead); detector: a ready HandDetector instead of
+    finder, the centre square is tried instead; iknet "float32": the float32 IKNet instead
+    of the default static int8 copy); detector: a ready HandDetector instead of
     detnet/finder. smooth: One Euro smoothing of rotations and
     translation per track (off for single images). vertices: add each hand's mesh
     vertices (V,3) m camera frame. Other keywords go to HandDetector (max_hands,

@@ -4,6 +4,10 @@
     handtrain iknet --resume             # continue runs/iknet/last.pt to --iters
     handtrain iknet --export-only        # write the ONNX file from runs/iknet/last.pt
 
+A float32 export is followed by its static int8 copy beside it (NAME_int8.onnx, by
+handmocap.quantize_iknet): models/iknet_int8.onnx, the file IKSolver.load opens by default,
+always comes from the models/iknet.onnx next to it.
+
 Each batch mixes (paper Sec. 3.3):
 * pose samples (pose_data.PoseSampler): clean joints with rotation targets, all four losses;
 * noisy samples ("3DPosData"): the same kind of poses with emulated detector errors
@@ -23,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .ik_solver import DEFAULT_MODEL, iknet_inputs
+from .ik_solver import FLOAT32_MODEL, iknet_inputs
 from .pose_data import REAL_TRAIN, SHARED_DATA, PositionPairs, PoseSampler, corrupt_joints, load_real_sequences
 from .rotations import matrix_to_quat, quat_angle_between, quat_to_matrix
 from .training import warmup_cosine_lr
@@ -47,9 +51,12 @@ def add_arguments(p):
     p.add_argument("--val-every", type=int, default=1000)
     p.add_argument("--ckpt-every", type=int, default=250)
     p.add_argument("--run-dir", type=Path, default=RUN_DIR)
-    p.add_argument("--export", type=Path, default=DEFAULT_MODEL, help="ONNX output (default %(default)s)")
+    p.add_argument("--export", type=Path, default=FLOAT32_MODEL,
+                   help="ONNX output (default %(default)s; its static int8 copy NAME_int8.onnx is written beside it)")
     p.add_argument("--float16", action="store_true", help="store the ONNX weights in float16")
-    p.add_argument("--int8", action="store_true", help="export with int8 dynamic quantization")
+    p.add_argument("--int8", action="store_true",
+                   help="export with int8 dynamic quantization (activation ranges per batch: a hand's output "
+                        "depends on the other hands in the batch; the default int8 file is static, see quantize_iknet)")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
     p.add_argument("--export-only", action="store_true", help="export RUN_DIR/last.pt and stop")
 
@@ -134,7 +141,7 @@ def main(args):
     from tqdm import tqdm
 
     from .hand_model import HandModel
-    from .iknet import IKNet, export_onnx, iknet_losses
+    from .iknet import IKNet, iknet_losses
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     model = HandModel.load()
@@ -152,8 +159,7 @@ def main(args):
         print(f"resumed {ckpt_path} at iteration {start}")
     if args.export_only:
         net.eval()
-        export_onnx(net, args.export, float16=args.float16, int8=args.int8)
-        print(f"exported {args.export}")
+        export(net, args)
         return
 
     noisy_pairs = None if args.noisy_source == "emulated" else PositionPairs.from_npz(args.noisy_source, model)
@@ -199,6 +205,19 @@ def main(args):
         if done % args.ckpt_every == 0 or done == args.iters:
             save(done)
     net.eval()
+    export(net, args)
+    print(f"after {args.iters} iterations")
+
+
+def export(net, args):
+    """ONNX file(s) of the trained network: args.export, and for a float32 export its static
+    int8 copy beside it (so the int8 default never lags the float32 network)."""
+    from .iknet import export_onnx
     args.export.parent.mkdir(parents=True, exist_ok=True)
     export_onnx(net, args.export, float16=args.float16, int8=args.int8)
-    print(f"exported {args.export} ({args.export.stat().st_size / 1e6:.1f} MB) after {args.iters} iterations")
+    print(f"exported {args.export} ({args.export.stat().st_size / 1e6:.1f} MB)")
+    if not (args.float16 or args.int8):
+        from .quantize_iknet import quantize
+        int8 = args.export.with_name(args.export.stem + "_int8.onnx")
+        quantize(args.export, int8, data_root=args.data)
+        print(f"exported {int8} ({int8.stat().st_size / 1e6:.1f} MB, static int8: python -m handmocap.quantize_iknet)")

@@ -48,6 +48,31 @@ def back_project(K, uv):
     return np.stack([x, y, np.ones_like(x)], axis=-1)
 
 
+def _eq5_roots(a, b, d_wrist, ref_bone_m):
+    """Both roots of Eq. 5's quadratic for the rays a (root) and b (wrist) (..., 3): far (the
+    larger), near (the smaller), the constant C (C < 0: opposite signs) and whether they are
+    real with a non-degenerate bone."""
+    ref = np.asarray(ref_bone_m, dtype=np.float64)
+    c = ref * np.asarray(d_wrist, dtype=np.float64)
+    ab = a - b
+    A = np.sum(ab * ab, axis=-1)
+    B = -2.0 * c * np.sum(ab * b, axis=-1)
+    C = c * c * np.sum(b * b, axis=-1) - ref ** 2
+    disc = B * B - 4.0 * A * C
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        far = (-B + sq) / (2.0 * A)
+        near = (-B - sq) / (2.0 * A)
+    return far, near, C, (A > 1e-10) & (disc >= 0)
+
+
+def _checked(z, solvable):
+    """z where it is a usable root depth (finite, solvable, in front of the camera), else NaN; and that mask."""
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(z) & solvable & (z > MIN_DEPTH_M)
+    return np.where(valid, z, np.nan), valid
+
+
 def root_depth_from_intrinsics(K, uv_root, uv_wrist, d_wrist, ref_bone_m=DEFAULT_REF_BONE_M, near_depth=None):
     """Root depth by Eq. 5.
 
@@ -58,25 +83,15 @@ def root_depth_from_intrinsics(K, uv_root, uv_wrist, d_wrist, ref_bone_m=DEFAULT
     larger root).
     Returns z_root (...,) metres (NaN where invalid) and valid (...,) bool.
     """
-    a = back_project(K, uv_root)
-    b = back_project(K, uv_wrist)
-    c = np.asarray(ref_bone_m, dtype=np.float64) * np.asarray(d_wrist, dtype=np.float64)
-    ab = a - b
-    A = np.sum(ab * ab, axis=-1)
-    B = -2.0 * c * np.sum(ab * b, axis=-1)
-    C = c * c * np.sum(b * b, axis=-1) - np.asarray(ref_bone_m, dtype=np.float64) ** 2
-    disc = B * B - 4.0 * A * C
-    with np.errstate(invalid="ignore", divide="ignore"):
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        far = (-B + sq) / (2.0 * A)
-        near = (-B - sq) / (2.0 * A)
-        if near_depth is None:
-            z = far
-        else:
-            pick_near = (C >= 0) & (np.abs(near - near_depth) < np.abs(far - near_depth))
-            z = np.where(pick_near, near, far)
-    valid = np.isfinite(z) & (A > 1e-10) & (disc >= 0) & (z > MIN_DEPTH_M)
-    return np.where(valid, z, np.nan), valid
+    far, near, C, solvable = _eq5_roots(back_project(K, uv_root), back_project(K, uv_wrist), d_wrist, ref_bone_m)
+    return _checked(far if near_depth is None else _nearer_root(far, near, C, near_depth), solvable)
+
+
+def _nearer_root(far, near, C, near_depth):
+    """Of two positive roots (C >= 0), the one nearer near_depth; otherwise the far one."""
+    with np.errstate(invalid="ignore"):
+        pick_near = (C >= 0) & (np.abs(near - near_depth) < np.abs(far - near_depth))
+    return np.where(pick_near, near, far)
 
 
 def depth_from_hand_size(K, uv, xyz_rel, ref_bone_m=DEFAULT_REF_BONE_M):
@@ -114,8 +129,8 @@ def camera_joints_from_keypoints(K, uv, xyz_rel, ref_bone_m=DEFAULT_REF_BONE_M):
     wrist, root = REF_BONE[0], ROOT
     d_wrist = xyz_rel[..., wrist, 2] - xyz_rel[..., root, 2]
     fallback = depth_from_hand_size(K, uv, xyz_rel, ref)
-    ray = back_project(K, uv[..., root, :])
-    ray = np.where(np.isfinite(ray), ray, np.array([0.0, 0.0, 1.0]))   # a NaN pixel must not spread
+    rays = back_project(K, uv[..., [root, wrist], :])                  # (..., 2, 3): root, wrist
+    ray = np.where(np.isfinite(rays[..., 0, :]), rays[..., 0, :], np.array([0.0, 0.0, 1.0]))   # a NaN pixel must not spread
     rel = np.where(np.isfinite(xyz_rel), xyz_rel, 0.0)
     rel = ref[..., None, None] * (rel - rel[..., root:root + 1, :])
 
@@ -124,13 +139,14 @@ def camera_joints_from_keypoints(K, uv, xyz_rel, ref_bone_m=DEFAULT_REF_BONE_M):
         return root_xyz[..., None, :] + rel, root_xyz
 
     # Eq. 5 can have two positive roots (the bone tilted towards or away from the camera):
-    # keep the one whose 21 joints reproject onto the keypoints best
-    z_far, valid = root_depth_from_intrinsics(K, uv[..., root, :], uv[..., wrist, :], d_wrist, ref)
-    z_near, _ = root_depth_from_intrinsics(K, uv[..., root, :], uv[..., wrist, :], d_wrist, ref,
-                                           near_depth=np.zeros_like(fallback))
+    # keep the one whose 21 joints reproject onto the keypoints best. The quadratic is solved
+    # once; both candidates are scored in one pass (axis 0 of the stacked depths).
+    far, near, C, solvable = _eq5_roots(rays[..., 0, :], rays[..., 1, :], d_wrist, ref)
+    z_far, valid = _checked(far, solvable)
+    z_near, _ = _checked(_nearer_root(far, near, C, 0.0), solvable)
     z_near = np.where(np.isfinite(z_near), z_near, z_far)
-    err_far = _reprojection_error(K, joints_at(np.where(valid, z_far, fallback))[0], uv)
-    err_near = _reprojection_error(K, joints_at(np.where(valid, z_near, fallback))[0], uv)
+    candidates = np.stack([np.where(valid, z_far, fallback), np.where(valid, z_near, fallback)])   # (2, ...)
+    err_far, err_near = _reprojection_error(K, joints_at(candidates)[0], uv)
     z = np.where(valid, np.where(err_near < err_far, z_near, z_far), fallback)
     xyz, root_xyz = joints_at(z)
     return xyz, root_xyz, valid
@@ -142,5 +158,7 @@ def _reprojection_error(K, xyz, uv):
     with np.errstate(invalid="ignore", divide="ignore"):
         proj = np.einsum("...ij,...nj->...ni", Km, xyz)
         px = proj[..., :2] / proj[..., 2:3]
-        err = np.nanmean(np.linalg.norm(px - uv, axis=-1), axis=-1)
+        dist = np.sqrt(np.sum((px - uv) ** 2, axis=-1))                         # (..., 21)
+        seen = ~np.isnan(dist)           # np.nanmean's own sum / count, without its overhead
+        err = np.sum(np.where(seen, dist, 0.0), axis=-1) / np.sum(seen, axis=-1)
     return np.where(np.isfinite(err), err, np.inf)

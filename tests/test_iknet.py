@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from handmocap.hand_model import HandModel
-from handmocap.ik_solver import (DEFAULT_MODEL, IKSolver, analytic_ik, canonical_frame, clamp_to_limits, iknet_inputs,
-                                 iknet_outputs)
+from handmocap.ik_solver import (DEFAULT_MODEL, FLOAT32_MODEL, INT8_MODEL, IKSolver, analytic_ik, canonical_frame,
+                                 clamp_to_limits, iknet_inputs, iknet_outputs, model_path, stale_quantization)
 from handmocap.joint_limits import JointLimits
 from handmocap.kinematics import forward_kinematics, relative_to_global_quats
 from handmocap.one_euro import OneEuroFilter
@@ -114,7 +114,76 @@ def test_solver_is_equivariant_to_camera_rotation():
 def test_missing_model_names_the_path_and_the_command(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"nothere\.onnx.*handtrain iknet"):
         IKSolver.load(tmp_path / "nothere.onnx")
-    assert DEFAULT_MODEL.name == "iknet.onnx" and DEFAULT_MODEL.parent.name == "models"
+    assert FLOAT32_MODEL.name == "iknet.onnx" and FLOAT32_MODEL.parent.name == "models"
+    assert DEFAULT_MODEL == INT8_MODEL and INT8_MODEL.name == "iknet_int8.onnx"
+    assert model_path(None) == INT8_MODEL and model_path("float32") == FLOAT32_MODEL and model_path("int8") == INT8_MODEL
+    assert model_path(tmp_path / "x.onnx") == tmp_path / "x.onnx"
+
+
+# ------------------------------------------------------------------ static int8 (quantize_iknet)
+def test_int8_rows_do_not_depend_on_the_batch():
+    """Fixed activation ranges: a hand gives the same output alone and among any others."""
+    solver = IKSolver.load()                                     # the default: int8
+    d = samples(24, 30)
+    noisy = corrupt_joints(d["xyz"], np.random.default_rng(31))
+    xyz, rest = np.concatenate([d["xyz"], noisy]), np.concatenate([d["rest"], d["rest"]])
+    batch = solver.solve(xyz, rest)
+    for i in (0, 5, 30, 47):
+        np.testing.assert_array_equal(solver.solve(xyz[i], rest[i]), batch[i:i + 1])
+    order = np.random.default_rng(32).permutation(len(xyz))
+    np.testing.assert_array_equal(solver.solve(xyz[order], rest[order]), batch[order])
+
+
+def test_int8_is_close_to_float32_and_made_from_the_shipped_float32():
+    int8, f32 = IKSolver.load("int8"), IKSolver.load("float32")
+    d = samples(500, 33)
+    for xyz in (d["xyz"], corrupt_joints(d["xyz"], np.random.default_rng(34))):
+        angle = np.degrees(quat_angle_between(int8.solve(xyz, d["rest"]), f32.solve(xyz, d["rest"])))
+        # the rare large gaps are bones float32 itself gets wrong (raw output far from unit length)
+        assert angle.mean() < 1.0 and np.percentile(angle, 99) < 3.0, (angle.mean(), np.percentile(angle, 99))
+    assert stale_quantization(int8.session, INT8_MODEL) is None, "run python -m handmocap.quantize_iknet"
+
+
+def _tiny_iknet(path, width=32, seed=0):
+    """An IKNet-shaped float32 ONNX MLP (features -> Gemm/Sigmoid x2 -> Gemm -> quat_raw), no torch."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper, numpy_helper
+    rng = np.random.default_rng(seed)
+    sizes = [252, width, width, 84]
+    nodes, inits, x = [], [], "features"
+    for i in range(3):
+        W = (rng.normal(size=(sizes[i + 1], sizes[i])) / np.sqrt(sizes[i])).astype(np.float32)
+        inits += [numpy_helper.from_array(W, f"W{i}"), numpy_helper.from_array(np.zeros(sizes[i + 1], np.float32), f"b{i}")]
+        y = "quat_raw" if i == 2 else f"h{i}"
+        nodes.append(helper.make_node("Gemm", [x, f"W{i}", f"b{i}"], [y if i == 2 else y + "_lin"], transB=1))
+        if i < 2:
+            nodes.append(helper.make_node("Sigmoid", [y + "_lin"], [y]))
+        x = y
+    graph = helper.make_graph(nodes, "iknet", [helper.make_tensor_value_info("features", TensorProto.FLOAT, ["N", 252])],
+                              [helper.make_tensor_value_info("quat_raw", TensorProto.FLOAT, ["N", 84])], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+
+
+def test_quantize_command_output(tmp_path):
+    from handmocap.quantize_iknet import quantize
+    src, out = tmp_path / "iknet.onnx", tmp_path / "iknet_int8.onnx"
+    _tiny_iknet(src)
+    d = samples(600, 35)
+    features, _ = iknet_inputs(d["xyz"], d["rest"])
+    ranges = quantize(src, out, features=features[:512])
+    assert len(ranges) == 2 and all(0 <= lo < hi <= 1.0 + 1e-6 for lo, hi in ranges.values())
+    f32, int8 = IKSolver.load(src), IKSolver.load(out)
+    raw32 = f32.session.run(None, {"features": features[512:]})[0]
+    raw8 = int8.session.run(None, {"features": features[512:]})[0]
+    assert np.abs(raw8 - raw32).max() < 0.05 * np.abs(raw32).max()
+    alone = np.concatenate([int8.session.run(None, {"features": features[i:i + 1]})[0] for i in range(512, 520)])
+    np.testing.assert_array_equal(alone, raw8[:8])
+    assert stale_quantization(int8.session, out) is None
+    _tiny_iknet(src, seed=1)                                     # retrained, not quantized again
+    with pytest.warns(UserWarning, match="quantize_iknet"):
+        IKSolver.load(out)
 
 
 # ------------------------------------------------------------------ numpy pieces
