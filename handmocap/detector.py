@@ -39,6 +39,7 @@ import numpy as np
 from .hand_finder import HandFinder, box_iou
 from .onnx_models import open_session
 from .rotations import mirror_points
+from .skeleton import normalize_joints
 
 CROP = 128
 CROP_SCALE = 1.5            # crop side / side of the 21-joint box (synth: vertex box ~1.16x joint box, x 1.3)
@@ -290,7 +291,12 @@ class HandDetector:
             if not self._plausible(uv, image_bgr.shape):
                 self.lost_last_frame = True
                 continue
-            xyz = np.asarray(out["xyz"][i], dtype=np.float64)
+            # the wire contract (messages/HandKeypoints.json): joint 9 at the origin, |0-9| = 1;
+            # DetNet's location-map read-out is only near that
+            xyz = normalize_joints(out["xyz"][i])
+            if not np.all(np.isfinite(xyz)):
+                self.lost_last_frame = True
+                continue
             right_seen = float(out["handedness"][i])
             if t.crop.mirrored:
                 xyz = mirror_points(xyz)

@@ -18,7 +18,6 @@ import numpy as np
 
 from handmocap.detector import CROP, CROP_SCALE, DETNET_PATH, HandDetector
 from handmocap.node import Node, run
-from handmocap.skeleton import normalize_joints
 
 PARAMS = {"detnet": None, "finder": None, "threads": 1, "max_hands": 2, "presence_threshold": 0.5,
           "redetect_every": 10, "crop_scale": CROP_SCALE, "every_frame": False}
@@ -76,10 +75,6 @@ def main() -> None:
             node.log.warning("skipped an image: %s", e)
             continue
         hands = detector.process(frame)
-        for hand in hands:
-            # the wire contract (messages/HandKeypoints.json): joint 9 at the origin and
-            # |joint 0 - joint 9| = 1; DetNet's raw location-map read-out is only near that
-            hand["xyz_rel"] = normalize_joints(hand["xyz_rel"]).astype(np.float32)
         node.publish("/hand/keypoints", {"width": int(frame.shape[1]), "height": int(frame.shape[0]), "hands": hands},
                      stamp_ns=msg.stamp_ns, frame_id=msg.data["header"]["frame_id"])
     node.log.info("%d frames, %d finder runs, %d crops", detector.stats["frames"], detector.stats["finder_runs"],
