@@ -3,7 +3,7 @@ from hypothesis import given, settings, strategies as st
 
 from handmocap.hand_model import HandModel
 from handmocap.joint_limits import JointLimits
-from handmocap.shape import ShapeFitter, ShapeTracker, bone_ratios
+from handmocap.shape import RecentRows, ShapeFitter, ShapeTracker, _column_median, _median_of, _middle, bone_ratios
 
 MODEL = HandModel.load()
 FITTER = ShapeFitter(MODEL)
@@ -58,3 +58,23 @@ def test_tracker_converges_and_ignores_outliers():
     assert errors[-1] < 0.35 and errors[-1] < errors[20]
     before = n
     assert tracker.update(np.full((21, 3), np.nan))[1] == before       # non-finite frames are skipped
+
+
+def test_recent_rows_keep_the_last_window_in_order():
+    rows = RecentRows(window=5, columns=2)
+    for i in range(23):                          # wraps the buffer (twice the window) several times
+        rows.append([i, -i])
+        expect = np.arange(max(0, i - 4), i + 1)
+        np.testing.assert_array_equal(rows.rows(), np.stack([expect, -expect], axis=1))
+    assert len(rows) == 5
+    rows.clear()
+    assert len(rows) == 0 and rows.rows().shape == (0, 2)
+
+
+def test_window_medians_are_numpys():
+    rng = np.random.default_rng(6)
+    for n in (8, 9, 600, 601):
+        x = rng.random((n, 20))
+        np.testing.assert_array_equal(_column_median(x), np.median(x, axis=0))
+        lo, hi = _middle(x)
+        np.testing.assert_array_equal(_median_of(np.sqrt(lo), np.sqrt(hi)), np.median(np.sqrt(x), axis=0))

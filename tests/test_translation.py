@@ -85,3 +85,28 @@ def test_fallback_depth_is_close_for_a_fronto_parallel_hand():
     ref = np.linalg.norm(xyz[0] - xyz[9])
     z = depth_from_hand_size(K, project(xyz), (xyz - xyz[9]) / ref, ref)
     assert abs(z - 0.6) < 0.03
+
+
+def test_camera_joints_pick_the_root_that_reprojects_best():
+    """The same result as solving Eq. 5 twice (far root; nearer root) and comparing the
+    reprojection of both (how camera_joints_from_keypoints first did it)."""
+    from handmocap.translation import _reprojection_error
+    rng = np.random.default_rng(21)
+    xyz = np.stack([hand_in_camera(rng, d) for d in rng.uniform(0.1, 1.5, 200)])
+    ref = np.linalg.norm(xyz[:, 0] - xyz[:, 9], axis=-1)
+    uv = project(xyz) + rng.normal(0, 4, (200, 21, 2))
+    rel = (xyz - xyz[:, 9:10]) / ref[:, None, None] + rng.normal(0, 0.05, xyz.shape)
+    out, root, valid = camera_joints_from_keypoints(K, uv, rel, ref)
+    d_wrist = rel[:, 0, 2] - rel[:, 9, 2]
+    z_far, ok = root_depth_from_intrinsics(K, uv[:, 9], uv[:, 0], d_wrist, ref)
+    z_near, _ = root_depth_from_intrinsics(K, uv[:, 9], uv[:, 0], d_wrist, ref, near_depth=np.zeros(200))
+    z_near = np.where(np.isfinite(z_near), z_near, z_far)
+    fallback = depth_from_hand_size(K, uv, rel, ref)
+    ray = np.linalg.solve(K, np.concatenate([uv[:, 9], np.ones((200, 1))], axis=-1).T).T
+    joints = lambda z: (ray * z[:, None])[:, None] + ref[:, None, None] * (rel - rel[:, 9:10])  # noqa: E731
+    err_far = _reprojection_error(K, joints(np.where(ok, z_far, fallback)), uv)
+    err_near = _reprojection_error(K, joints(np.where(ok, z_near, fallback)), uv)
+    z = np.where(ok, np.where(err_near < err_far, z_near, z_far), fallback)
+    np.testing.assert_array_equal(valid, ok)
+    np.testing.assert_allclose(root, ray * z[:, None], rtol=1e-12)
+    assert 0 < (np.abs(z_near - z_far) > 1e-6)[ok].sum(), "no sample with two distinct roots"
