@@ -3,8 +3,9 @@ One Euro smoothing per track. The maths of the `ik` node and of HandTracker (no 
 
 Per hand (pose_from_keypoints):
 1. A left hand's xyz_rel (the hand as seen) is mirrored (x -> -x) into the right-hand model.
-2. IKNet (IKSolver) turns the joints into 21 global bone quaternions, given the rest pose
-   of the person (the paper's X_ref, D_ref; the average hand until a shape is known). With
+2. IKNet (IKSolver; the static int8 file by default, "float32" on request) turns the joints
+   into 21 global bone quaternions, given the rest pose of the person (the paper's X_ref,
+   D_ref; the average hand until a shape is known). With
    clamp_to_limits the finger angles are then clipped into the anatomical limits of the
    average hand (ik_solver.clamp_to_limits; the IKNet section of models/README.md says what
    it costs).
