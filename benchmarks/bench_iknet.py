@@ -79,7 +79,8 @@ def main():
     inside = relative_to_global_quats(limits.pose_from_angles((lo + hi)[None] / 2, d["pose16"][:1, 0]))
     noisy = analytic_ik(corrupt_joints(d["xyz"][:1], np.random.default_rng(1), sigma_max=0.15), rest)
     outside = int((~limits.within(noisy, 0.0)).sum())
-    print(line("clamp_to_limits, 1 hand inside its limits", median_ms(lambda: clamp_to_limits(inside, limits), args.repeat)))
+    print(line("clamp_to_limits, 1 hand inside its limits",
+               median_ms(lambda: clamp_to_limits(inside, limits), args.repeat)))
     print(line(f"clamp_to_limits, 1 hand with {outside} joints outside",
                median_ms(lambda: clamp_to_limits(noisy, limits), args.repeat)))
     print(line("pose_fields (FK, relative pose, Eq. 5), 1 hand",

@@ -55,7 +55,8 @@ def bone_vectors(xyz):
 
 
 # (42, 21): joints then bone vectors, [X; D] = _JOINTS_AND_BONES @ X (entries 0, +-1: exact)
-_JOINTS_AND_BONES = np.concatenate([np.eye(NUM_JOINTS), np.eye(NUM_JOINTS) - np.eye(NUM_JOINTS)[np.maximum(PARENTS, 0)]])
+_JOINTS_AND_BONES = np.concatenate([np.eye(NUM_JOINTS),
+                                    np.eye(NUM_JOINTS) - np.eye(NUM_JOINTS)[np.maximum(PARENTS, 0)]])
 _JOINTS_AND_BONES[NUM_JOINTS] = 0.0                 # the root has no bone
 _NEXT, _PREV = [1, 2, 0], [2, 0, 1]
 

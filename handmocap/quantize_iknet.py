@@ -100,7 +100,8 @@ def quantize(src=FLOAT32_MODEL, out=INT8_MODEL, n=16384, data_root=None, feature
                         op_types_to_quantize=["Gemm"], nodes_to_exclude=[first.name], per_channel=True,
                         weight_type=QuantType.QInt8, activation_type=QuantType.QUInt8,
                         calibrate_method=CalibrationMethod.MinMax,
-                        extra_options={"OpTypesToExcludeOutputQuantization": ["Gemm"], "TensorQuantOverrides": overrides})
+                        extra_options={"OpTypesToExcludeOutputQuantization": ["Gemm"],
+                                       "TensorQuantOverrides": overrides})
     quantized = onnx.load(str(out))
     onnx.helper.set_model_props(quantized, {"source_sha256": file_sha256(src), "source_name": src.name,
                                             "quantization": f"static int8 QDQ, first layer float32, {len(features)} "

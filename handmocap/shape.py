@@ -198,7 +198,7 @@ class ShapeTracker:
     def ratios(self):
         """Current robust bone-ratio estimate (20,) and the per-frame ratio noise variance."""
         both = self.frames.rows()
-        sq, lengths = both[:, :len(BONES)], both[:, len(BONES):]                 # (n,20) each
+        sq = both[:, :len(BONES)]                                               # (n,20); lengths beside
         if len(sq) < self.min_frames_for_noise:
             ratios = np.sqrt(np.median(sq, axis=0) / np.median(sq[:, _REF_INDEX]))
             return ratios, self.prior_until_noise_known

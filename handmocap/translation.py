@@ -130,7 +130,8 @@ def camera_joints_from_keypoints(K, uv, xyz_rel, ref_bone_m=DEFAULT_REF_BONE_M):
     d_wrist = xyz_rel[..., wrist, 2] - xyz_rel[..., root, 2]
     fallback = depth_from_hand_size(K, uv, xyz_rel, ref)
     rays = back_project(K, uv[..., [root, wrist], :])                  # (..., 2, 3): root, wrist
-    ray = np.where(np.isfinite(rays[..., 0, :]), rays[..., 0, :], np.array([0.0, 0.0, 1.0]))   # a NaN pixel must not spread
+    ray = rays[..., 0, :]
+    ray = np.where(np.isfinite(ray), ray, np.array([0.0, 0.0, 1.0]))   # a NaN pixel must not spread
     rel = np.where(np.isfinite(xyz_rel), xyz_rel, 0.0)
     rel = ref[..., None, None] * (rel - rel[..., root:root + 1, :])
 

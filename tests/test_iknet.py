@@ -116,7 +116,8 @@ def test_missing_model_names_the_path_and_the_command(tmp_path):
         IKSolver.load(tmp_path / "nothere.onnx")
     assert FLOAT32_MODEL.name == "iknet.onnx" and FLOAT32_MODEL.parent.name == "models"
     assert DEFAULT_MODEL == INT8_MODEL and INT8_MODEL.name == "iknet_int8.onnx"
-    assert model_path(None) == INT8_MODEL and model_path("float32") == FLOAT32_MODEL and model_path("int8") == INT8_MODEL
+    assert model_path(None) == INT8_MODEL and model_path("int8") == INT8_MODEL
+    assert model_path("float32") == FLOAT32_MODEL
     assert model_path(tmp_path / "x.onnx") == tmp_path / "x.onnx"
 
 
@@ -153,13 +154,15 @@ def _tiny_iknet(path, width=32, seed=0):
     nodes, inits, x = [], [], "features"
     for i in range(3):
         W = (rng.normal(size=(sizes[i + 1], sizes[i])) / np.sqrt(sizes[i])).astype(np.float32)
-        inits += [numpy_helper.from_array(W, f"W{i}"), numpy_helper.from_array(np.zeros(sizes[i + 1], np.float32), f"b{i}")]
+        b = np.zeros(sizes[i + 1], np.float32)
+        inits += [numpy_helper.from_array(W, f"W{i}"), numpy_helper.from_array(b, f"b{i}")]
         y = "quat_raw" if i == 2 else f"h{i}"
         nodes.append(helper.make_node("Gemm", [x, f"W{i}", f"b{i}"], [y if i == 2 else y + "_lin"], transB=1))
         if i < 2:
             nodes.append(helper.make_node("Sigmoid", [y + "_lin"], [y]))
         x = y
-    graph = helper.make_graph(nodes, "iknet", [helper.make_tensor_value_info("features", TensorProto.FLOAT, ["N", 252])],
+    graph = helper.make_graph(nodes, "iknet",
+                              [helper.make_tensor_value_info("features", TensorProto.FLOAT, ["N", 252])],
                               [helper.make_tensor_value_info("quat_raw", TensorProto.FLOAT, ["N", 84])], inits)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
