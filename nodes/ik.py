@@ -7,8 +7,8 @@ track; its module docstring has the steps). /hand/shape gives each track's rest 
 paper's X_ref, D_ref); the bundled average hand until a shape is known. K from
 /camera/info; a default field of view from the image size until one arrives.
 
-Params: model (hand model path, default bundled), iknet (ONNX path, default
-models/iknet.onnx), threads (onnxruntime intra-op threads), and PoseEstimator's settings
+Params: model (hand model path, default bundled), iknet ("int8", the default:
+models/iknet_int8.onnx; "float32": models/iknet.onnx; or an ONNX path), threads (onnxruntime intra-op threads), and PoseEstimator's settings
 (handmocap.pose.POSE_DEFAULTS): clamp_to_limits, smooth, rot_min_cutoff Hz / rot_beta on
 quaternion components, root_min_cutoff Hz / root_beta on metres, d_cutoff Hz, reset_after_s.
 The filter defaults are starting points measured on synthetic jitter only; tune them on the
@@ -40,7 +40,7 @@ def main() -> None:
     try:   # onnxruntime sets up its buffers on a session's first run: not on the first frame
         solver.solve(solver.rest)
     except Exception as e:   # a file that loads but is not IKNet; onnxruntime's errors are no ValueError
-        raise ValueError(f"IKNet model {p['iknet'] or 'models/iknet.onnx'} does not take IKNet's input: "
+        raise ValueError(f"IKNet model {p['iknet'] or 'models/iknet_int8.onnx'} does not take IKNet's input: "
                          f"{str(e).splitlines()[0][:200]}") from None
     estimator = PoseEstimator(solver, model, p)
     K = None
