@@ -109,6 +109,7 @@ class Publisher:
         self.sock.bind(endpoint)
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.subscriptions: Counter[bytes] = Counter()
+        self._frames: dict[tuple, tuple] = {}   # (topic, type) -> their wire frames
 
     def poll_subscriptions(self) -> None:
         while True:
@@ -126,9 +127,16 @@ class Publisher:
         t = topic_frame(topic)
         return sum(n for prefix, n in self.subscriptions.items() if t.startswith(prefix))
 
-    def send(self, topic: str, type_name: str, payload: bytes) -> None:
-        big = len(payload) > 65536   # zero-copy only pays for large frames
-        self.sock.send_multipart([topic_frame(topic), type_name.encode(), payload], copy=not big)
+    def send(self, topic: str, type_name: str, payload: bytes | memoryview) -> None:
+        """One message; a payload over 64 kB (bytes or a read-only view such as
+        `codec.encode_view` gives) goes without a copy: zmq holds on to it until it is sent."""
+        frames = self._frames.get((topic, type_name))
+        if frames is None:
+            frames = self._frames[(topic, type_name)] = (topic_frame(topic), type_name.encode())
+        sock = self.sock
+        sock.send(frames[0], zmq.SNDMORE)
+        sock.send(frames[1], zmq.SNDMORE)
+        sock.send(payload, copy=len(payload) <= 65536)   # zero-copy only pays for large frames
 
     def close(self) -> None:
         self.sock.close()

@@ -3,6 +3,16 @@
 A message is a plain dict. numpy arrays anywhere in it travel as
 `{"dtype": str, "shape": [int], "data": bytes}` (C order, little-endian), never as
 per-element lists; `decode` turns them back into read-only arrays that view the payload.
+
+Speed: a node sleeps between messages while other processes use the cores, so it handles
+each message with cold caches, where every step costs 3-10x its hot-loop time (a 1 kB
+HandKeypoints on this 2-core machine under load: encode 5 us hot / ~20 cold, unpack 3 / ~40,
+schema check 8 / ~40, arrays 5 / ~20). That cold CPU is most of what the bus adds to a hop,
+so the path touches as little as it can: the schema is compiled with its `$ref`s inlined
+(fastjsonschema otherwise calls a function per ref that formats an error-path string even for
+a valid message); arrays are rebuilt by straight-line code generated from the schema (a
+generic walk of the message costs ~3x more cold); packers are reused; and large messages
+(frames) are packed into pooled buffers that are sent as they are (`encode_view`).
 """
 from __future__ import annotations
 
@@ -10,6 +20,7 @@ import functools
 import json
 import math
 import os
+import threading
 import time
 from importlib import resources
 
@@ -48,9 +59,34 @@ def schema(type_name: str) -> dict:
     return s
 
 
+def _inline_refs(node, defs: dict, depth: int = 0):
+    """The schema with every plain local reference (`{"$ref": "#/$defs/name"}`, nothing beside
+    it) replaced by its definition: the same schema, which fastjsonschema then checks in one
+    function. `$defs` stay where they are, for any reference left."""
+    if depth > 64:
+        raise RecursionError("recursive $ref")
+    if isinstance(node, dict):
+        ref = node.get("$ref")
+        if isinstance(ref, str) and ref.startswith("#/$defs/") and ref[8:] in defs and len(node) == 1:
+            return _inline_refs(defs[ref[8:]], defs, depth + 1)
+        return {k: v if k == "$defs" else _inline_refs(v, defs, depth + 1) for k, v in node.items()}
+    if isinstance(node, list):
+        return [_inline_refs(v, defs, depth + 1) for v in node]
+    return node
+
+
+@functools.cache
+def _flat_schema(type_name: str) -> dict:
+    s = schema(type_name)
+    try:
+        return _inline_refs(s, s["$defs"])
+    except RecursionError:   # a recursive schema keeps its refs
+        return s
+
+
 @functools.cache
 def _validator(type_name: str):
-    return fastjsonschema.compile(schema(type_name))
+    return fastjsonschema.compile(_flat_schema(type_name))
 
 
 _DTYPE_NAMES = {np.dtype(n): n for n in  # dtype.name is slow: a lookup table for the wire types
@@ -59,6 +95,11 @@ _SMALL_ARRAY_BYTES = 4096  # below this a copy (tobytes) is cheaper than a memor
 
 
 def _to_wire(obj):
+    if type(obj) is np.ndarray:   # the common case first: a C-ordered array of a wire dtype
+        name = _DTYPE_NAMES.get(obj.dtype)   # (a big-endian dtype is not in the table)
+        if name is not None and obj.flags.c_contiguous:
+            return {"dtype": name, "shape": obj.shape,
+                    "data": obj.tobytes() if obj.nbytes <= _SMALL_ARRAY_BYTES else memoryview(obj).cast("B")}
     if isinstance(obj, np.ndarray):
         a = obj if obj.flags.c_contiguous else np.ascontiguousarray(obj)
         if a.dtype.byteorder == ">":
@@ -70,19 +111,57 @@ def _to_wire(obj):
     raise TypeError(f"cannot encode {type(obj).__name__}")
 
 
+_packers = threading.local()   # a Packer is reused (cheaper than packb) but is not thread-safe
+
+
 def encode(msg: dict, type_name: str | None = None) -> bytes:
     """Pack one message; with `type_name`, validate it first (raises MalformedMessage)."""
-    payload = msgpack.packb(msg, default=_to_wire, use_bin_type=True)
+    try:
+        packer = _packers.packer
+    except AttributeError:
+        packer = _packers.packer = msgpack.Packer(default=_to_wire, use_bin_type=True)
+    payload = packer.pack(msg)   # (a pack that fails empties the packer's buffer itself)
     if type_name is not None:
         decode(payload, type_name)
     return payload
+
+
+def encode_view(msg: dict, type_name: str | None = None) -> memoryview:
+    """Like `encode`, without the copy out of the packer: a read-only view of a pooled packer's
+    buffer, for zero-copy sends of large messages (a frame). A packer is reused only once every
+    view of its buffer is gone (zmq drops its own once the frame is sent): msgpack refuses to
+    touch a buffer that is still exported, so a busy packer is never overwritten. Reusing warm
+    buffers also spares the page faults of a fresh megabyte per message."""
+    try:
+        pool = _packers.pool
+    except AttributeError:
+        pool = _packers.pool = []
+    for packer in pool:
+        try:
+            packer.reset()
+            break
+        except BufferError:   # its last payload is still being sent
+            continue
+    else:
+        packer = msgpack.Packer(default=_to_wire, use_bin_type=True, autoreset=False)
+        if len(pool) < 8:
+            pool.append(packer)
+    try:
+        packer.pack(msg)
+    except BaseException:
+        packer.reset()
+        raise
+    view = packer.getbuffer().toreadonly()
+    if type_name is not None:
+        decode(view, type_name)
+    return view
 
 
 _DTYPES = {name: dt for dt, name in _DTYPE_NAMES.items()}
 
 
 def _arrays_from_wire(obj):
-    """Replace every {dtype, shape, data} map (already schema-checked) by a numpy view, in place."""
+    """Replace every {dtype, shape, data} map by a numpy view, in place (anywhere in `obj`)."""
     items = obj.items() if isinstance(obj, dict) else enumerate(obj)
     for k, v in items:
         if isinstance(v, dict):
@@ -96,24 +175,177 @@ def _arrays_from_wire(obj):
 
 
 def _array(v: dict) -> np.ndarray:
-    dt, shape, data = _DTYPES[v["dtype"]], v["shape"], v["data"]
-    if not isinstance(data, bytes) or len(data) != math.prod(shape) * dt.itemsize:
-        raise MalformedMessage("array-size", f"{v['dtype']}{shape} needs {math.prod(shape) * dt.itemsize}"
-                               f" bytes, got {len(data) if isinstance(data, bytes) else type(data).__name__}")
-    return np.frombuffer(data, dtype=dt).reshape(shape)
+    """A read-only view of one wire array (one the schema did not declare, so checked here)."""
+    dtype, shape = v["dtype"], v["shape"]
+    dt = _DTYPES.get(dtype) if type(dtype) is str else None
+    if dt is None or not isinstance(shape, list) or len(shape) > 32:
+        raise MalformedMessage("schema", f"not an array: dtype {dtype!r}, shape {shape!r}")
+    _check_size(v, dt)
+    return np.ndarray(shape, dt, v["data"])   # read-only: it views the bytes of the payload
+
+
+def _check_size(v: dict, dt: np.dtype) -> None:
+    shape, data = v["shape"], v["data"]
+    try:
+        need = math.prod(shape) * dt.itemsize
+    except TypeError:
+        need = None
+    if not isinstance(data, bytes) or len(data) != need:
+        raise MalformedMessage("array-size", f"{v['dtype']}{shape} needs {need} bytes, got "
+                               f"{len(data) if isinstance(data, bytes) else type(data).__name__}")
+    if not all(type(n) is int and n >= 0 for n in shape):   # the schema's "integer" lets 2.0 through
+        raise MalformedMessage("array-shape", f"shape {shape!r} is not made of counts")
+
+
+def _bad_array(v: dict) -> None:
+    """Raise the MalformedMessage of a declared array whose bytes do not fit its dtype and shape."""
+    dt = _DTYPES.get(v["dtype"]) if type(v["dtype"]) is str else None
+    if dt is None:
+        raise MalformedMessage("schema", f"not an array dtype: {v['dtype']!r}")
+    _check_size(v, dt)
+    raise MalformedMessage("array-shape", f"numpy refuses shape {v['shape']!r}")
+
+
+def _walk_extras(obj: dict, declared: frozenset) -> None:
+    """Arrays under keys the schema does not declare (it allows them): the generic walk."""
+    for k in obj.keys() - declared:
+        v = obj[k]
+        if isinstance(v, (dict, list)):
+            obj[k] = _arrays_from_wire({0: v})[0]
+
+
+# Where a type's arrays are, read from its schema: a plan is ("array", dtype, shape) (dtype and
+# shape: the schema's constants, or None), ("list", plan), ("object", {key: plan}, declared
+# keys), ("any",) (a part the schema leaves open: walked generically) or None (no array).
+_ANY = ("any",)
+
+
+def _plan(s: dict):
+    if not isinstance(s, dict) or "$ref" in s or any(k in s for k in ("anyOf", "oneOf", "allOf", "not", "if")):
+        return _ANY
+    t = s.get("type")
+    if t == "object":
+        props = s.get("properties", {})
+        if set(s.get("required", ())) >= _ARRAY_KEYS and set(props) == _ARRAY_KEYS \
+                and s.get("additionalProperties") is False:
+            dtype = props["dtype"].get("const") if isinstance(props["dtype"], dict) else None
+            sh = props["shape"] if isinstance(props["shape"], dict) else {}
+            items = sh.get("items")
+            shape = None
+            if isinstance(items, list) and sh.get("minItems") == len(items) == sh.get("maxItems") \
+                    and all(isinstance(i, dict) and type(i.get("const")) is int for i in items):
+                shape = tuple(i["const"] for i in items)
+            return ("array", dtype if dtype in _DTYPES else None, shape)
+        if "patternProperties" in s or isinstance(s.get("additionalProperties"), dict):
+            return _ANY
+        inner = {k: _plan(v) for k, v in props.items()}
+        return ("object", {k: p for k, p in inner.items() if p is not None}, frozenset(props))
+    if t == "array":
+        items = s.get("items")
+        if isinstance(items, dict):
+            p = _plan(items)
+            return None if p is None else ("list", p)
+        return _ANY if items is not None or "prefixItems" in s else ("list", _ANY)
+    if t is None and "enum" not in s and "const" not in s:
+        return _ANY
+    return None   # a scalar: holds no array
+
+
+def _converter_source(plan) -> tuple[str, dict]:
+    """Python source of `convert(m)`, which turns the arrays of a schema-checked message into
+    views in place, following `plan` in straight-line code (a generic walk costs ~3x more
+    with cold caches), and the constants it uses."""
+    env = {"_nd": np.ndarray, "_DTYPES": _DTYPES, "_bad": _bad_array, "_prod": math.prod,
+           "_walk": _walk_extras, "_any": lambda v: _arrays_from_wire({0: v})[0]}
+    lines = ["def convert(m):"]
+    names = iter(range(1 << 30))
+
+    def const(value) -> str:
+        name = f"_c{next(names)}"
+        env[name] = value
+        return name
+
+    def emit(var: str, plan, ind: str, target: str | None) -> None:
+        kind = plan[0]
+        if kind == "object":
+            for key, sub in plan[1].items():
+                v = f"v{next(names)}"
+                lines.append(f"{ind}{v} = {var}.get({key!r})")
+                lines.append(f"{ind}if {v} is not None:")
+                emit(v, sub, ind + "    ", f"{var}[{key!r}]")
+            declared = const(plan[2])
+            lines.append(f"{ind}if not {var}.keys() <= {declared}:")
+            lines.append(f"{ind}    _walk({var}, {declared})")
+        elif kind == "list":
+            i, x = f"i{next(names)}", f"x{next(names)}"
+            lines.append(f"{ind}for {i}, {x} in enumerate({var}):")
+            emit(x, plan[1], ind + "    ", f"{var}[{i}]")
+        elif kind == "array":
+            _, dtype, shape = plan
+            d = f"d{next(names)}"
+            lines.append(f"{ind}{d} = {var}['data']")
+            if dtype is not None:
+                dt = const(_DTYPES[dtype])
+            else:
+                dt = f"t{next(names)}"
+                lines.append(f"{ind}{dt} = _DTYPES.get({var}['dtype'])")
+                lines.append(f"{ind}if {dt} is None:")
+                lines.append(f"{ind}    _bad({var})")
+            if shape is not None:
+                sh = const(shape)
+                size = str(math.prod(shape) * _DTYPES[dtype].itemsize) if dtype is not None \
+                    else f"{math.prod(shape)} * {dt}.itemsize"
+            else:
+                sh = f"{var}['shape']"
+                size = f"_prod({sh}) * {dt}.itemsize"
+            lines.append(f"{ind}if type({d}) is not bytes or len({d}) != {size}:")
+            lines.append(f"{ind}    _bad({var})")
+            if shape is None:   # the schema's "integer" lets a float like 2.0 through
+                lines.append(f"{ind}try:")
+                lines.append(f"{ind}    {target} = _nd({sh}, {dt}, {d})")
+                lines.append(f"{ind}except (TypeError, ValueError):")
+                lines.append(f"{ind}    _bad({var})")
+            else:
+                lines.append(f"{ind}{target} = _nd({sh}, {dt}, {d})")
+        else:   # any
+            lines.append(f"{ind}{target} = _any({var})")
+
+    if plan is None:
+        lines.append("    return m")
+    elif plan[0] in ("array", "any"):
+        emit("m", plan, "    ", "m")
+        lines.append("    return m")
+    else:
+        emit("m", plan, "    ", None)
+        lines.append("    return m")
+    return "\n".join(lines) + "\n", env
+
+
+@functools.cache
+def _converter(type_name: str):
+    source, env = _converter_source(_plan(_flat_schema(type_name)))
+    exec(compile(source, f"<handmocap.codec converter for {type_name}>", "exec"), env)
+    return env["convert"]
+
+
+_DECODERS: dict = {}   # type name -> (validate, convert)
 
 
 def decode(payload: bytes, type_name: str, max_bytes: int = MAX_MESSAGE_BYTES) -> dict:
     """Unpack and validate one payload of type `type_name`; arrays come back as numpy views.
 
-    Raises MalformedMessage (reason: oversized, msgpack, schema, array-size, unknown-type).
+    Raises MalformedMessage (reason: oversized, msgpack, schema, array-size, array-shape,
+    unknown-type).
     """
     if len(payload) > max_bytes:
         raise MalformedMessage("oversized", f"{len(payload)} bytes > limit {max_bytes}")
     try:
-        validate = _validator(type_name)
-    except KeyError as e:
-        raise MalformedMessage("unknown-type", str(e)) from None
+        validate, convert = _DECODERS[type_name]
+    except KeyError:
+        try:
+            validate, convert = _DECODERS[type_name] = (_validator(type_name), _converter(type_name))
+        except KeyError as e:
+            raise MalformedMessage("unknown-type", str(e)) from None
     try:
         raw = msgpack.unpackb(payload, raw=False, strict_map_key=True)
     except Exception as e:  # msgpack raises a zoo of types on garbage
@@ -122,7 +354,7 @@ def decode(payload: bytes, type_name: str, max_bytes: int = MAX_MESSAGE_BYTES) -
         validate(raw)
     except fastjsonschema.JsonSchemaException as e:
         raise MalformedMessage("schema", e.message) from None
-    return _arrays_from_wire(raw)
+    return convert(raw)
 
 
 def header(seq: int, frame_id: str = "camera", stamp_ns: int | None = None) -> dict:

@@ -39,7 +39,12 @@ import zmq
 from . import bus, codec
 
 SCAN_S = 0.2          # how often subscribers look for new publishers
+POLL_MS = 100         # longest a receive blocks before the loop looks at scans, ticks and stop
 READY_TIMEOUT_S = 60  # how long a publisher waits for its graph to start
+
+
+_EOS = bus.EOS
+LARGE = 65536   # payloads above this go without copies (zero-copy send, receive into a zmq frame)
 
 
 @dataclass
@@ -47,8 +52,13 @@ class Message:
     topic: str
     type: str
     data: dict          # decoded message, numpy arrays as read-only views
-    raw: bytes          # the wire payload, unchanged (the recorder stores this)
+    payload: bytes | zmq.Frame   # the wire payload as received (large ones stay in zmq's frame)
     recv_ns: int
+
+    @property
+    def raw(self) -> bytes:
+        """The wire payload, unchanged (the recorder stores this)."""
+        return self.payload if isinstance(self.payload, bytes) else self.payload.bytes
 
     @property
     def stamp_ns(self) -> int:
@@ -95,7 +105,11 @@ class Node:
         self.seq: Counter[str] = Counter()
         self.stats = {"received": Counter(), "published": Counter(), "dropped": Counter(),
                       "superseded": Counter()}
+        self._received = self.stats["received"]
         self._logged_drops: set = set()
+        self._names: dict[tuple, tuple] = {}   # (topic, type) frames -> their names
+        self._large: set[str] = set()           # topics whose last payload was large
+        self._zero_copy: dict = {}              # socket -> receive without copy (its last payload was large)
         self._publishers: dict[str, set[str]] = defaultdict(set)   # topic -> node names seen
         self._pub_pids: dict[str, int] = {}
         self._ended: dict[str, set[str]] = defaultdict(set)        # topic -> names that sent EOS
@@ -105,6 +119,7 @@ class Node:
         self._graph_complete = False   # launched, and every node of the graph has announced itself
         self._graph_ready = "HANDMOCAP_LAUNCH_ID" not in os.environ
         self._stop = threading.Event()
+        self._validate_send = bool(os.environ.get("HANDMOCAP_VALIDATE_SEND"))
         self._closed = False
         self._old_handlers = {}
         if threading.current_thread() is threading.main_thread():   # signals reach the main thread only
@@ -141,14 +156,21 @@ class Node:
     def publish(self, topic: str, body: dict, stamp_ns: int | None = None, frame_id: str = "camera") -> None:
         """Send `body` (a message without header) on `topic`; the header is filled here:
         stamp_ns is the capture time of the frame this message derives from (default now)."""
-        topic = self.resolve(topic)
+        topic = self.remap.get(topic, topic)
         type_name = self.info.publishes.get(topic)
         if type_name is None:
             raise KeyError(f"{self.name}: publish on {topic!r} without advertise()")
-        msg = {"header": codec.header(self.seq[topic], frame_id, stamp_ns), **body}
-        self.seq[topic] += 1
-        validate = type_name if os.environ.get("HANDMOCAP_VALIDATE_SEND") else None
-        self.publish_raw(topic, type_name, codec.encode(msg, validate))
+        seq = self.seq[topic]
+        self.seq[topic] = seq + 1
+        msg = {"header": codec.header(seq, frame_id, stamp_ns), **body}
+        validate = type_name if self._validate_send else None
+        if topic in self._large:   # like the last one, a frame: pack into a pooled buffer, send it as is
+            payload = codec.encode_view(msg, validate)
+        else:
+            payload = codec.encode(msg, validate)
+        if (len(payload) > LARGE) != (topic in self._large):
+            self._large ^= {topic}
+        self.publish_raw(topic, type_name, payload)
 
     def publish_raw(self, topic: str, type_name: str, payload: bytes) -> None:
         """Send an already-encoded payload unchanged (bag playback)."""
@@ -216,12 +238,22 @@ class Node:
 
     def events(self, timeout: float | None = None):
         """Yield received Messages; with `timeout` (s), yield None when nothing came in that
-        long (a tick for periodic work). Ends on shutdown or when every input has ended."""
+        long (a tick for periodic work). Ends on shutdown or when every input has ended.
+
+        Latency: a message is decoded and yielded as soon as the blocking receive returns it;
+        the bookkeeping (discovery scans, end-of-stream checks, ticks) runs after the consumer
+        comes back for the next one. With one subscription socket (the usual case) the loop
+        blocks in recv itself (RCVTIMEO), with two it polls both."""
         self.ready()
-        poller = zmq.Poller()
         socks = {s: mode for mode, s in self.sub.socks.items()}
-        for s in socks:
-            poller.register(s, zmq.POLLIN)
+        poller = None
+        if len(socks) == 1:
+            (only, only_mode), = socks.items()
+            only.setsockopt(zmq.RCVTIMEO, POLL_MS)
+        elif socks:
+            poller = zmq.Poller()
+            for s in socks:
+                poller.register(s, zmq.POLLIN)
         last = time.monotonic()
         while not self._stop.is_set():
             if self._scan() or self._eos_seen:
@@ -229,8 +261,27 @@ class Node:
                 if not self.info.observer and self._inputs_ended():
                     break
             got = False
-            for s, _ in poller.poll(timeout=100):
-                batch = self._drain_latest(s) if socks[s] == "latest" else self._pending(s)
+            if poller is None:
+                try:
+                    frames = self._recv(only, 0) if socks else None
+                except zmq.Again:   # RCVTIMEO: nothing for POLL_MS
+                    frames = None
+                if frames is None:
+                    if not socks:
+                        self._stop.wait(POLL_MS / 1000)
+                    batches = ()
+                elif only_mode == "all":   # keep-all: straight from the receive to the consumer
+                    msg = self._decode(frames)
+                    if msg is not None:
+                        got = True
+                        yield msg
+                    batches = (self._pending(only),)   # then whatever queued meanwhile
+                else:
+                    batches = (self._drain_latest(only, frames),)
+            else:
+                batches = (self._drain_latest(s) if socks[s] == "latest" else self._pending(s)
+                           for s, _ in poller.poll(POLL_MS))
+            for batch in batches:
                 for frames in batch:
                     msg = self._decode(frames)
                     if msg is not None:
@@ -242,49 +293,72 @@ class Node:
                 last = time.monotonic()
                 yield None
 
-    @staticmethod
-    def _pending(s: zmq.Socket, limit: int = 256):
+    def _recv(self, s: zmq.Socket, flags: int = zmq.NOBLOCK) -> list:
+        """One multipart message. Where the last payload on this socket was large (frames), the
+        payload stays in zmq's frame (no copy; decode reads it in place); else all bytes."""
+        if not self._zero_copy.get(s):
+            frames = s.recv_multipart(flags)
+            if len(frames[-1]) > LARGE:
+                self._zero_copy[s] = True
+            return frames
+        frames = s.recv_multipart(flags, copy=False)
+        payload = frames[-1]
+        if len(payload) <= LARGE:
+            self._zero_copy[s] = False
+            payload = payload.bytes
+        return [f.bytes for f in frames[:-1]] + [payload]
+
+    def _pending(self, s: zmq.Socket, limit: int = 256):
         """Queued messages one by one (keep-all), at most `limit` before polling again."""
         for _ in range(limit):
             if not s.getsockopt(zmq.EVENTS) & zmq.POLLIN:
                 return
-            yield s.recv_multipart()
+            yield self._recv(s)
 
-    def _drain_latest(self, s: zmq.Socket) -> list:
+    def _drain_latest(self, s: zmq.Socket, first: list | None = None) -> list:
         """Read everything queued, keep the freshest message per topic (end-of-stream marks are
-        kept, after the data they follow)."""
+        kept, after the data they follow); `first`: one already received."""
         latest, eos = {}, []
-        while s.getsockopt(zmq.EVENTS) & zmq.POLLIN:
-            frames = s.recv_multipart()
+        frames = first
+        while frames is not None or s.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+            if frames is None:
+                frames = self._recv(s)
             if len(frames) == 3 and frames[1] == bus.EOS:
                 eos.append(frames)
             else:
                 if frames[0] in latest:
                     self.stats["superseded"][frames[0].rstrip(b"\0").decode(errors="replace")] += 1
                 latest[frames[0]] = frames
+            frames = None
         return list(latest.values()) + eos
 
     def _decode(self, frames: list) -> Message | None:
         if len(frames) != 3:
             return self._drop("?", "frames", f"{len(frames)} frames, expected 3")
-        topic = frames[0].rstrip(b"\0").decode(errors="replace")
-        type_name = frames[1].decode(errors="replace")
-        if type_name == bus.EOS.decode():
-            sender = frames[2].decode(errors="replace")
+        topic_b, type_b, payload = frames
+        names = self._names.get((topic_b, type_b))
+        if names is None:
+            names = self._names[(topic_b, type_b)] = (topic_b.rstrip(b"\0").decode(errors="replace"),
+                                                      type_b.decode(errors="replace"))
+            if len(self._names) > 4096:   # topic and type names of garbage: don't grow without end
+                self._names.clear()
+        topic, type_name = names
+        if type_b == _EOS:
+            sender = bytes(payload).decode(errors="replace")
             self._ended[topic].add(sender)
             self._eos_seen = True
             if "*" in self.info.subscribes:   # an every-topic subscription hears the end per topic
                 self._ended["*"].add(sender)
             return None
-        want = self.types.get(topic, self.types.get("*"))
+        want = self.types[topic] if topic in self.types else self.types.get("*")
         if want is not None and want != type_name:
             return self._drop(topic, "type", f"got {type_name}, expected {want}")
         try:
-            data = codec.decode(frames[2], type_name)
+            data = codec.decode(payload if isinstance(payload, bytes) else payload.buffer, type_name)
         except codec.MalformedMessage as e:
             return self._drop(topic, e.reason, str(e))
-        self.stats["received"][topic] += 1
-        return Message(topic, type_name, data, frames[2], time.time_ns())
+        self._received[topic] += 1
+        return Message(topic, type_name, data, payload, time.time_ns())
 
     def _drop(self, topic: str, reason: str, detail: str) -> None:
         self.stats["dropped"][f"{topic}:{reason}"] += 1

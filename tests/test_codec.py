@@ -65,6 +65,53 @@ def test_array_with_wrong_byte_count_is_malformed():
     assert e.value.reason == "array-size"
 
 
+def test_float_shapes_and_undeclared_arrays_never_crash_the_decoder():
+    """The schema's "integer" lets 2.0 through: a fixed shape written as floats is that shape,
+    a free one is malformed (numpy would raise TypeError and kill the node)."""
+    raw = msgpack.unpackb(codec.encode(keypoints_msg()))
+    raw["hands"][0]["uv"]["shape"] = [21.0, 2.0]
+    assert codec.decode(msgpack.packb(raw), "HandKeypoints")["hands"][0]["uv"].shape == (21, 2)
+    img = {"header": codec.header(0), "encoding": "mono8", "width": 2, "height": 2,
+           "data": {"dtype": "uint8", "shape": [2.0, 2.0], "data": bytes(4)}}
+    with pytest.raises(codec.MalformedMessage) as e:
+        codec.decode(msgpack.packb(img), "Image")
+    assert e.value.reason == "array-shape"
+    img["data"]["shape"] = [2, 2]
+    img["extra"] = {"dtype": "no-such-dtype", "shape": [1], "data": b"x"}   # undeclared, allowed by the schema
+    with pytest.raises(codec.MalformedMessage):
+        codec.decode(msgpack.packb(img), "Image")
+
+
+def test_undeclared_arrays_still_come_back_as_arrays():
+    msg = keypoints_msg()
+    msg["extra"] = {"nested": [np.arange(3, dtype=np.int32)]}
+    msg["header"]["note"] = np.ones(2, np.float64)
+    msg["hands"][0]["more"] = np.zeros((2, 2), np.uint8)
+    out = codec.decode(codec.encode(msg), "HandKeypoints")
+    np.testing.assert_array_equal(out["extra"]["nested"][0], [0, 1, 2])
+    np.testing.assert_array_equal(out["header"]["note"], [1, 1])
+    assert out["hands"][0]["more"].shape == (2, 2) and out["hands"][0]["uv"].dtype == np.float32
+
+
+def test_decoded_arrays_are_read_only_views():
+    out = codec.decode(codec.encode(keypoints_msg()), "HandKeypoints")
+    assert not out["hands"][0]["uv"].flags.writeable
+
+
+def test_encode_view_is_the_same_payload_and_never_reuses_a_buffer_in_use():
+    big = {"header": codec.header(1), "encoding": "bgr8", "width": 640, "height": 480,
+           "data": np.random.default_rng(0).integers(0, 255, (480, 640, 3), dtype=np.uint8)}
+    first = codec.encode_view(big, "Image")
+    assert first.readonly and bytes(first) == codec.encode(big)
+    kept = bytes(first)
+    others = [codec.encode_view({**big, "header": codec.header(i)}) for i in range(2, 12)]   # pool full, then more
+    assert bytes(first) == kept   # still exported (as to zmq): untouched
+    assert len({bytes(o[:200]) for o in others}) == len(others)
+    del first, others
+    again = codec.encode_view(big)
+    assert bytes(again) == kept
+
+
 def test_oversized_and_unknown_type():
     with pytest.raises(codec.MalformedMessage) as e:
         codec.decode(b"\x80" * 100, "Blob", max_bytes=10)

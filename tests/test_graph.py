@@ -189,3 +189,36 @@ nodes:
         graph_b.communicate(timeout=30)
     seqs = sink_result(tmp_path / "sink.json")["seqs"]
     assert len(seqs) >= 150 and seqs == sorted(seqs) and seqs[-1] == 199
+
+
+def test_one_node_with_latest_and_keep_all_inputs_small_and_large(run_dir):
+    """In one process: a node that subscribes to one topic keep-all and another latest-only
+    (two sockets, polled) gets every small message in order and the freshest large one, with
+    the wire bytes unchanged (large payloads are received into zmq frames without a copy)."""
+    from handmocap import codec
+    from handmocap.node import Node
+    pub = Node("pub", argv=[])
+    pub.advertise("/small", "Blob")
+    pub.advertise("/big", "Blob")
+    sub = Node("sub", argv=[])
+    sub.subscribe("/small", "Blob", mode="all")
+    sub.subscribe("/big", "Blob", mode="latest")
+    sub.ready()
+    assert not pub.wait_for_subscribers(10.0)
+    big = np.arange(1_000_000, dtype=np.uint8)
+    for i in range(50):
+        pub.publish("/small", {"data": np.full(8, i, np.uint8)})
+        pub.publish("/big", {"data": big})
+    pub.close()
+    small, bigs = [], []
+    for msg in sub.events():
+        if msg.topic == "/small":
+            small.append(int(msg.data["data"][0]))
+            assert codec.decode(msg.raw, "Blob")["header"]["seq"] == msg.data["header"]["seq"]
+        else:
+            bigs.append(msg.data["header"]["seq"])
+            np.testing.assert_array_equal(msg.data["data"], big)
+            assert len(msg.raw) > 1_000_000 and isinstance(msg.raw, bytes)
+    sub.close()
+    assert small == list(range(50))   # keep-all: every one, in order; the loop ended on end-of-stream
+    assert bigs and bigs == sorted(bigs) and bigs[-1] == 49
