@@ -29,6 +29,7 @@ import signal
 import sys
 import threading
 import time
+import weakref
 from collections import Counter, defaultdict
 from dataclasses import dataclass
 from pathlib import Path
@@ -119,6 +120,7 @@ class Node:
         self._graph_complete = False   # launched, and every node of the graph has announced itself
         self._graph_ready = "HANDMOCAP_LAUNCH_ID" not in os.environ
         self._stop = threading.Event()
+        _OPEN_NODES.add(self)
         self._validate_send = bool(os.environ.get("HANDMOCAP_VALIDATE_SEND"))
         self._closed = False
         self._old_handlers = {}
@@ -459,6 +461,7 @@ class Node:
         """Send end-of-stream on every advertised topic, remove the node file, close sockets."""
         if self._closed:
             return
+        _OPEN_NODES.discard(self)
         if self.info.publishes and not self._graph_ready and not self._stop.is_set():
             self.wait_for_subscribers(2.0)   # they must be connected to hear the end-of-stream
         for topic in self.info.publishes:
@@ -486,6 +489,9 @@ class Node:
         self.close()
 
 
+_OPEN_NODES: "weakref.WeakSet[Node]" = weakref.WeakSet()
+
+
 def run(main) -> None:
     """Entry point wrapper for node modules: one clear error line instead of a traceback wall
     for the expected failures (bad parameter, missing file, device that can't be opened)."""
@@ -495,4 +501,17 @@ def run(main) -> None:
         pass
     except (FileNotFoundError, ValueError, RuntimeError, OSError) as e:
         logging.getLogger().error("%s", e)
+        _close_open_nodes()
         sys.exit(2)
+    finally:
+        _close_open_nodes()
+
+
+def _close_open_nodes() -> None:
+    """Close the nodes a failed main() left open: downstream nodes hear the end of stream,
+    and the process does not exit with live ZeroMQ sockets (libzmq can abort then)."""
+    for node in list(_OPEN_NODES):
+        try:
+            node.close()
+        except Exception:   # already failing: the error line above is the one that matters
+            pass
