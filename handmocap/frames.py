@@ -102,3 +102,18 @@ def image_message(frame: np.ndarray) -> dict:
     """The Image body (without header) of one BGR frame (H,W,3) uint8."""
     h, w = frame.shape[:2]
     return {"encoding": "bgr8", "width": w, "height": h, "data": np.ascontiguousarray(frame)}
+
+
+def frame_bgr(image_msg):
+    """BGR (H,W,3) uint8 of an Image message (bgr8, rgb8, mono8 or jpeg)."""
+    data, encoding = np.asarray(image_msg["data"]), image_msg["encoding"]
+    if encoding == "bgr8":
+        return data
+    if encoding == "rgb8":
+        return np.ascontiguousarray(data[..., ::-1])
+    if encoding == "mono8":
+        return cv2.cvtColor(data, cv2.COLOR_GRAY2BGR)
+    frame = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    if frame is None:
+        raise ValueError("undecodable JPEG image")
+    return frame

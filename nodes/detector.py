@@ -17,26 +17,11 @@ from __future__ import annotations
 import numpy as np
 
 from handmocap.detector import CROP, CROP_SCALE, DETNET_PATH, HandDetector
+from handmocap.frames import frame_bgr
 from handmocap.node import Node, run
 
 PARAMS = {"detnet": None, "finder": None, "threads": 1, "max_hands": 2, "presence_threshold": 0.5,
           "redetect_every": 10, "crop_scale": CROP_SCALE, "every_frame": False}
-
-
-def frame_bgr(image_msg):
-    """BGR (H,W,3) uint8 of an Image message (bgr8, rgb8, mono8 or jpeg)."""
-    import cv2
-    data, encoding = np.asarray(image_msg["data"]), image_msg["encoding"]
-    if encoding == "bgr8":
-        return data
-    if encoding == "rgb8":
-        return np.ascontiguousarray(data[..., ::-1])
-    if encoding == "mono8":
-        return cv2.cvtColor(data, cv2.COLOR_GRAY2BGR)
-    frame = cv2.imdecode(data, cv2.IMREAD_COLOR)
-    if frame is None:
-        raise ValueError("undecodable JPEG image")
-    return frame
 
 
 def warm_up(detector: HandDetector, params: dict) -> None:

@@ -33,10 +33,9 @@ import numpy as np
 
 from handmocap import camera_info
 from handmocap.frame_sync import FrameSync
-from handmocap.frames import image_message
+from handmocap.frames import frame_bgr, image_message
 from handmocap.hand_model import HandModel
 from handmocap.node import Node, run
-from handmocap.nodes.detector import frame_bgr
 from handmocap.overlay import Overlay
 
 PARAMS = {"video": None, "fps": 30.0, "every_frame": None, "publish": True, "mesh": True, "alpha": 0.6,

@@ -14,16 +14,10 @@ import time
 import cv2
 import numpy as np
 
+from ..overlay import bone_colour
 from ..skeleton import BONES
 from .engine import SynthConfig, SynthEngine
 
-# one colour per finger (BGR): thumb, index, middle, ring, little
-_FINGER_COLOURS = [(60, 60, 255), (60, 200, 60), (255, 160, 40), (220, 60, 220), (40, 220, 255)]
-
-
-def _bone_colour(joint):
-    """Colour of the finger that joint (1..20) belongs to."""
-    return _FINGER_COLOURS[(joint - 1) // 4]
 
 
 def draw_labels(image_rgb, uv, visible, box=None, scale=2, handedness=None):
@@ -35,9 +29,9 @@ def draw_labels(image_rgb, uv, visible, box=None, scale=2, handedness=None):
     shift = 4
     p = lambda j: (int(round(pts[j, 0] * (1 << shift))), int(round(pts[j, 1] * (1 << shift))))
     for parent, child in BONES:
-        cv2.line(img, p(parent), p(child), _bone_colour(child), 1, cv2.LINE_AA, shift)
+        cv2.line(img, p(parent), p(child), bone_colour(child), 1, cv2.LINE_AA, shift)
     for j in range(len(uv)):
-        colour = _bone_colour(max(j, 1)) if j else (255, 255, 255)
+        colour = bone_colour(max(j, 1)) if j else (255, 255, 255)
         cv2.circle(img, p(j), 2 << shift, colour, -1 if visible[j] else 1, cv2.LINE_AA, shift)
     if box is not None:
         b = box * scale
