@@ -41,12 +41,12 @@ from handmocap.hand_model import HandModel
 from handmocap.metrics import align_to_ground_truth
 from handmocap.skeleton import ROOT, normalize_joints
 
-# -- tolerances (measured with models/detnet.onnx of 2026-11-21 18:23, 1200 iterations) --------
-MAX_MEAN_3D_MM = 65.0          # pose xyz, root+scale aligned; measured 53.0-53.7 (DetNet's own xyz_rel: 49.3)
-MAX_MEAN_2D_PX = 75.0          # pose uv; measured 62.3
-MAX_MEDIAN_ROOT_MM = 600.0     # absolute translation; measured 240-420 (smoothing follows the timing)
-MIN_RIGHT_HANDED_SHARE = 0.4   # measured 0.60
-MAX_EXTRA_HAND_SHARE = 0.5     # measured 0.34
+# -- tolerances (measured with models/detnet.onnx of 2026-11-21 20:47, 16,000 iterations) ------
+MAX_MEAN_3D_MM = 35.0          # pose xyz, root+scale aligned; measured 24.6 (DetNet's own xyz_rel: 24.3)
+MAX_MEAN_2D_PX = 20.0          # pose uv; measured 13.3
+MAX_MEDIAN_ROOT_MM = 150.0     # absolute translation; measured 75
+MIN_RIGHT_HANDED_SHARE = 0.9   # measured 1.00
+MAX_EXTRA_HAND_SHARE = 0.1     # measured 0.00
 WARMUP_FRAMES = 30             # the first second: start-up transient, left out of p50/p95
 MAX_LATENCY_P50_MS = 150.0     # after the first second; measured 20-28 on 2 cores at load 3-12
 MAX_LATENCY_P95_MS = 400.0     # after the first second; measured 28-58

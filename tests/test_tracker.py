@@ -84,8 +84,6 @@ DETNET, FINDER = ROOT / "models" / "detnet.onnx", ROOT / "models" / "finder.onnx
 
 @pytest.mark.skipif(not (DETNET.is_file() and FINDER.is_file() and IKNET.is_file()),
                     reason="models/detnet.onnx, finder.onnx or iknet.onnx not committed yet")
-@pytest.mark.xfail(strict=False, reason="models/detnet.onnx is an early checkpoint (6df8768, 200 iterations); "
-                                        "drop this mark when the trained DetNet lands")
 def test_real_models_on_the_rendered_clip():
     truth = np.load(ROOT / "data" / "demo" / "hand_clip.npz")
     t = HandTracker()
