@@ -11,8 +11,8 @@ Per frame (`HandDetector.process`):
    records the crop <-> frame mapping). Tracks whose smoothed handedness is left are
    flipped horizontally, so DetNet always sees a right hand; its 2D is un-flipped and its
    3D mirrored back (x -> -x): HandKeypoints' xyz_rel is the hand as seen.
-3. One batched DetNet call for all crops; presence below `presence_threshold` ends the
-   track, and so do joints centred outside the frame or spread over more than twice its
+3. One batched DetNet call for all crops; presence below `presence_threshold` or a mean
+   heatmap peak below `min_confidence` ends the track, and so do joints centred outside the frame or spread over more than twice its
    size; a new track's crop is refined once from its own first 2D prediction (and flipped
    the other way if DetNet's handedness outweighs the finder's).
 4. The next frame's crop of a track comes from this frame's 2D joints (their box, centre
@@ -189,15 +189,19 @@ class HandDetector:
     finder: a HandFinder (or None: the centre square crop of the frame is tried instead, as
     the paper's release did); detnet: a DetNetRunner. presence_threshold: below it a track
     is lost; redetect_every: frames between finder runs while fewer than max_hands hands
-    are tracked; crop_scale: crop side / joint-box side.
+    are tracked; crop_scale: crop side / joint-box side; min_confidence: below this mean
+    heatmap peak a track is lost too.
     """
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
-                 crop_scale=CROP_SCALE, finder_threshold=0.3):
+                 crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.0):
         self.detnet, self.finder = detnet, finder
         self.max_hands, self.presence_threshold = max_hands, presence_threshold
         self.redetect_every, self.crop_scale = redetect_every, crop_scale
         self.finder_threshold = finder_threshold
+        # the presence head stays sure on a crop that slid onto the forearm; the heatmap
+        # peaks (mean over joints) do drop there, so they end such a track too
+        self.min_confidence = min_confidence
         self.tracks: list[Track] = []
         self.next_id = 0
         self.frames_since_find = 0
@@ -284,7 +288,7 @@ class HandDetector:
         hands, keep = [], []
         for i, t in enumerate(self.tracks):
             presence = float(out["presence"][i])
-            if presence < self.presence_threshold:
+            if presence < self.presence_threshold or float(np.mean(out["confidence"][i])) < self.min_confidence:
                 self.lost_last_frame = True
                 continue
             uv = t.crop.to_frame(out["uv"][i])
