@@ -38,6 +38,8 @@ import numpy as np
 
 from . import metrics
 from .frames import open_frames
+from .pose_data import SHARED_DATA
+from .real_data import RHD_TO_MP, interhand_to_mp
 
 MAX_HANDS = 2
 
@@ -216,9 +218,6 @@ def to_jsonable(x):
 
 
 # ----------------------------------------------------------------------------- splits
-SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
-RHD_TO_MP = [0, 4, 3, 2, 1, 8, 7, 6, 5, 12, 11, 10, 9, 16, 15, 14, 13, 20, 19, 18, 17]
-INTERHAND_TO_MP = [20, 3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12, 19, 18, 17, 16]
 
 
 def project(K, xyz):
@@ -349,7 +348,7 @@ def build_interhand(data, root):
         jv = np.asarray(ann["joint_valid"], bool).ravel()
         offsets = {"right": [0], "left": [21], "interacting": [0, 21]}[ann["hand_type"]]
         for o in offsets:
-            order = [o + j for j in INTERHAND_TO_MP]
+            order = interhand_to_mp(o)
             images.append(cv2.imread(str(base / im["file_name"])))
             xyz.append((world[order] - pos) @ R.T / 1000.0)
             Ks.append([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
