@@ -58,6 +58,16 @@ class Intrinsics:
         return replace(self, K=scale_K(self.K, self.size, (width, height)), size=(width, height))
 
 
+def project(K, xyz) -> np.ndarray:
+    """Pinhole projection, no lens distortion, camera-frame points in metres -> pixels:
+    K (3,3) with points (...,3) -> (...,2); or one K per set, K (...,3,3) with points
+    (...,P,3) -> (...,P,2). inf/NaN where z = 0."""
+    K, xyz = np.asarray(K, np.float64), np.asarray(xyz, np.float64)
+    p = xyz @ K.T if K.ndim == 2 else np.einsum("...ij,...nj->...ni", K, xyz)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return p[..., :2] / p[..., 2:3]
+
+
 def default_K(width: int, height: int, hfov_deg: float = DEFAULT_HFOV_DEG) -> np.ndarray:
     """K (3,3) float64 of an ideal camera with horizontal field of view `hfov_deg` across the
     full image width, square pixels, principal point at the image centre."""

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics
+from .camera_info import project
 from .frames import open_frames
 from .pose_data import SHARED_DATA
 from .real_data import RHD_TO_MP, interhand_to_mp
@@ -218,12 +219,6 @@ def to_jsonable(x):
 
 
 # ----------------------------------------------------------------------------- splits
-
-
-def project(K, xyz):
-    """(N,21,3) camera m -> (N,21,2) px with K (3,3) or (N,3,3), no distortion."""
-    p = np.einsum("...ij,...nj->...ni", np.asarray(K, np.float64), xyz)
-    return p[..., :2] / p[..., 2:3]
 
 
 def write_split(root, images, uv, xyz=None, K=None, joint_valid=None, sequence=False, handedness=None):

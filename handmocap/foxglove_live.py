@@ -32,8 +32,8 @@ from .foxglove_export import (
     IDENTITY_POSE, camera_info_to_calibration, foxglove_time, hand_color, image_to_compressed,
     json_schema_for, keypoints_to_annotations, pose_to_scene_update, to_jsonable,
 )
+from .pose import hand_mesh
 from .rotations import mirror_quat
-from .skeleton import ROOT
 
 # World from camera for a camera looking at the scene horizontally: camera x -> world x,
 # camera y (down) -> world -z, camera z (forward) -> world y. [x, y, z (m), qw, qx, qy, qz].
@@ -88,15 +88,6 @@ def hand_transforms(msg: dict) -> list[dict]:
     return out
 
 
-def hand_mesh(hand: dict, model) -> tuple[np.ndarray, np.ndarray]:
-    """The posed mesh of one HandPose hand in the camera frame: vertices (V,3) metres, faces
-    (F,3) int (outward winding). HandModel.forward at the hand's quat and beta (mirrored for a
-    left hand), moved so that its root joint (9) sits at `root`, which puts its joints on `xyz`."""
-    vertices, joints = model.forward(np.asarray(hand["quat"], np.float64), np.asarray(hand["beta"], np.float64),
-                                     handedness=hand["handedness"])
-    return vertices - joints[ROOT] + np.asarray(hand["root"], np.float64), model.faces_for(hand["handedness"])
-
-
 def pose_to_mesh_update(msg: dict, model) -> dict:
     """HandPose -> foxglove.SceneUpdate: deletes the previous meshes, then per hand an entity
     `hand/<track id>/mesh` with one indexed TriangleListPrimitive (points metres, camera frame,
@@ -108,7 +99,7 @@ def pose_to_mesh_update(msg: dict, model) -> dict:
     for hand in msg["hands"]:
         if not all(np.all(np.isfinite(hand[k])) for k in ("quat", "beta", "root")):
             continue
-        vertices, faces = hand_mesh(hand, model)
+        vertices, faces, _ = hand_mesh(model, hand)
         points = [{"x": x, "y": y, "z": z} for x, y, z in np.round(vertices, MESH_DECIMALS).tolist()]
         entities.append({
             "timestamp": t, "frame_id": h["frame_id"] or "camera", "id": f"hand/{hand['track_id']}/mesh",

@@ -10,7 +10,7 @@ global bone quaternions `quat` (21,4), its shape `beta` (10,) and the camera-fra
 `xyz` (21,3) = `root` + (model joints - model joint 9), mirrored in x for a left hand. So
 `HandModel.forward(quat, beta, handedness)` gives vertices and joints in the model frame, whose
 axes are the camera's, and one translation `root - joints[9]` puts both in the camera frame:
-the mesh's joints then coincide with the published `xyz` (hand_mesh). Lens distortion is
+the mesh's joints then coincide with the published `xyz` (pose.hand_mesh). Lens distortion is
 ignored, as the ik node's translation ignores it: the mesh is drawn with K alone.
 """
 from __future__ import annotations
@@ -18,8 +18,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .camera_info import project
 from .hand_model import HandModel
-from .skeleton import BONES, ROOT
+from .pose import hand_mesh
+from .skeleton import BONES
 
 # one colour per finger (BGR): thumb, index, middle, ring, little
 FINGER_COLOURS = ((60, 60, 255), (60, 200, 60), (255, 160, 40), (220, 60, 220), (40, 220, 255))
@@ -37,14 +39,6 @@ FONT = cv2.FONT_HERSHEY_SIMPLEX
 def bone_colour(joint: int) -> tuple[int, int, int]:
     """BGR colour of the finger that joint (1..20) belongs to; the wrist's for joint 0."""
     return FINGER_COLOURS[(joint - 1) // 4] if joint > 0 else WRIST_COLOUR
-
-
-def project(xyz, K):
-    """(...,3) camera-frame points (metres, z > 0) -> (...,2) pixels with the pinhole K (3,3)."""
-    xyz = np.asarray(xyz, dtype=np.float64)
-    p = xyz @ np.asarray(K, dtype=np.float64).T
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return p[..., :2] / p[..., 2:3]
 
 
 def draw_skeleton(img, uv, confidence=None, min_confidence=0.3, thickness=2, radius=3):
@@ -92,16 +86,6 @@ def draw_label(img, text, anchor, colour=(255, 255, 255), scale=0.5):
 def mesh_colour(hand: dict) -> tuple[float, float, float]:
     """RGB in [0,1] of a hand's mesh, by handedness."""
     return MESH_COLOURS.get(hand["handedness"], MESH_COLOURS["right"])
-
-
-def hand_mesh(model: HandModel, hand: dict):
-    """The posed mesh of one HandPose hand in the camera frame: vertices (V,3) metres and
-    faces (F,3) (winding flipped for a left hand), and its 21 joints (21,3) metres, which
-    equal the hand's `xyz` (see the module docstring)."""
-    vertices, joints = model.forward(np.asarray(hand["quat"], np.float64), np.asarray(hand["beta"], np.float64),
-                                     handedness=hand["handedness"])
-    offset = np.asarray(hand["root"], np.float64) - joints[ROOT]
-    return vertices + offset, model.faces_for(hand["handedness"]), joints + offset
 
 
 def composite(frame, rgb, depth, alpha=0.6):
@@ -196,7 +180,7 @@ class Overlay:
             draw_skeleton(out, hand["uv"], hand.get("confidence"))
         if self.joints3d:
             for hand in pose_hands:
-                draw_points(out, project(hand["xyz"], K))
+                draw_points(out, project(K, hand["xyz"]))
         for hand in skeletons:            # labels last: on top of every skeleton
             uv = np.asarray(hand["uv"], dtype=np.float64)
             uv = uv[np.all(np.isfinite(uv), axis=1)]
@@ -220,7 +204,7 @@ class Overlay:
                                   K, background=SIDE_BACKGROUND)
             inset = np.ascontiguousarray(rgb[..., ::-1])
             for _, _, joints, _ in meshes:
-                draw_skeleton(inset, project(joints @ R.T + t, K), thickness=1, radius=1)
+                draw_skeleton(inset, project(K, joints @ R.T + t), thickness=1, radius=1)
         else:
             inset = np.empty((size, size, 3), np.uint8)
             inset[:] = (np.array(SIDE_BACKGROUND[::-1]) * 255).astype(np.uint8)

@@ -134,3 +134,14 @@ class PoseEstimator:
             fields["root"] = root.astype(np.float32)
             out.append(fields)
         return out
+
+
+def hand_mesh(model, hand):
+    """The posed mesh of one HandPose hand in the camera frame: vertices (V,3) metres, faces
+    (F,3) int (winding flipped for a left hand, so it faces outward) and its 21 joints (21,3)
+    metres. HandModel.forward at the hand's quat and beta, moved so that joint 9 sits at
+    `root`: the joints then equal the hand's `xyz` (pose_fields builds them the same way)."""
+    vertices, joints = model.forward(np.asarray(hand["quat"], np.float64), np.asarray(hand["beta"], np.float64),
+                                     handedness=hand["handedness"])
+    offset = np.asarray(hand["root"], np.float64) - joints[ROOT]
+    return vertices + offset, model.faces_for(hand["handedness"]), joints + offset

@@ -19,6 +19,7 @@ that is degenerate too (non-finite or collapsed input), DEFAULT_DEPTH_M.
 """
 import numpy as np
 
+from .camera_info import project
 from .skeleton import REF_BONE, ROOT
 
 # Reference bone (wrist -> middle MCP) of an average adult hand, metres: the bundled
@@ -155,10 +156,8 @@ def camera_joints_from_keypoints(K, uv, xyz_rel, ref_bone_m=DEFAULT_REF_BONE_M):
 
 def _reprojection_error(K, xyz, uv):
     """(...,) mean pixel distance between the projection of xyz (..., 21, 3) and uv (..., 21, 2)."""
-    Km = _k_matrix(K)
+    px = project(_k_matrix(K), xyz)
     with np.errstate(invalid="ignore", divide="ignore"):
-        proj = np.einsum("...ij,...nj->...ni", Km, xyz)
-        px = proj[..., :2] / proj[..., 2:3]
         dist = np.sqrt(np.sum((px - uv) ** 2, axis=-1))                         # (..., 21)
         seen = ~np.isnan(dist)           # np.nanmean's own sum / count, without its overhead
         err = np.sum(np.where(seen, dist, 0.0), axis=-1) / np.sum(seen, axis=-1)

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, graph_env, handlaunch
+from handmocap.camera_info import project
 from handmocap.frame_sync import FrameSync
 from handmocap.hand_model import HandModel
-from handmocap.overlay import (FINGER_COLOURS, Overlay, composite, draw_skeleton, hand_mesh, project,
-                               side_view_transform)
+from handmocap.overlay import FINGER_COLOURS, Overlay, composite, draw_skeleton, side_view_transform
+from handmocap.pose import hand_mesh
 from handmocap.pose_data import PoseSampler
 from handmocap.rotations import mirror_points
 from handmocap.skeleton import ROOT as ROOT_JOINT
@@ -36,7 +37,7 @@ def pose_hand(quats, beta, root, handedness="right", track_id=0):
     return {"track_id": track_id, "handedness": handedness, "score": 0.9, "xyz": xyz.astype(np.float32),
             "root": np.asarray(root, np.float32), "quat": quats.astype(np.float32),
             "pose": np.zeros((16, 3), np.float32), "beta": beta.astype(np.float32),
-            "uv": project(xyz, K).astype(np.float32)}
+            "uv": project(K, xyz).astype(np.float32)}
 
 
 @pytest.fixture(scope="module")
@@ -72,9 +73,9 @@ def test_rendered_mesh_covers_the_projected_joints(samples, overlay, handedness)
         vertices, faces, _ = hand_mesh(MODEL, hand)
         _, depth = overlay._render("main", W, H, [(vertices, faces)], K)
         silhouette = cv2.dilate((depth > 0).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0   # 2 px: tips lie on the rim
-        u, v = np.round(project(hand["xyz"], K)).astype(int).T
+        u, v = np.round(project(K, hand["xyz"])).astype(int).T
         assert silhouette[v, u].all(), f"sample {i}: joints {np.flatnonzero(~silhouette[v, u])} off the mesh"
-        box = np.concatenate([project(vertices, K).min(0), project(vertices, K).max(0)])
+        box = np.concatenate([project(K, vertices).min(0), project(K, vertices).max(0)])
         box = np.clip(box, 0, [W - 1, H - 1, W - 1, H - 1])
         ys, xs = np.nonzero(depth > 0)
         np.testing.assert_allclose([xs.min(), ys.min(), xs.max(), ys.max()], box, atol=3)   # a thin tip may miss pixel centres
@@ -92,7 +93,7 @@ def test_draw_blends_the_mesh_and_draws_skeleton_label_and_side_view(samples):
         o.release()
     assert out.shape == frame.shape and out.dtype == np.uint8 and not np.shares_memory(out, frame)
     assert (frame == 90).all()                                   # the input is left alone
-    u, v = np.round(project(hand["xyz"][ROOT_JOINT], K)).astype(int)
+    u, v = np.round(project(K, hand["xyz"][ROOT_JOINT])).astype(int)
     assert (out[v - 3:v + 4, u - 3:u + 4] != 90).any()          # something was drawn on the hand
     size = int(0.3 * H)
     inset = out[H - size - 8:H - 8, W - size - 8:W - 8]
@@ -128,7 +129,7 @@ def test_skeleton_is_coloured_per_finger_and_skips_missing_joints():
 def test_side_view_looks_from_the_right():
     near, far = np.array([0.0, 0.0, 0.4]), np.array([0.0, 0.0, 0.6])
     R, t, span = side_view_transform(np.stack([near, far]))
-    (un, vn), (uf, vf) = [project(R @ p + t, np.eye(3)) for p in (near, far)]
+    (un, vn), (uf, vf) = [project(np.eye(3), R @ p + t) for p in (near, far)]
     assert un < uf and abs(vn - vf) < 1e-9                       # depth runs left to right, the camera on the left
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
     assert span >= 0.4
