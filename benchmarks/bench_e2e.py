@@ -52,6 +52,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from handmocap.frames import read_video
+
 ROOT = Path(__file__).resolve().parent.parent
 CLIP = ROOT / "data" / "demo" / "hand_clip.mp4"
 WARMUP_FRAMES = 30     # the first second at 30 fps
@@ -61,13 +63,7 @@ def make_clip(path: Path, n: int) -> tuple[list[np.ndarray], float]:
     """Write the demo clip ping-ponged to n frames at `path` (mp4v, 30 fps); return the frames
     as OpenCV decodes the written file (what replay will publish), each (480,640,3) uint8,
     and the median CPU ms that decoding one took (replay pays it, the in-process row not)."""
-    cap = cv2.VideoCapture(str(CLIP))
-    src = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        src.append(f)
+    src = read_video(CLIP)
     h, w = src[0].shape[:2]
     if (w, h) != (640, 480):
         raise SystemExit(f"{CLIP} is {w}x{h}, this benchmark wants 640x480: render one with "

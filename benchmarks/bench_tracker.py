@@ -119,15 +119,10 @@ def main():
     p.add_argument("--max-hands", type=int, default=2, help="HandTracker/HandDetector max_hands (1: exactly one track)")
     args = p.parse_args()
     from handmocap.detector import HandDetector
+    from handmocap.frames import read_video
     from handmocap.tracker import HandTracker
 
-    cap = cv2.VideoCapture(args.video)
-    frames = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        frames.append(cv2.resize(f, (640, 480)) if f.shape[:2] != (480, 640) else f)
+    frames = [cv2.resize(f, (640, 480)) if f.shape[:2] != (480, 640) else f for f in read_video(args.video)]
     from handmocap.ik_solver import model_path
     results = {"frames": len(frames), "load_avg": os.getloadavg()[0], "threads": args.threads,
                "max_hands": args.max_hands, "iknet": str(model_path(args.iknet))}

@@ -98,6 +98,12 @@ def open_frames(path: str | Path, fps: float | None = None, start_s: float = 0.0
     return src
 
 
+def read_video(path: str | Path) -> list[np.ndarray]:
+    """Every frame (H,W,3) BGR uint8 of a video file, with VideoFrames' checks (a file that
+    cannot be opened or stops decoding early is a ValueError)."""
+    return [frame for _, frame in VideoFrames(path)]
+
+
 def image_message(frame: np.ndarray) -> dict:
     """The Image body (without header) of one BGR frame (H,W,3) uint8."""
     h, w = frame.shape[:2]

@@ -44,6 +44,8 @@ def write_test_video(path, n, size=(320, 240), fourcc="MJPG", draw=draw_bar_and_
     frames as OpenCV decodes the written file: a list of n (H,W,3) uint8 BGR images."""
     import cv2
     import numpy as np
+
+    from handmocap.frames import read_video
     w, h = size
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 30, (w, h))
     if folder is not None:
@@ -55,13 +57,7 @@ def write_test_video(path, n, size=(320, 240), fourcc="MJPG", draw=draw_bar_and_
         if folder is not None:
             cv2.imwrite(str(Path(folder) / f"{i:04d}.png"), img)
     writer.release()
-    cap = cv2.VideoCapture(str(path))
-    frames = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        frames.append(f)
+    frames = read_video(path)
     assert len(frames) == n, f"{path}: wrote {n} frames, read back {len(frames)}"
     return frames
 
