@@ -1,6 +1,6 @@
 """The whole graph against the same pipeline in one process, on 640x480 frames of one hand.
 
-    python benchmarks/bench_e2e.py [--frames 300] [--record-all] [--max-hands 2]
+    python benchmarks/bench_e2e.py [--frames 300] [--record-all] [--max-hands 2] [--no-container]
 
 Frames: the rendered demo clip (data/demo/hand_clip.mp4, 640x480, 30 fps, one right hand)
 played forwards and backwards until `--frames` long (no jump where it repeats, so the hand
@@ -10,6 +10,10 @@ Rows of the table:
 - graph @30 fps: handlaunch with replay (rate 1) -> detector (every_frame: keep-all, as
   launch/demo.yaml) -> shape -> ik -> recorder of /hand/pose only (the probe: its MCAP log
   time is the receipt time; with --record-all it records every topic as the demo does).
+  As in the product launch files, detector, shape and ik run in one container process
+  (`container: perception`, inproc:// between them); replay and the recorder are processes
+  of their own, so the frame and the pose still cross process boundaries. --no-container:
+  every node its own process (the graph before containers).
   Latency = receipt of /hand/pose - capture stamp, p50/p95 over the frames after the first
   second (the start-up transient, when 5 processes start on 2 cores, is left out and
   reported on its own line).
@@ -89,19 +93,21 @@ def children_cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def run_graph(tmp: Path, clip: Path, rate: float, record_all: bool, name: str, max_hands: int) -> dict:
+def run_graph(tmp: Path, clip: Path, rate: float, record_all: bool, name: str, max_hands: int,
+              container: bool = True) -> dict:
     """Launch the chain on `clip`; return pose stamps and receipt times (ns), the CPU seconds
     of the launcher and all its nodes, and the wall time of the run."""
     from handmocap.bag import iter_messages
     from handmocap import codec
     bag = tmp / f"{name}.mcap"
     topics = "" if record_all else ", topics: [/hand/pose]"
+    c = ", container: perception" if container else ""
     (tmp / f"{name}.yaml").write_text(f"""
 nodes:
   replay: {{node: replay, params: {{source: "{clip}", rate: {rate}}}, required: true}}
-  detector: {{node: detector, params: {{every_frame: true, max_hands: {max_hands}}}, required: true}}
-  shape: {{node: shape}}
-  ik: {{node: ik, required: true}}
+  detector: {{node: detector, params: {{every_frame: true, max_hands: {max_hands}}}, required: true{c}}}
+  shape: {{node: shape{c}}}
+  ik: {{node: ik, required: true{c}}}
   recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true{topics}}}, required: true}}
 """)
     run_dir = tempfile.mkdtemp(prefix="hmb")
@@ -163,15 +169,17 @@ def main():
     ap.add_argument("--record-all", action="store_true", help="the recorder records every topic, as demo.yaml")
     ap.add_argument("--max-hands", type=int, default=2, help="the detector's max_hands (2: the product's default; "
                     "1: never a second, spurious track on this one-hand clip)")
+    ap.add_argument("--no-container", action="store_true", help="every node its own process (no container)")
     args = ap.parse_args()
+    container = not args.no_container
     load0 = os.getloadavg()
     tmp = Path(tempfile.mkdtemp(prefix="bench_e2e"))
     try:
         frames, decode_ms = make_clip(tmp / "clip.mp4", args.frames)
         make_clip(tmp / "short.mp4", WARMUP_FRAMES)
-        live = run_graph(tmp, tmp / "clip.mp4", 1.0, args.record_all, "live", args.max_hands)
-        fast = run_graph(tmp, tmp / "clip.mp4", 0.0, args.record_all, "fast", args.max_hands)
-        short = run_graph(tmp, tmp / "short.mp4", 0.0, args.record_all, "short", args.max_hands)
+        live = run_graph(tmp, tmp / "clip.mp4", 1.0, args.record_all, "live", args.max_hands, container)
+        fast = run_graph(tmp, tmp / "clip.mp4", 0.0, args.record_all, "fast", args.max_hands, container)
+        short = run_graph(tmp, tmp / "short.mp4", 0.0, args.record_all, "short", args.max_hands, container)
         inproc = in_process(frames, args.max_hands)
         paced = in_process(frames, args.max_hands, fps=30.0)
     finally:
@@ -190,7 +198,8 @@ def main():
     over_wall = 1e3 / fps_fast - ip_wall
 
     print(f"load average {load0[0]:.2f} at start; {n} frames of 640x480, one hand; max_hands {args.max_hands}; "
-          f"recorder: {'every topic' if args.record_all else '/hand/pose only'}")
+          f"recorder: {'every topic' if args.record_all else '/hand/pose only'}; "
+          f"{'detector, shape, ik in one container' if container else 'every node its own process'}")
     print(f"{'row':20s} {'poses':>6s} {'hands/frame':>11s} {'frames/s':>9s} {'p50 ms':>8s} {'p95 ms':>8s} "
           f"{'max ms':>8s} {'ms/frame':>9s} {'CPU ms/frame':>13s}")
     for name, run in (("graph @30 fps", live), ("graph unthrottled", fast)):

@@ -67,6 +67,7 @@ class NodeInfo:
     publishes: dict = field(default_factory=dict)    # topic -> message type
     subscribes: dict = field(default_factory=dict)   # topic -> "latest" | "all"
     ready: bool = False
+    inproc: dict | None = None   # {endpoint, token}: also reachable in-process, from its container
     observer: bool = False   # tools (handtopic) that must not hold a graph's start
     ended: bool = False      # set by the launcher on a node that died for good: its streams are over
     heartbeat_ns: int = 0
@@ -110,6 +111,12 @@ class Publisher:
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.subscriptions: Counter[bytes] = Counter()
         self._frames: dict[tuple, tuple] = {}   # (topic, type) -> their wire frames
+
+    def bind_inproc(self, endpoint: str, token: str) -> dict:
+        """Also bind `inproc://...` (a container: the nodes of one process share one Context and
+        reach each other without a socket); returns what the node file says about it."""
+        self.sock.bind(endpoint)
+        return {"endpoint": endpoint, "token": token}
 
     def poll_subscriptions(self) -> None:
         while True:

@@ -21,6 +21,18 @@ A launch file:
         bind: tcp://127.0.0.1:6000    # optional: listen here instead of the default ipc socket
         connect: [tcp://10.0.0.2:6000] # optional: publishers on other hosts
         if: $(var bag)        # optional: the node runs only when this is true (see is_true)
+      detector: {node: detector, container: perception}   # optional: see below
+
+Containers (ROS 2 composition): nodes with the same `container: NAME` run as threads of one
+process, unchanged: each is the same thin loop, binds its own socket (so every other process,
+handtopic and the recorder still see its topics) and also an inproc:// endpoint of the
+process's one zmq Context, over which the container's other nodes receive its messages
+without a socket hop. The container is one supervised process: it is required when one of
+its nodes is, respawns when one of its nodes does (after the shortest respawn_delay), and
+its output lines carry each node's own name. A node that fails inside it (exit code or
+exception) stops the whole container when that node is required or respawns (the container
+exits with its code, and handlaunch fails the graph or respawns the container), else the
+others go on without it, as they would with separate processes.
 
 Everything is checked before any process starts; an error names the file, line and problem.
 The launcher returns when every node has finished (a finite replay ends, its end-of-stream
@@ -47,7 +59,8 @@ import yaml
 from . import bus
 from .node import parse_cli_params
 
-NODE_KEYS = {"node", "params", "remap", "env", "respawn", "respawn_delay", "required", "bind", "connect", "if"}
+NODE_KEYS = {"node", "params", "remap", "env", "respawn", "respawn_delay", "required", "bind", "connect", "if",
+             "container"}
 FALSE_WORDS = {"", "false", "no", "off", "0", "null", "none"}
 TOP_KEYS = {"graph", "args", "env", "nodes"}
 VAR = re.compile(r"\$\((var|env) ([A-Za-z_][A-Za-z0-9_]*)(?: ([^)]*))?\)")
@@ -105,6 +118,18 @@ class NodeSpec:
     required: bool = False
     bind: str | None = None
     connect: list = field(default_factory=list)
+    container: str | None = None
+
+
+@dataclass
+class ContainerSpec:
+    """Nodes that run as threads of one process (see the module docstring)."""
+    name: str
+    members: list[NodeSpec]
+    env: dict = field(default_factory=dict)
+    respawn: bool = False
+    respawn_delay: float = 1.0
+    required: bool = False
 
 
 @dataclass
@@ -224,6 +249,13 @@ def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
                 if p not in known:
                     raise err(kp + ("params", p), f"node {name!r} ({entry['node']}) has no parameter {p!r}; "
                               f"known: {', '.join(sorted(known))}")
+        container = entry.get("container")
+        if container is not None and (not isinstance(container, str)
+                                      or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", container)):
+            raise err(kp + ("container",), f"node {name!r}: bad container name {container!r} "
+                      f"(letters, digits, '_' and '-')")
+        if container is not None and container in nodes_doc:
+            raise err(kp + ("container",), f"node {name!r}: container {container!r} has the name of a node")
         if not is_true(entry.get("if", True)):
             continue   # switched off, after the same checks as a node that runs (a typo fails either way)
         specs.append(NodeSpec(name=name, module=module, params=params, remap=entry.get("remap") or {},
@@ -231,8 +263,32 @@ def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
                               respawn=bool(entry.get("respawn", False)),
                               respawn_delay=float(entry.get("respawn_delay", 1.0)),
                               required=bool(entry.get("required", False)), bind=entry.get("bind"),
-                              connect=list(entry.get("connect") or [])))
+                              connect=list(entry.get("connect") or []), container=container))
+        if container is not None:   # one process, one environment: its nodes must agree on it
+            for other in specs[:-1]:
+                if other.container == container and other.env != specs[-1].env:
+                    raise err(kp + ("env",), f"node {name!r}: its environment differs from that of node "
+                              f"{other.name!r} in the same container {container!r} (one process, one env)")
     return LaunchFile(path=path, graph=doc.get("graph"), nodes=specs)
+
+
+def processes(nodes: list[NodeSpec]) -> list[NodeSpec | ContainerSpec]:
+    """The processes of a graph: a node on its own, or a container of the nodes that name it
+    (where its first node stands in the file)."""
+    out, containers = [], {}
+    for spec in nodes:
+        if spec.container is None:
+            out.append(spec)
+        elif spec.container in containers:
+            containers[spec.container].members.append(spec)
+        else:
+            containers[spec.container] = ContainerSpec(spec.container, [spec], env=spec.env)
+            out.append(containers[spec.container])
+    for c in containers.values():
+        c.required = any(m.required for m in c.members)
+        c.respawn = any(m.respawn for m in c.members)
+        c.respawn_delay = min(m.respawn_delay for m in c.members if m.respawn) if c.respawn else 1.0
+    return out
 
 
 def available_nodes() -> list[str]:
@@ -242,8 +298,12 @@ def available_nodes() -> list[str]:
 
 # -- supervision ------------------------------------------------------------------------
 class Child:
-    def __init__(self, spec: NodeSpec, env: dict, log):
+    """One supervised process: a node, or a container of nodes."""
+
+    def __init__(self, spec: NodeSpec | ContainerSpec, env: dict, log):
         self.spec, self.base_env, self.log = spec, env, log
+        self.members = spec.members if isinstance(spec, ContainerSpec) else None
+        self.names = [m.name for m in self.members] if self.members else [spec.name]
         self.proc: subprocess.Popen | None = None
         self.started = 0.0
         self.backoff = spec.respawn_delay
@@ -251,16 +311,22 @@ class Child:
         self.restarts = 0
         self.exit_code: int | None = None
 
+    @property
+    def what(self) -> str:
+        """'node detector' or 'container perception (detector, shape, ik)' for messages."""
+        if self.members:
+            return f"container {self.spec.name} ({', '.join(self.names)})"
+        return f"node {self.spec.name}"
+
     def start(self) -> None:
-        env = {**self.base_env, **{k: str(v) for k, v in self.spec.env.items()},
-               "HANDMOCAP_NODE_NAME": self.spec.name,
-               "HANDMOCAP_PARAMS": json.dumps(self.spec.params),
-               "HANDMOCAP_REMAP": json.dumps(self.spec.remap),
-               "HANDMOCAP_CONNECT": json.dumps(self.spec.connect),
-               "PYTHONUNBUFFERED": "1"}
-        if self.spec.bind:
-            env["HANDMOCAP_BIND"] = self.spec.bind
-        self.proc = subprocess.Popen([sys.executable, "-m", self.spec.module], env=env,
+        env = {**self.base_env, **{k: str(v) for k, v in self.spec.env.items()}, "PYTHONUNBUFFERED": "1"}
+        if self.members:
+            env["HANDMOCAP_CONTAINER"] = json.dumps([member_settings(m) for m in self.members])
+            cmd = [sys.executable, "-m", "handmocap.launch", "--container"]
+        else:
+            env.update(member_settings(self.spec)["settings"])
+            cmd = [sys.executable, "-m", self.spec.module]
+        self.proc = subprocess.Popen(cmd, env=env,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, start_new_session=True)
         self.started = time.monotonic()
@@ -269,7 +335,12 @@ class Child:
 
     def _pump(self, proc) -> None:
         for line in iter(proc.stdout.readline, b""):
-            self.log(self.spec.name, line.decode(errors="replace").rstrip("\n"))
+            text, who = line.decode(errors="replace").rstrip("\n"), self.spec.name
+            if self.members and text.startswith("["):   # a container's node: "[name] text"
+                name, _, rest = text[1:].partition("] ")
+                if name in self.names:
+                    text, who = rest, name
+            self.log(who, text)
 
     @property
     def running(self) -> bool:
@@ -288,7 +359,7 @@ class Launcher:
         self.dir = bus.run_dir(launch.graph)
         self.id = f"launch-{uuid.uuid4().hex[:8]}"
         env = {**os.environ, "HANDMOCAP_RUN_DIR": str(self.dir), "HANDMOCAP_LAUNCH_ID": self.id}
-        self.children = [Child(s, env, self.print) for s in launch.nodes]
+        self.children = [Child(s, env, self.print) for s in processes(launch.nodes)]
         self.stopping = False
 
     def print(self, who: str, text: str) -> None:
@@ -297,12 +368,12 @@ class Launcher:
 
     def check_names_free(self) -> None:
         live = bus.read_node_files(self.dir)
-        for c in self.children:
-            if c.spec.name in live:
-                raise LaunchError(f"{self.launch.path}: node {c.spec.name!r} is already running in graph "
-                                  f"{self.dir} (pid {live[c.spec.name].pid}); stop it, or run this graph "
+        for name in (n for c in self.children for n in c.names):
+            if name in live:
+                raise LaunchError(f"{self.launch.path}: node {name!r} is already running in graph "
+                                  f"{self.dir} (pid {live[name].pid}); stop it, or run this graph "
                                   f"under another name (graph: in the file, or HANDMOCAP_GRAPH=...)")
-            (self.dir / f"{c.spec.name}.json").unlink(missing_ok=True)   # stale file of a dead node
+            (self.dir / f"{name}.json").unlink(missing_ok=True)   # stale file of a dead node
 
     def run(self) -> int:
         self.check_names_free()
@@ -310,7 +381,8 @@ class Launcher:
             signal.signal(sig, lambda *_: setattr(self, "stopping", True))
         for c in self.children:
             c.start()
-        self.print("handlaunch", f"started {len(self.children)} node(s) in {self.dir}")
+        self.print("handlaunch", f"started {sum(len(c.names) for c in self.children)} node(s) in {self.dir}"
+                   + (f", in {len(self.children)} processes" if any(c.members for c in self.children) else ""))
         ready_file = self.dir / f"{self.id}.ready"
         t0, failed = time.monotonic(), None
         try:
@@ -359,9 +431,9 @@ class Launcher:
         return not self._not_ready()
 
     def _not_ready(self) -> list[str]:
-        files = bus.read_node_files(self.dir)
-        return [c.spec.name for c in self.children
-                if c.exit_code is None and not (c.spec.name in files and files[c.spec.name].ready)]
+        files = bus.read_node_files(self.dir, alive_only=False)
+        up = {n for n, i in files.items() if i.ended or (i.ready and i.alive)}   # ended: a container's failed node
+        return [name for c in self.children if c.exit_code is None for name in c.names if name not in up]
 
     def _supervise(self) -> str | None:
         now = time.monotonic()
@@ -382,15 +454,16 @@ class Launcher:
             if c.spec.respawn:
                 if now - c.started > 10:
                     c.backoff = c.spec.respawn_delay   # it ran a while: not a crash loop
-                self.print("handlaunch", f"node {c.spec.name} died ({how}); respawn in {c.backoff:.1f} s")
+                self.print("handlaunch", f"{c.what} died ({how}); respawn in {c.backoff:.1f} s")
                 c.restart_at = now + c.backoff
                 c.backoff = min(c.backoff * 2, MAX_BACKOFF_S)
                 continue
-            self._mark_ended(c.spec.name)
+            for name in c.names:
+                self._mark_ended(name)
             if c.spec.required:
-                self.print("handlaunch", f"error: required node {c.spec.name} failed ({how}); stopping the graph")
+                self.print("handlaunch", f"error: required {c.what} failed ({how}); stopping the graph")
                 return c.spec.name
-            self.print("handlaunch", f"warning: node {c.spec.name} failed ({how})")
+            self.print("handlaunch", f"warning: {c.what} failed ({how})")
         return None
 
     def _mark_ended(self, name: str) -> None:
@@ -416,11 +489,83 @@ class Launcher:
                 c.proc.wait()
             if c.exit_code is None:
                 c.exit_code = c.proc.returncode
-            (self.dir / f"{c.spec.name}.json").unlink(missing_ok=True)
+            for name in c.names:
+                (self.dir / f"{name}.json").unlink(missing_ok=True)
+
+
+def member_settings(spec: NodeSpec) -> dict:
+    """What a node process (or a container's node thread) is told about itself."""
+    settings = {"HANDMOCAP_NODE_NAME": spec.name, "HANDMOCAP_PARAMS": json.dumps(spec.params),
+                "HANDMOCAP_REMAP": json.dumps(spec.remap), "HANDMOCAP_CONNECT": json.dumps(spec.connect)}
+    if spec.bind:
+        settings["HANDMOCAP_BIND"] = spec.bind
+    return {"name": spec.name, "module": spec.module, "settings": settings,
+            "fatal": spec.required or spec.respawn}
+
+
+# -- a container process ------------------------------------------------------------------
+def run_container(members: list[dict]) -> int:
+    """Run the nodes `members` (member_settings) as threads of this process, sharing one zmq
+    Context; returns the exit code: 0, or that of the first required (or respawning) node that
+    failed, which stops the others. A failed node that is neither only ends its own thread."""
+    import logging
+
+    import zmq
+
+    from . import node as node_mod
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="[%(name)s] %(levelname)s %(message)s")
+    log = logging.getLogger("container")
+    ctx = zmq.Context()
+    node_mod._SHARED.update(ctx=ctx, token=uuid.uuid4().hex)
+    stopping = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stopping.set())
+    failed: list[tuple[str, int]] = []
+
+    def member(m: dict) -> None:
+        node_mod._local.settings = m["settings"]
+        code = 0
+        try:
+            importlib.import_module(m["module"]).main()
+        except KeyboardInterrupt:
+            pass
+        except SystemExit as e:
+            code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+        except node_mod.EXPECTED_ERRORS as e:   # as node.run: one clear line, exit code 2
+            logging.getLogger(m["name"]).error("%s", e)
+            code = 2
+        except Exception:
+            logging.getLogger(m["name"]).exception("failed")
+            code = 1
+        finally:
+            node_mod._close_open_nodes(threading.get_ident())   # end of stream downstream
+        if code:
+            failed.append((m["name"], code))
+            if m["fatal"]:
+                stopping.set()
+            else:
+                log.warning("node %s failed (exit code %d); the container goes on without it", m["name"], code)
+                # as the launcher marks a node process that died for good: its streams are over,
+                # and the graph does not wait for it to come up
+                bus.write_node_file(bus.run_dir(), bus.NodeInfo(m["name"], os.getpid(), "", ended=True))
+
+    threads = [threading.Thread(target=member, args=(m,), name=m["name"], daemon=True) for m in members]
+    for t in threads:
+        t.start()
+    while any(t.is_alive() for t in threads):
+        if stopping.is_set():
+            node_mod.stop_all()   # again and again: a node still starting up may open after a call
+        for t in threads:
+            t.join(0.05)
+    ctx.term()   # every node closed its sockets: flush what is queued, then end
+    fatal = [(n, c) for n, c in failed if next(m for m in members if m["name"] == n)["fatal"]]
+    return fatal[0][1] if fatal else 0
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--container"]:   # started by a launcher: HANDMOCAP_CONTAINER names its nodes
+        return run_container(json.loads(os.environ["HANDMOCAP_CONTAINER"]))
     if not argv or argv[0] in ("-h", "--help"):
         print(__doc__.strip())
         return 0 if argv else 2

@@ -45,6 +45,24 @@ READY_TIMEOUT_S = 60  # how long a publisher waits for its graph to start
 
 
 _EOS = bus.EOS
+_local = threading.local()   # a container's node thread: its own launch settings (see container.py)
+
+
+def _setting(key: str, default=None):
+    """A launch setting of this node (HANDMOCAP_NODE_NAME, _PARAMS, _REMAP, _CONNECT, _BIND): the
+    container's per-thread copy where the node runs in a container, else the environment."""
+    own = getattr(_local, "settings", None)
+    if own is not None:
+        return own.get(key, default)
+    return os.environ.get(key, default)
+
+
+def shared_context() -> "zmq.Context | None":
+    """The one zmq Context of a container process (None outside one): its nodes talk over inproc://."""
+    return _SHARED["ctx"]
+
+
+_SHARED = {"ctx": None, "token": None}   # set by handmocap.container
 LARGE = 65536   # payloads above this go without copies (zero-copy send, receive into a zmq frame)
 
 
@@ -80,28 +98,36 @@ def parse_cli_params(argv: list[str]) -> dict:
 class Node:
     def __init__(self, name: str | None = None, params: dict | None = None, observer: bool = False,
                  argv: list[str] | None = None):
-        self.name = os.environ.get("HANDMOCAP_NODE_NAME") or name or Path(sys.argv[0]).stem
+        self.name = _setting("HANDMOCAP_NODE_NAME") or name or Path(sys.argv[0]).stem
         self.log = logging.getLogger(self.name)
         if not logging.getLogger().handlers:
             logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                                 format="%(levelname)s %(message)s" if "HANDMOCAP_LAUNCH_ID" in os.environ
                                 else f"[{self.name}] %(levelname)s %(message)s")
-        given = json.loads(os.environ.get("HANDMOCAP_PARAMS", "{}"))
-        given.update(parse_cli_params(sys.argv[1:] if argv is None else argv))
+        given = json.loads(_setting("HANDMOCAP_PARAMS", "{}"))
+        in_container = getattr(_local, "settings", None) is not None
+        given.update(parse_cli_params(([] if in_container else sys.argv[1:]) if argv is None else argv))
         defaults = params or {}
         unknown = sorted(set(given) - set(defaults))
         if params is not None and unknown:
             raise ValueError(f"node {self.name!r} has no parameter(s) {', '.join(unknown)}; "
                              f"known: {', '.join(sorted(defaults)) or 'none'}")
         self.params = {**defaults, **given}
-        self.remap = json.loads(os.environ.get("HANDMOCAP_REMAP", "{}"))
+        self.remap = json.loads(_setting("HANDMOCAP_REMAP", "{}"))
         self.dir = bus.run_dir()
-        self.ctx = zmq.Context()   # its own: close() terms it without waiting on other nodes' sockets
-        bind = os.environ.get("HANDMOCAP_BIND") or f"ipc://{self.dir}/{self.name}.pub"
+        # in a container, the process's one Context: its nodes reach each other over inproc://
+        # (no socket, no copy through the kernel); elsewhere its own, which close() terms
+        # without waiting on other nodes' sockets
+        self._own_ctx = _SHARED["ctx"] is None
+        self.ctx = zmq.Context() if self._own_ctx else _SHARED["ctx"]
+        bind = _setting("HANDMOCAP_BIND") or f"ipc://{self.dir}/{self.name}.pub"
         self.pub = bus.Publisher(self.ctx, bind)
         self.sub = bus.Subscriber(self.ctx)
-        self.extra_endpoints = json.loads(os.environ.get("HANDMOCAP_CONNECT", "[]"))
+        self.extra_endpoints = json.loads(_setting("HANDMOCAP_CONNECT", "[]"))
         self.info = bus.NodeInfo(self.name, os.getpid(), self.pub.endpoint, observer=observer)
+        if not self._own_ctx:   # also bound in-process, for the container's other nodes
+            self.info.inproc = self.pub.bind_inproc(f"inproc://{self.name}", _SHARED["token"])
+        self._thread = threading.get_ident()   # the thread that runs this node (a container has several)
         self.types: dict[str, str] = {}            # subscribed topic -> expected type (None: any)
         self.seq: Counter[str] = Counter()
         self.stats = {"received": Counter(), "published": Counter(), "dropped": Counter(),
@@ -122,6 +148,7 @@ class Node:
         self._stop = threading.Event()
         _OPEN_NODES.add(self)
         self._validate_send = bool(os.environ.get("HANDMOCAP_VALIDATE_SEND"))
+        self._trace = [] if os.environ.get("HANDMOCAP_TRACE") else None   # timing of every message (diagnostics)
         self._closed = False
         self._old_handlers = {}
         if threading.current_thread() is threading.main_thread():   # signals reach the main thread only
@@ -165,6 +192,8 @@ class Node:
         seq = self.seq[topic]
         self.seq[topic] = seq + 1
         msg = {"header": codec.header(seq, frame_id, stamp_ns), **body}
+        if self._trace is not None:
+            self._trace.append(("pub0", topic, msg["header"]["stamp_ns"], time.time_ns()))
         validate = type_name if self._validate_send else None
         if topic in self._large:   # like the last one, a frame: pack into a pooled buffer, send it as is
             payload = codec.encode_view(msg, validate)
@@ -183,6 +212,8 @@ class Node:
             self.wait_for_graph()
         self.pub.send(topic, type_name, payload)
         self.stats["published"][topic] += 1
+        if self._trace is not None:
+            self._trace.append(("pub1", topic, None, time.time_ns()))
 
     def wait_for_graph(self) -> None:
         """Hold the first message until the launcher says every node is up and every node
@@ -360,7 +391,10 @@ class Node:
         except codec.MalformedMessage as e:
             return self._drop(topic, e.reason, str(e))
         self._received[topic] += 1
-        return Message(topic, type_name, data, payload, time.time_ns())
+        msg = Message(topic, type_name, data, payload, time.time_ns())
+        if self._trace is not None:
+            self._trace.append(("recv", topic, msg.stamp_ns, msg.recv_ns))
+        return msg
 
     def _drop(self, topic: str, reason: str, detail: str) -> None:
         self.stats["dropped"][f"{topic}:{reason}"] += 1
@@ -397,13 +431,16 @@ class Node:
                 continue
             if not info.alive:   # crashed, maybe to be respawned: its stream is not over
                 continue
+            endpoint = info.endpoint
+            if info.inproc and info.inproc.get("token") == _SHARED["token"] and not self._own_ctx:
+                endpoint = info.inproc["endpoint"]   # same container: in-process, not through a socket
             if self._pub_pids.get(info.name) != info.pid:   # new, or respawned: its stream reopens
                 self._pub_pids[info.name] = info.pid
                 for ended in self._ended.values():
                     ended.discard(info.name)
             for topic, mode in self.info.subscribes.items():
                 if topic == "*" or topic in info.publishes:
-                    self.sub.connect(info.endpoint, mode)
+                    self.sub.connect(endpoint, mode)
                     self._publishers[topic].add(info.name)
         self._graph_complete = self._graph_complete or graph_complete
         return True
@@ -462,6 +499,8 @@ class Node:
         if self._closed:
             return
         _OPEN_NODES.discard(self)
+        if self._trace:
+            Path(os.environ["HANDMOCAP_TRACE"], f"{self.name}.trace.json").write_text(json.dumps(self._trace))
         if self.info.publishes and not self._graph_ready and not self._stop.is_set():
             self.wait_for_subscribers(2.0)   # they must be connected to hear the end-of-stream
         for topic in self.info.publishes:
@@ -475,8 +514,10 @@ class Node:
                 pass
         self.sub.close()
         self.pub.close()
-        # Without term() the process may exit with its last messages still queued.
-        self.ctx.term()
+        # Without term() the process may exit with its last messages still queued (a container
+        # terms its shared Context once every node of it has closed).
+        if self._own_ctx:
+            self.ctx.term()
         for sig, handler in self._old_handlers.items():
             signal.signal(sig, handler)
         if self.pub.endpoint.startswith("ipc://"):
@@ -492,6 +533,9 @@ class Node:
 _OPEN_NODES: "weakref.WeakSet[Node]" = weakref.WeakSet()
 
 
+EXPECTED_ERRORS = (FileNotFoundError, ValueError, RuntimeError, OSError)
+
+
 def run(main) -> None:
     """Entry point wrapper for node modules: one clear error line instead of a traceback wall
     for the expected failures (bad parameter, missing file, device that can't be opened)."""
@@ -499,7 +543,7 @@ def run(main) -> None:
         main()
     except KeyboardInterrupt:
         pass
-    except (FileNotFoundError, ValueError, RuntimeError, OSError) as e:
+    except EXPECTED_ERRORS as e:
         logging.getLogger().error("%s", e)
         _close_open_nodes()
         sys.exit(2)
@@ -507,10 +551,19 @@ def run(main) -> None:
         _close_open_nodes()
 
 
-def _close_open_nodes() -> None:
-    """Close the nodes a failed main() left open: downstream nodes hear the end of stream,
-    and the process does not exit with live ZeroMQ sockets (libzmq can abort then)."""
+def stop_all() -> None:
+    """Ask every open node of this process to end its loop (a container's signal handler)."""
     for node in list(_OPEN_NODES):
+        node._stop.set()
+
+
+def _close_open_nodes(thread: int | None = None) -> None:
+    """Close the nodes a failed main() left open (with `thread`: those that thread runs):
+    downstream nodes hear the end of stream, and the process does not exit with live ZeroMQ
+    sockets (libzmq can abort then)."""
+    for node in list(_OPEN_NODES):
+        if thread is not None and node._thread != thread:
+            continue
         try:
             node.close()
         except Exception:   # already failing: the error line above is the one that matters

@@ -1,0 +1,162 @@
+"""Containers (launch key `container:`): several nodes as threads of one process, talking over
+inproc://, still visible to every other process of the graph (recorder, handtopic)."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from conftest import DEMO_CLIP, graph_env, handlaunch, read_bag
+from handmocap.launch import ContainerSpec, LaunchError, load_launch_file, processes
+
+
+def chain(bag, rate=0, loop=False, container="perception", detector="", shape="", ik=""):
+    c = f", container: {container}" if container else ""
+    return f"""
+nodes:
+  replay: {{node: replay, params: {{source: "{DEMO_CLIP}", rate: {rate}, loop: {str(loop).lower()}}}, required: true}}
+  detector: {{node: detector, params: {{every_frame: true{detector}}}, required: true{c}}}
+  shape: {{node: shape{shape}{c}}}
+  ik: {{node: ik, required: true{c}{ik}}}
+  recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true}}, required: true}}
+"""
+
+
+def write(tmp_path, text):
+    p = tmp_path / "g.yaml"
+    p.write_text(text)
+    return p
+
+
+def test_container_groups_nodes_into_one_process(tmp_path):
+    lf = load_launch_file(write(tmp_path, chain(tmp_path / "o.mcap", detector="", ik=", respawn: true, "
+                                                "respawn_delay: 0.3")), {})
+    procs = processes(lf.nodes)
+    assert [p.name for p in procs] == ["replay", "perception", "recorder"]
+    c = procs[1]
+    assert isinstance(c, ContainerSpec) and [m.name for m in c.members] == ["detector", "shape", "ik"]
+    assert c.required and c.respawn and c.respawn_delay == 0.3
+
+
+@pytest.mark.parametrize("replace, words", [
+    ("container: perception}\n  shape", "bad container name"),
+    ("container: perception}\n  shape", "has the name of a node"),
+    ("shape: {node: shape, container: perception}", "its environment differs"),
+])
+def test_bad_containers_are_rejected_with_file_and_line(tmp_path, replace, words):
+    text = chain(tmp_path / "o.mcap")
+    if words == "bad container name":
+        text = text.replace(replace, "container: 9lives}\n  shape", 1)
+    elif words == "has the name of a node":
+        text = text.replace(replace, "container: recorder}\n  shape", 1)
+    else:
+        text = text.replace(replace, "shape: {node: shape, container: perception, env: {A: b}}")
+    path = write(tmp_path, text)
+    with pytest.raises(LaunchError) as e:
+        load_launch_file(path, {})
+    assert str(e.value).startswith(f"{path}:") and words in str(e.value), str(e.value)
+
+
+def test_container_delivers_every_pose_to_a_recorder_outside_it(tmp_path, run_dir):
+    """detector + shape + ik in one process; replay and the recorder are processes of their
+    own: the recorder gets every frame's keypoints, shape and pose (published inside the
+    container, received outside), and the container's nodes run in one pid."""
+    bag = tmp_path / "o.mcap"
+    lf = write(tmp_path, chain(bag))
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    pids = {}
+    deadline = time.monotonic() + 60
+    while proc.poll() is None and len(pids) < 5 and time.monotonic() < deadline:
+        for name in ("replay", "detector", "shape", "ik", "recorder"):
+            try:
+                info = json.loads((run_dir / f"{name}.json").read_text())
+                pids[name] = (info["pid"], info.get("inproc"))
+            except (OSError, ValueError):
+                pass
+        time.sleep(0.02)
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and "all nodes finished" in out, out
+    assert "started 5 node(s)" in out and "in 3 processes" in out, out
+    assert "[detector] INFO" in out and "Traceback" not in out, out   # the node's own name on its lines
+    assert pids["detector"][0] == pids["shape"][0] == pids["ik"][0] != pids["replay"][0] != pids["recorder"][0]
+    assert pids["ik"][1]["endpoint"] == "inproc://ik" and pids["replay"][1] is None
+    msgs = read_bag(bag)
+    images = [m["header"]["stamp_ns"] for m, _ in msgs["/camera/image"]]
+    assert len(images) == 90
+    for topic in ("/hand/keypoints", "/hand/shape", "/hand/pose"):
+        assert [m["header"]["stamp_ns"] for m, _ in msgs[topic]] == images, topic
+    assert np.mean([len(m["hands"]) == 1 for m, _ in msgs["/hand/pose"]]) >= 0.9
+
+
+def test_killed_container_respawns_and_poses_resume(tmp_path, run_dir):
+    """As the killed-detector drill (test_drills), with the detector in a container: SIGKILL
+    takes the whole container (detector, shape, ik) down; it respawns as one and poses resume."""
+    bag = tmp_path / "o.mcap"
+    lf = write(tmp_path, chain(bag, rate=1.0, loop=True, ik=", respawn: true, respawn_delay: 0.2"))
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    def info(name):
+        try:
+            return json.loads((run_dir / f"{name}.json").read_text())
+        except (OSError, ValueError):
+            return {}
+
+    def wait(what, pred, timeout=60):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if pred():
+                return
+            time.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {what}")
+
+    def poses():
+        return info("ik").get("stats", {}).get("published", {}).get("/hand/pose", 0)
+
+    try:
+        wait("30 poses", lambda: poses() >= 30)
+        victim = info("ik")["pid"]
+        assert info("detector")["pid"] == victim
+        os.kill(victim, signal.SIGKILL)
+        wait("a new container", lambda: info("ik").get("pid") not in (None, victim)
+             and info("detector").get("pid") == info("ik").get("pid"))
+        wait("30 poses after the respawn", lambda: poses() >= 30)
+        os.kill(info("replay")["pid"], signal.SIGTERM)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0 and "all nodes finished" in out, out
+    assert "container perception (detector, shape, ik) died (killed by signal 9); respawn in 0.2 s" in out, out
+    assert "respawning perception" in out and "Traceback" not in out, out
+    kill_poses = [m for m, _ in read_bag(bag)["/hand/pose"]]
+    assert len(kill_poses) >= 60
+
+
+def test_failed_required_node_in_a_container_is_one_clear_error(tmp_path, run_dir):
+    lf = write(tmp_path, chain(tmp_path / "o.mcap", detector=f", detnet: {tmp_path / 'nope.onnx'}"))
+    r = handlaunch([lf], run_dir, timeout=120)
+    seen = r.stdout + r.stderr
+    assert r.returncode == 1, seen
+    assert "Traceback" not in seen, seen
+    errors = [line for line in seen.splitlines() if "ERROR" in line or "error" in line.lower()]
+    assert len(errors) == 2, seen
+    assert errors[0].startswith("[detector] ERROR ") and "nope.onnx" in errors[0], seen
+    assert errors[1] == ("[handlaunch] error: required container perception (detector, shape, ik) failed "
+                         "(exit code 2); stopping the graph"), seen
+
+
+def test_failed_optional_node_in_a_container_leaves_the_others_running(tmp_path, run_dir):
+    bag = tmp_path / "o.mcap"
+    lf = write(tmp_path, chain(bag, shape=f", params: {{model: {tmp_path / 'nope.npz'}}}"))
+    r = handlaunch([lf], run_dir, timeout=120)
+    seen = r.stdout + r.stderr
+    assert r.returncode == 0 and "all nodes finished" in seen, seen
+    assert "[shape] ERROR" in seen and "node shape failed (exit code 2); the container goes on without it" in seen
+    assert len(read_bag(bag)["/hand/pose"]) == 90
