@@ -2,10 +2,12 @@
 
 Per frame (`HandDetector.process`):
 1. The hand finder (hand_finder.HandFinder) runs when there is no track, when a track was
-   lost on the previous frame, and every `redetect_every` frames while fewer than
-   `max_hands` hands are tracked. A found hand that overlaps a track (IoU >= 0.3 or its
-   centre inside the track's box) only informs that track's handedness; the others start
-   new tracks (stable integer ids, never reused).
+   lost on the previous frame, and every `redetect_every` frames. A found hand that
+   overlaps a track's crop (IoU >= 0.3 or its centre inside it) informs that track's
+   handedness, and re-seeds the track's crop from the found box when it overlaps the
+   track's joints less than `reseed_iou` (a track that slid up the forearm: DetNet's
+   presence head alone does not catch it); the others start new tracks (stable integer
+   ids, never reused).
 2. Every track is cropped the way DetNet was trained (handmocap/synth: square, the hand's
    vertex box x 1.3, i.e. about its 21-joint box x CROP_SCALE, 128 px; `CropTransform`
    records the crop <-> frame mapping). Tracks whose smoothed handedness is left are
@@ -123,6 +125,13 @@ def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE):
     return CropTransform.around((lo + hi) / 2, float(np.max(hi - lo)) * scale, mirrored=mirrored)
 
 
+def square_box(uv):
+    """(4,) x0, y0, x1, y1 of the square around joints uv (21,2) (the finder's box)."""
+    lo, hi = np.nanmin(uv, axis=0), np.nanmax(uv, axis=0)
+    c, half = (lo + hi) / 2, float(np.max(hi - lo)) / 2
+    return np.array([c[0] - half, c[1] - half, c[0] + half, c[1] + half])
+
+
 def crop_for_box(box, mirrored=False, scale=CROP_SCALE):
     """The DetNet crop of a hand whose joint box is (4,) x0, y0, x1, y1 frame px."""
     box = np.asarray(box, dtype=np.float64)
@@ -194,7 +203,7 @@ class HandDetector:
     """
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
-                 crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.0):
+                 crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.0, reseed_iou=0.3):
         self.detnet, self.finder = detnet, finder
         self.max_hands, self.presence_threshold = max_hands, presence_threshold
         self.redetect_every, self.crop_scale = redetect_every, crop_scale
@@ -202,11 +211,15 @@ class HandDetector:
         # the presence head stays sure on a crop that slid onto the forearm; the heatmap
         # peaks (mean over joints) do drop there, so they end such a track too
         self.min_confidence = min_confidence
+        # the finder checks the tracks every `redetect_every` frames: a found hand inside a
+        # track's crop whose box overlaps the track's joints less than this re-seeds the track
+        # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
+        self.reseed_iou = reseed_iou
         self.tracks: list[Track] = []
         self.next_id = 0
         self.frames_since_find = 0
         self.lost_last_frame = False
-        self.stats = {"frames": 0, "finder_runs": 0, "crops": 0}
+        self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0}
 
     @classmethod
     def load(cls, detnet_path=None, finder_path=None, threads=1, **kwargs):
@@ -221,7 +234,8 @@ class HandDetector:
     # -------------------------------------------------------------- finding
     def _should_find(self):
         return (not self.tracks or self.lost_last_frame
-                or (len(self.tracks) < self.max_hands and self.frames_since_find >= self.redetect_every))
+                or (self.frames_since_find >= self.redetect_every
+                    and (len(self.tracks) < self.max_hands or self.reseed_iou > 0)))
 
     def _find(self, image):
         """New tracks for found hands that no track covers."""
@@ -238,7 +252,15 @@ class HandDetector:
         for box, score, right_prob in found:
             covering = [t for t in self.tracks if self._covers(t.crop, box)]
             if covering:
-                covering[0].add_handedness(right_prob, weight=0.5)
+                t = covering[0]
+                t.add_handedness(right_prob, weight=0.5)
+                if t.uv is not None and box_iou(square_box(t.uv), box)[0, 0] < self.reseed_iou:
+                    # the track's joints no longer match the hand the finder sees in its crop
+                    # (a track sliding up the forearm): start the crop again from the finder's box
+                    t.crop = crop_for_box(box, not t.is_right, self.crop_scale)
+                    t.velocity, t.uv = np.zeros(2), None
+                    self.stats["reseeds"] += 1
+                    new.append(t)
                 continue
             if len(self.tracks) + len(new) >= self.max_hands:
                 break
@@ -246,7 +268,7 @@ class HandDetector:
             track.add_handedness(right_prob)
             self.next_id += 1
             new.append(track)
-        self.tracks.extend(new)
+        self.tracks.extend(t for t in new if t not in self.tracks)
         return new
 
     @staticmethod

@@ -14,7 +14,9 @@ batches the uninterrupted run would have) mixes:
   the MediaPipe pseudo-labels of real_data.TRAIN_VIDEOS (weight = MediaPipe's score), cut
   like the detector cuts (square around the keypoint box x 1.3) with jitter;
 * negatives (presence 0, heatmaps 0): real video crops away from every labelled hand of
-  the frame, and procedural background textures (handmocap.synth.backgrounds).
+  the frame, crops of the forearm beyond each labelled wrist (`arm_crop`: a track that
+  slid up the arm must lose its presence), and procedural background textures
+  (handmocap.synth.backgrounds).
 Handedness ("does the crop show a right hand as it appears"): a share (--share-left) of
 hand crops is presented as a LEFT hand (a right hand mirrored, a left one left as it is);
 those train presence and handedness only, every other hand crop is presented as a right
@@ -36,6 +38,7 @@ import os
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from . import real_data
@@ -50,6 +53,7 @@ CTX = 176                    # real hand context crops: px, covering CTX_SCALE x
 CTX_SCALE = 2.4
 HELD_OUT_TAIL, HELD_OUT_GAP = 0.15, 15
 HOWIEMA_HELD_OUT = ("L8", "R8")
+REAL_CACHE = "real_v2.npz"          # v2: + arm-only negatives
 
 
 def add_arguments(p):
@@ -119,11 +123,12 @@ def build_real_cache(shared, path, seed=0, log=print):
 
     Hands: image (n,CTX,CTX,3), uv (n,21,2) in context px, right (n,) 1 if the hand appears
     as a right hand, weight (n,) label weight, held (n,) bool held-out, source (n,) str.
-    Negatives: neg (m,128,128,3) uint8 from training frames only, neg_held (m,) bool.
+    Negatives: neg (m,128,128,3) uint8, neg_held (m,) bool held-out, neg_arm (m,) bool an
+    arm-only crop (`arm_crop`).
     """
     rng = np.random.default_rng([seed, 99])
     hands = {k: [] for k in ("image", "uv", "right", "weight", "held", "source")}
-    negs, neg_held = [], []
+    negs, neg_held, neg_arm = [], [], []
 
     def add_hand(image, uv, right, weight, held, source):
         cx, cy, side = real_data.crop_box(uv, CTX_SCALE)
@@ -165,13 +170,54 @@ def build_real_cache(shared, path, seed=0, log=print):
                         M = real_data.crop_affine(x0 + side / 2, y0 + side / 2, side, 128)
                         negs.append(real_data.warp(image, M, 128))
                         neg_held.append(bool(held[f]))
+                        neg_arm.append(False)
                         break
+                for k, s in enumerate(slots):         # arm-only negatives: a tracked crop that slid up the forearm
+                    arm = arm_crop(lab["uv"][f, s], rng)
+                    others = [g for j, g in enumerate(grown) if j != k]
+                    if arm is not None and not _boxes_overlap(arm_box(arm), others) and \
+                            _inside_share(arm_box(arm), w, h) >= 0.8:   # the border fill mirrors the hand in
+                        negs.append(real_data.warp(image, arm, 128))
+                        neg_held.append(bool(held[f]))
+                        neg_arm.append(True)
         log(f"  {rel}: {len(hands['image'])} hands, {len(negs)} negatives so far")
     arrays = {k: np.asarray(v) for k, v in hands.items()}
     arrays["neg"], arrays["neg_held"] = np.asarray(negs, np.uint8).reshape(-1, 128, 128, 3), np.asarray(neg_held)
+    arrays["neg_arm"] = np.asarray(neg_arm, bool)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **arrays)
     return arrays
+
+
+def arm_crop(uv, rng, scale=1.3):
+    """The (2,3) affine of a 128 px crop of the forearm beside a hand with keypoints uv
+    (21,2): the hand's crop side (keypoint box x `scale`, x 0.8-1.2), centred beyond the
+    wrist along middle MCP -> wrist, far enough that no keypoint is inside it; None for a
+    degenerate hand. The forearm may be out of the frame (the warp repeats its border)."""
+    side = float(np.max(uv.max(0) - uv.min(0))) * scale * rng.uniform(0.8, 1.2)
+    d = uv[0] - uv[9]
+    if side < 16 or np.linalg.norm(d) < 1e-3:
+        return None
+    d = d / np.linalg.norm(d)
+    for reach in (0.7, 0.85, 1.0, 1.2):      # crop edge beyond the wrist, in crop sides
+        c = uv[0] + d * side * (reach + rng.uniform(-0.05, 0.1))
+        if not np.any(np.all(np.abs(uv - c) < side / 2 * 1.25, axis=1)):   # margin: the crop turns by up to 30 deg
+            return real_data.crop_affine(c[0], c[1], side, 128, angle_deg=rng.uniform(-30, 30))
+    return None
+
+
+def arm_box(M, size=128):
+    """(4,) x0 y0 x1 y1 image px bounding the crop of the (2,3) affine M (image -> crop)."""
+    inv = cv2.invertAffineTransform(M)
+    corners = np.array([[0, 0], [size, 0], [0, size], [size, size]], float) @ inv[:, :2].T + inv[:, 2]
+    return np.r_[corners.min(0), corners.max(0)]
+
+
+def _inside_share(box, w, h):
+    """Share of box (4,) x0 y0 x1 y1 inside a w x h image."""
+    ix = max(0.0, min(box[2], w) - max(box[0], 0.0))
+    iy = max(0.0, min(box[3], h) - max(box[1], 0.0))
+    return ix * iy / max((box[2] - box[0]) * (box[3] - box[1]), 1e-9)
 
 
 def _iou(a, b):
@@ -187,7 +233,7 @@ def load_real(shared, log=print):
     if not (Path(shared) / "labelled2d").exists():
         log(f"note: no real data pack at {shared}; training on synthetic data only")
         return None
-    path = DATA_DIR / "real_v1.npz"
+    path = DATA_DIR / REAL_CACHE
     if path.exists():
         with np.load(path) as data:
             return {k: data[k] for k in data.files}

@@ -44,6 +44,10 @@ def add_arguments(p):
                    help="handsynth generate --frames --size 160 output (default %(default)s)")
     p.add_argument("--data", type=Path, default=SHARED_DATA, help="real data pack (default %(default)s)")
     p.add_argument("--iters", type=int, default=1500)
+    p.add_argument("--real-stride", type=int, default=2, help="every n-th frame of the real videos (default %(default)s)")
+    p.add_argument("--real-zoom", type=float, nargs=2, default=(0.5, 1.0),
+                   help="window side / frame side of real frames: < 1 zooms in, > 1 shrinks the hand onto a grey "
+                        "border (default %(default)s)")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=3e-3, help="AdamW, cosine decay to lr/50")
     p.add_argument("--threads", type=int, default=2)
@@ -166,8 +170,9 @@ def targets(boxes, right):
 class Batches:
     """Training batches from real frames, synthetic frames and background crops."""
 
-    def __init__(self, real, synth, negatives):
+    def __init__(self, real, synth, negatives, real_zoom=(0.5, 1.0)):
         self.real, self.synth, self.negatives = real, synth, negatives
+        self.real_zoom = tuple(real_zoom)
 
     def make(self, rng, n):
         images, heats, regs, masks = [], [], [], []
@@ -181,7 +186,7 @@ class Batches:
             if source is None:
                 img, b, r = augment(rng, self.negatives[i], *none, zoom=(0.6, 1.0))
             else:
-                zoom = (0.5, 1.0) if source is self.real else (0.8, 1.0)
+                zoom = self.real_zoom if source is self.real else (0.8, 1.0)
                 img, b, r = augment(rng, source[0][i], source[1][i], source[2][i], zoom)
             h, g, m = targets(b, r)
             images.append(img)
@@ -301,14 +306,14 @@ def main(args):
     synth = load_synth(args.synth, range(n_shards - 1))
     synth_val = load_synth(args.synth, [n_shards - 1])
     have_real = (args.data / "video").is_dir()
-    real = load_real_frames(args.data, TRAIN_VIDEOS) if have_real else (np.zeros((0,)), None, None)
+    real = load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride) if have_real else (np.zeros((0,)), None, None)
     negatives = background_crops(Path(__file__).resolve().parent.parent)
     print(f"synthetic {len(synth[0])} (+{len(synth_val[0])} val), real {len(real[0])}, negatives {len(negatives)}")
     val_sets = {"synth": synth_val}
     if have_real:
         imgs, boxes, right = load_real_frames(args.data, VAL_VIDEOS, stride=1, size=INPUT_SIZE)
         val_sets["real"] = (imgs, boxes, right)
-    batches = Batches(real, synth, negatives)
+    batches = Batches(real, synth, negatives, args.real_zoom)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     start = 0
     if args.resume and ckpt.is_file():

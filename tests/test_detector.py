@@ -186,7 +186,7 @@ def two_hand_frames(n, drop=()):
 
 
 def test_track_ids_are_stable_over_a_two_hand_sequence_and_never_reused():
-    det = detector(redetect_every=5)
+    det = detector(redetect_every=5, reseed_iou=0.0)
     frames, truth = two_hand_frames(40, drop=range(20, 25))
     ids = []
     for i, (frame, (r, l_)) in enumerate(zip(frames, truth)):
@@ -206,12 +206,34 @@ def test_track_ids_are_stable_over_a_two_hand_sequence_and_never_reused():
     assert det.stats["finder_runs"] <= 1 + 1 + 2
 
 
-def test_tracked_hands_do_not_run_the_finder():
-    det = detector(redetect_every=5)
+def test_tracked_hands_do_not_run_the_finder_unless_it_checks_the_tracks():
+    det = detector(redetect_every=5, reseed_iou=0.0)
     frames, _ = two_hand_frames(30)
     for f in frames:
         det.process(f)
     assert det.finder.calls == 1 and det.stats["crops"] == 2 * 30 + 2    # + the refinement of each new track
+    det = detector(redetect_every=5)          # default: the finder checks the tracks every 5 frames
+    for f in frames:
+        det.process(f)
+    assert det.finder.calls == 1 + 29 // 5 and det.stats["reseeds"] == 0 and det.stats["crops"] == 2 * 30 + 2
+
+
+def test_a_track_whose_joints_left_the_found_hand_is_reseeded_from_the_finder():
+    det = detector(redetect_every=5)
+    frames, truth = two_hand_frames(12)
+    for f in frames[:3]:
+        det.process(f)
+    # a track that slid up the "forearm": its joints 120 px above the hand, its crop large
+    # enough to still hold the hand
+    t = next(t for t in det.tracks if t.is_right)
+    t.uv = truth[2][0] - (0, 120)
+    t.crop = CropTransform.around(t.uv.mean(0), 400)
+    det.frames_since_find = det.redetect_every - 1              # the finder's check comes next frame
+    for f in frames[3:]:
+        hands = {h["handedness"]: h for h in det.process(f)}
+    assert det.stats["reseeds"] == 1
+    assert {h["track_id"] for h in hands.values()} == {0, 1}               # the same tracks
+    np.testing.assert_allclose(hands["right"]["uv"], truth[-1][0], atol=DOT_TOL)
 
 
 def test_a_second_track_inside_a_hand_is_a_duplicate_and_crops_change_size_slowly():
