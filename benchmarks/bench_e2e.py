@@ -1,6 +1,7 @@
 """The whole graph against the same pipeline in one process, on 640x480 frames of one hand.
 
-    python benchmarks/bench_e2e.py [--frames 300] [--record-all] [--max-hands 2] [--no-container]
+    python benchmarks/bench_e2e.py [--frames 300] [--record-all] [--max-hands 2]
+                                   [--no-container | --source-outside] [--trace]
 
 Frames: the rendered demo clip (data/demo/hand_clip.mp4, 640x480, 30 fps, one right hand)
 played forwards and backwards until `--frames` long (no jump where it repeats, so the hand
@@ -10,10 +11,15 @@ Rows of the table:
 - graph @30 fps: handlaunch with replay (rate 1) -> detector (every_frame: keep-all, as
   launch/demo.yaml) -> shape -> ik -> recorder of /hand/pose only (the probe: its MCAP log
   time is the receipt time; with --record-all it records every topic as the demo does).
-  As in the product launch files, detector, shape and ik run in one container process
-  (`container: perception`, inproc:// between them); replay and the recorder are processes
-  of their own, so the frame and the pose still cross process boundaries. --no-container:
-  every node its own process (the graph before containers).
+  As in the product launch files, replay, detector, shape and ik run in one container
+  process (`container: perception`: threads sharing one zmq Context, inproc:// between
+  them; the frame reaches the detector without a socket, and its pixels without a copy on
+  the receiving side); the recorder is a process of its own, so the pose still crosses a
+  process boundary. --source-outside: replay a process of its own, only detector, shape
+  and ik in the container (the product's layout before the source joined it: the frame
+  crosses a unix socket). --no-container: every node its own process.
+  --trace: the 30 fps run with HANDMOCAP_TRACE, and the p50/p95 of each hop from the nodes'
+  publish and receive times (tracing itself costs a little).
   Latency = receipt of /hand/pose - capture stamp, p50/p95 over the frames after the first
   second (the start-up transient, when 5 processes start on 2 cores, is left out and
   reported on its own line).
@@ -61,6 +67,9 @@ from handmocap.frames import read_video
 ROOT = Path(__file__).resolve().parent.parent
 CLIP = ROOT / "data" / "demo" / "hand_clip.mp4"
 WARMUP_FRAMES = 30     # the first second at 30 fps
+LAYOUTS = {"source": "replay, detector, shape, ik in one container (the product's launch files); recorder apart",
+           "perception": "detector, shape, ik in one container; replay and recorder apart",
+           None: "every node its own process"}
 
 
 def make_clip(path: Path, n: int) -> tuple[list[np.ndarray], float]:
@@ -94,7 +103,7 @@ def children_cpu_s() -> float:
 
 
 def run_graph(tmp: Path, clip: Path, rate: float, record_all: bool, name: str, max_hands: int,
-              container: bool = True) -> dict:
+              container: str | None = "source", trace: Path | None = None) -> dict:
     """Launch the chain on `clip`; return pose stamps and receipt times (ns), the CPU seconds
     of the launcher and all its nodes, and the wall time of the run."""
     from handmocap.bag import iter_messages
@@ -102,9 +111,10 @@ def run_graph(tmp: Path, clip: Path, rate: float, record_all: bool, name: str, m
     bag = tmp / f"{name}.mcap"
     topics = "" if record_all else ", topics: [/hand/pose]"
     c = ", container: perception" if container else ""
+    cs = c if container == "source" else ""   # the product's layout: the source in the container too
     (tmp / f"{name}.yaml").write_text(f"""
 nodes:
-  replay: {{node: replay, params: {{source: "{clip}", rate: {rate}}}, required: true}}
+  replay: {{node: replay, params: {{source: "{clip}", rate: {rate}}}, required: true{cs}}}
   detector: {{node: detector, params: {{every_frame: true, max_hands: {max_hands}}}, required: true{c}}}
   shape: {{node: shape{c}}}
   ik: {{node: ik, required: true{c}}}
@@ -113,6 +123,9 @@ nodes:
     run_dir = tempfile.mkdtemp(prefix="hmb")
     env = {k: v for k, v in os.environ.items() if not k.startswith("HANDMOCAP_")}
     env["HANDMOCAP_RUN_DIR"] = run_dir
+    if trace is not None:
+        trace.mkdir(parents=True, exist_ok=True)
+        env["HANDMOCAP_TRACE"] = str(trace)
     cpu0, t0 = children_cpu_s(), time.monotonic()
     try:
         r = subprocess.run([sys.executable, "-m", "handmocap.launch", str(tmp / f"{name}.yaml")], env=env,
@@ -130,6 +143,50 @@ nodes:
         hands.append(len(m["hands"]))
     return {"stamp": np.array(stamps), "recv": np.array(received), "hands": np.array(hands), "cpu_s": cpu,
             "wall_s": wall}
+
+
+def trace_breakdown(trace: Path) -> list[tuple[str, float, float]]:
+    """Per-hop p50 / p95 ms from the nodes' HANDMOCAP_TRACE files (frames after the first
+    second): each node's receive and publish times (`pub0`: publish() called, `pub1`: sent),
+    matched by capture stamp."""
+    import json
+    ev: dict = {}
+    for f in trace.glob("*.trace.json"):
+        node = f.name.split(".")[0]
+        last = {}
+        for kind, topic, stamp, t in json.loads(f.read_text()):
+            if kind == "pub0":
+                last[topic] = stamp
+                ev[(node, "pub0", topic, stamp)] = t
+            elif kind == "pub1":
+                ev[(node, "pub1", topic, last.get(topic))] = t
+            else:
+                ev[(node, "recv", topic, stamp)] = t
+    stamps = sorted(s for (n, k, tp, s) in ev if n == "replay" and k == "pub0" and tp == "/camera/image")
+    stamps = stamps[WARMUP_FRAMES:]
+    # publish() called -> received: pack, send and the hop together (in a container the receiving
+    # thread may run before the sending one records `pub1`, so the two are not split)
+    segments = [
+        ("replay: capture stamp -> publish()", None, ("replay", "pub0", "/camera/image")),
+        ("frame: replay publish -> detector", ("replay", "pub0", "/camera/image"), ("detector", "recv", "/camera/image")),
+        ("  of which replay pack + send", ("replay", "pub0", "/camera/image"), ("replay", "pub1", "/camera/image")),
+        ("detector compute", ("detector", "recv", "/camera/image"), ("detector", "pub0", "/hand/keypoints")),
+        ("keypoints: detector publish -> ik", ("detector", "pub0", "/hand/keypoints"), ("ik", "recv", "/hand/keypoints")),
+        ("ik compute", ("ik", "recv", "/hand/keypoints"), ("ik", "pub0", "/hand/pose")),
+        ("pose: ik publish -> recorder", ("ik", "pub0", "/hand/pose"), ("recorder", "recv", "/hand/pose")),
+        ("total capture -> recorder", None, ("recorder", "recv", "/hand/pose")),
+    ]
+    out = []
+    for label, a, b in segments:
+        d = []
+        for s in stamps:
+            ta = s if a is None else ev.get((*a, s))
+            tb = s if b is None else ev.get((*b, s))
+            if ta is not None and tb is not None:
+                d.append((tb - ta) / 1e6)
+        if d:
+            out.append((label, float(np.percentile(d, 50)), float(np.percentile(d, 95))))
+    return out
 
 
 def latency_ms(run: dict) -> np.ndarray:
@@ -170,14 +227,20 @@ def main():
     ap.add_argument("--max-hands", type=int, default=2, help="the detector's max_hands (2: the product's default; "
                     "1: never a second, spurious track on this one-hand clip)")
     ap.add_argument("--no-container", action="store_true", help="every node its own process (no container)")
+    ap.add_argument("--source-outside", action="store_true", help="replay a process of its own, only detector, "
+                    "shape and ik in the container (the layout before the source joined it)")
+    ap.add_argument("--trace", action="store_true", help="also print the 30 fps run's per-hop times "
+                    "(HANDMOCAP_TRACE; tracing itself costs a little)")
     args = ap.parse_args()
-    container = not args.no_container
+    container = None if args.no_container else "perception" if args.source_outside else "source"
     load0 = os.getloadavg()
     tmp = Path(tempfile.mkdtemp(prefix="bench_e2e"))
     try:
         frames, decode_ms = make_clip(tmp / "clip.mp4", args.frames)
         make_clip(tmp / "short.mp4", WARMUP_FRAMES)
-        live = run_graph(tmp, tmp / "clip.mp4", 1.0, args.record_all, "live", args.max_hands, container)
+        live = run_graph(tmp, tmp / "clip.mp4", 1.0, args.record_all, "live", args.max_hands, container,
+                         trace=tmp / "trace" if args.trace else None)
+        hops = trace_breakdown(tmp / "trace") if args.trace else []
         fast = run_graph(tmp, tmp / "clip.mp4", 0.0, args.record_all, "fast", args.max_hands, container)
         short = run_graph(tmp, tmp / "short.mp4", 0.0, args.record_all, "short", args.max_hands, container)
         inproc = in_process(frames, args.max_hands)
@@ -199,7 +262,7 @@ def main():
 
     print(f"load average {load0[0]:.2f} at start; {n} frames of 640x480, one hand; max_hands {args.max_hands}; "
           f"recorder: {'every topic' if args.record_all else '/hand/pose only'}; "
-          f"{'detector, shape, ik in one container' if container else 'every node its own process'}")
+          f"{LAYOUTS[container]}")
     print(f"{'row':20s} {'poses':>6s} {'hands/frame':>11s} {'frames/s':>9s} {'p50 ms':>8s} {'p95 ms':>8s} "
           f"{'max ms':>8s} {'ms/frame':>9s} {'CPU ms/frame':>13s}")
     for name, run in (("graph @30 fps", live), ("graph unthrottled", fast)):
@@ -222,6 +285,9 @@ def main():
     print(f"graph CPU per frame: ({fast['cpu_s']:.2f} s over {n} frames - {short['cpu_s']:.2f} s over "
           f"{WARMUP_FRAMES}) / {n - WARMUP_FRAMES} = {graph_cpu_ms:.2f} ms, of which decoding the video "
           f"{decode_ms:.2f} ms (replay's; the in-process row gets decoded frames); load average {load1[0]:.2f} at the end")
+
+    for label, p50_, p95_ in hops:
+        print(f"  trace @30 fps: {label:36s} p50 {p50_:6.2f} ms  p95 {p95_:6.2f} ms")
 
     def verdict(ok):
         return "met" if ok else "NOT MET"

@@ -14,11 +14,17 @@ from conftest import DEMO_CLIP, graph_env, handlaunch, read_bag
 from handmocap.launch import ContainerSpec, LaunchError, load_launch_file, processes
 
 
-def chain(bag, rate=0, loop=False, container="perception", detector="", shape="", ik=""):
+def chain(bag, rate=0, loop=False, container="perception", detector="", shape="", ik="", source_inside=False,
+          source=None, source_entry=None):
+    """The demo chain; `source_inside`: the source in the container too (as the product's launch
+    files have it); `source`: another video; `source_entry`: another source node's entry."""
     c = f", container: {container}" if container else ""
+    cs = c if source_inside else ""
+    source_entry = source_entry or (f'replay: {{node: replay, params: {{source: "{source or DEMO_CLIP}", rate: {rate}, '
+                                    f'loop: {str(loop).lower()}}}, required: true{cs}}}')
     return f"""
 nodes:
-  replay: {{node: replay, params: {{source: "{DEMO_CLIP}", rate: {rate}, loop: {str(loop).lower()}}}, required: true}}
+  {source_entry}
   detector: {{node: detector, params: {{every_frame: true{detector}}}, required: true{c}}}
   shape: {{node: shape{shape}{c}}}
   ik: {{node: ik, required: true{c}{ik}}}
@@ -160,3 +166,144 @@ def test_failed_optional_node_in_a_container_leaves_the_others_running(tmp_path,
     assert r.returncode == 0 and "all nodes finished" in seen, seen
     assert "[shape] ERROR" in seen and "node shape failed (exit code 2); the container goes on without it" in seen
     assert len(read_bag(bag)["/hand/pose"]) == 90
+
+
+# -- the source inside the container (the product's launch files) -----------------------------
+@pytest.mark.parametrize("name, source", [("demo", "replay"), ("replay", "replay"), ("webcam", "camera"),
+                                          ("depthai", "depthai")])
+def test_product_launch_files_compose_the_source_with_perception(name, source):
+    """The frames reach the detector in-process; the recorder, visualizer and bridge are
+    processes of their own and get /camera/image over ipc."""
+    from conftest import ROOT
+    args = {"input": "x.mp4"} if name == "replay" else {}
+    procs = processes(load_launch_file(ROOT / "launch" / f"{name}.yaml", args).nodes)
+    containers = [p for p in procs if isinstance(p, ContainerSpec)]
+    assert len(containers) == 1 and containers[0].name == "perception"
+    assert [m.name for m in containers[0].members] == [source, "detector", "shape", "ik"]
+    assert containers[0].required
+    assert all(not isinstance(p, ContainerSpec) for p in procs if p is not containers[0])
+
+
+def test_source_in_the_container_sends_every_frame_to_a_recorder_outside_it(tmp_path, run_dir):
+    """replay, detector, shape, ik in one process: the recorder (another process) still gets
+    every frame over ipc, byte for byte decodable, and every frame's pose."""
+    bag = tmp_path / "o.mcap"
+    lf = write(tmp_path, chain(bag, source_inside=True))
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    pids = {}
+    deadline = time.monotonic() + 60
+    while proc.poll() is None and len(pids) < 5 and time.monotonic() < deadline:
+        for name in ("replay", "detector", "shape", "ik", "recorder"):
+            try:
+                pids[name] = json.loads((run_dir / f"{name}.json").read_text())["pid"]
+            except (OSError, ValueError, KeyError):
+                pass
+        time.sleep(0.02)
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and "all nodes finished" in out, out
+    assert "started 5 node(s)" in out and "in 2 processes" in out and "Traceback" not in out, out
+    assert pids["replay"] == pids["detector"] == pids["ik"] != pids["recorder"]
+    msgs = read_bag(bag)
+    from handmocap.frames import read_video
+    frames = read_video(DEMO_CLIP)
+    assert len(msgs["/camera/image"]) == len(frames) == 90
+    for (m, _), f in zip(msgs["/camera/image"][::15], frames[::15]):
+        np.testing.assert_array_equal(m["data"], f)
+    images = [m["header"]["stamp_ns"] for m, _ in msgs["/camera/image"]]
+    for topic in ("/camera/info", "/hand/keypoints", "/hand/shape", "/hand/pose"):
+        assert [m["header"]["stamp_ns"] for m, _ in msgs[topic]] == images, topic
+    assert np.mean([len(m["hands"]) == 1 for m, _ in msgs["/hand/pose"]]) >= 0.9
+
+
+def one_error(r, node, words):
+    """handlaunch's output holds one line naming the cause (from `node`) and the launcher's
+    verdict on the container; exit code 1; no traceback."""
+    seen = r.stdout + r.stderr
+    assert r.returncode == 1, seen
+    assert "Traceback" not in seen and "File \"" not in seen, seen
+    errors = [line for line in seen.splitlines() if "ERROR" in line or "error" in line.lower()]
+    assert len(errors) == 2, seen
+    assert errors[0].startswith(f"[{node}] ERROR ") and all(w in errors[0] for w in words), seen
+    assert errors[1].startswith("[handlaunch] error: required container perception (") \
+        and errors[1].endswith("failed (exit code 2); stopping the graph"), seen
+    return seen
+
+
+def test_corrupt_video_with_the_source_in_the_container(tmp_path, run_dir):
+    """The drill's corrupt-in-the-middle video, replay inside the container: one line names the
+    cause, the graph fails, and what the recorder got before is in its bag."""
+    from test_drills import corrupt_middle
+    bag = tmp_path / "o.mcap"
+    lf = write(tmp_path, chain(bag, source_inside=True, source=corrupt_middle(tmp_path / "cut.mp4")))
+    r = handlaunch([lf], run_dir, timeout=120)
+    one_error(r, "replay", ["cut.mp4", "decoding stopped at frame", "of 90", "corrupt"])
+    msgs = read_bag(bag)
+    assert len(msgs.get("/camera/image", [])) >= 1, "frames sent before the failure are in the bag"
+
+
+def test_camera_that_cannot_open_in_the_container(tmp_path, run_dir):
+    lf = write(tmp_path, chain(tmp_path / "o.mcap", source_entry="camera: {node: camera, params: {device: /dev/video99}, "
+                                                                  "required: true, container: perception}"))
+    r = handlaunch([lf], run_dir, timeout=120)
+    one_error(r, "camera", ["/dev/video99", "no such device"])
+
+
+def test_missing_model_with_the_source_in_the_container(tmp_path, run_dir):
+    lf = write(tmp_path, chain(tmp_path / "o.mcap", source_inside=True, detector=f", detnet: {tmp_path / 'nope.onnx'}"))
+    r = handlaunch([lf], run_dir, timeout=120)
+    seen = one_error(r, "detector", ["nope.onnx"])
+    assert "perception (replay, detector, shape, ik)" in seen
+
+
+def test_killed_container_with_the_source_respawns_and_poses_resume(tmp_path, run_dir):
+    """SIGKILL takes source and perception down together; the container respawns as one (the
+    source starts its video again) and every frame after it has its pose."""
+    bag = tmp_path / "o.mcap"
+    lf = write(tmp_path, chain(bag, rate=1.0, loop=True, source_inside=True, ik=", respawn: true, respawn_delay: 0.2"))
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    def info(name):
+        try:
+            return json.loads((run_dir / f"{name}.json").read_text())
+        except (OSError, ValueError):
+            return {}
+
+    def wait(what, pred, timeout=60):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if pred():
+                return
+            time.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {what}")
+
+    def poses():
+        return info("ik").get("stats", {}).get("published", {}).get("/hand/pose", 0)
+
+    try:
+        wait("30 poses", lambda: poses() >= 30)
+        victim = info("ik")["pid"]
+        assert info("replay")["pid"] == victim
+        kill_ns = time.time_ns()
+        os.kill(victim, signal.SIGKILL)
+        wait("a new container", lambda: info("ik").get("pid") not in (None, victim)
+             and info("replay").get("pid") == info("ik").get("pid"))
+        wait("30 poses after the respawn", lambda: poses() >= 30)
+        os.kill(info("replay")["pid"], signal.SIGTERM)   # the container ends; its end-of-stream ends the recorder
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0 and "all nodes finished" in out, out
+    assert "container perception (replay, detector, shape, ik) died (killed by signal 9); respawn in 0.2 s" in out, out
+    assert "Traceback" not in out, out
+    msgs = read_bag(bag)
+    images = np.array([m["header"]["stamp_ns"] for m, _ in msgs["/camera/image"]])
+    poses_ = np.array([m["header"]["stamp_ns"] for m, _ in msgs["/hand/pose"]])
+    assert (poses_ < kill_ns).sum() >= 30 and (poses_ > kill_ns).sum() >= 30
+    # every frame after the respawn has its pose, but for the last few: SIGTERM stops the
+    # container's nodes together (as Ctrl-C stops a graph), the one in flight may go unposed
+    after = images[images > kill_ns]
+    assert np.isin(after[:-3], poses_).all()

@@ -1,0 +1,86 @@
+"""The frame's path: a large Image decodes without copying its pixels (codec fast path), and
+malformed frames are still rejected with the same reasons as by a full unpack."""
+import msgpack
+import numpy as np
+import pytest
+
+from handmocap import codec
+from handmocap.frames import image_message
+
+
+def frame_payload(extra=None, view=False):
+    f = np.random.default_rng(1).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    msg = {"header": codec.header(3, "camera", 123), **(extra or {}), **image_message(f)}
+    return f, (codec.encode_view(msg) if view else codec.encode(msg))
+
+
+def slow_decode(payload, type_name):
+    """The full unpack (msgpack copies the pixels): what the fast path must agree with."""
+    old = codec._TAIL_MIN
+    codec._TAIL_MIN = 1 << 62
+    try:
+        return codec.decode(payload, type_name)
+    finally:
+        codec._TAIL_MIN = old
+
+
+@pytest.mark.parametrize("view", [False, True])
+def test_a_frame_decodes_as_a_read_only_view_of_the_payload(view):
+    f, payload = frame_payload(view=view)
+    out = codec.decode(payload, "Image")
+    np.testing.assert_array_equal(out["data"], f)
+    assert not out["data"].flags.writeable
+    # no copy: the pixels are the payload's own bytes
+    assert np.shares_memory(out["data"], np.frombuffer(payload, np.uint8))
+    ref = slow_decode(payload, "Image")
+    assert {k: v for k, v in out.items() if k != "data"} == {k: v for k, v in ref.items() if k != "data"}
+    assert not np.shares_memory(ref["data"], np.frombuffer(payload, np.uint8))
+
+
+def test_a_truncated_frame_is_rejected_as_by_a_full_unpack():
+    _, payload = frame_payload()
+    for cut in (payload[:-1], payload[:-100_000], payload[:len(payload) // 2]):
+        with pytest.raises(codec.MalformedMessage) as e:
+            codec.decode(cut, "Image")
+        with pytest.raises(codec.MalformedMessage) as ref:
+            slow_decode(cut, "Image")
+        assert e.value.reason == ref.value.reason == "msgpack", (e.value, ref.value)
+
+
+def test_pixels_that_do_not_fit_the_shape_are_rejected():
+    raw = msgpack.unpackb(frame_payload()[1])
+    raw["data"]["data"] = raw["data"]["data"][:-3]   # a whole message, 3 bytes short of (480,640,3)
+    payload = msgpack.packb(raw, use_bin_type=True)
+    assert len(payload) > codec._TAIL_MIN
+    with pytest.raises(codec.MalformedMessage) as e:
+        codec.decode(payload, "Image")
+    assert e.value.reason == "array-size" and "needs 921600 bytes, got 921597" in str(e.value)
+    raw["data"]["data"] += b"\0" * 3
+    raw["data"]["shape"] = [480, 640, "3"]
+    with pytest.raises(codec.MalformedMessage) as e:
+        codec.decode(msgpack.packb(raw, use_bin_type=True), "Image")
+    assert e.value.reason == "schema"
+
+
+def test_a_decoy_bin32_header_before_the_pixels_changes_nothing():
+    """A 0xc6 byte with the right length after it inside an earlier field: the fast path must
+    not split there (it falls back to the full unpack, or finds the real header)."""
+    f, payload = frame_payload({"note": b"\xc6\0\0\0\0"})
+    i = payload.index(b"\xc6\0\0\0\0")
+    payload = payload[:i + 1] + (len(payload) - i - 5).to_bytes(4, "big") + payload[i + 5:]
+    assert codec._tail_start(payload) == i   # the decoy is the first candidate
+    out = codec.decode(payload, "Image")
+    np.testing.assert_array_equal(out["data"], f)
+    assert out["note"] == payload[i:i + 5]
+
+
+def test_a_frame_whose_pixels_are_not_last_decodes_as_before():
+    """Only a payload whose last item is the long binary takes the fast path; a frame with a
+    field after its pixels is unpacked whole, as before."""
+    f = np.random.default_rng(2).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    payload = codec.encode({"header": codec.header(1), **image_message(f), "note": "after the pixels"})
+    assert len(payload) > codec._TAIL_MIN and codec._tail_start(payload) == -1
+    out = codec.decode(payload, "Image")
+    np.testing.assert_array_equal(out["data"], f)
+    assert out["note"] == "after the pixels"
+    assert not np.shares_memory(out["data"], np.frombuffer(payload, np.uint8))
