@@ -1,0 +1,54 @@
+"""DetNet alone on crops cut around the labelled hand, per prepared evaluation split
+(`handeval splits --work W`): what the 2D error would be with a perfect finder and tracker.
+
+    python scripts/eval_detnet_crops.py --work /tmp/handeval [--detnet models/detnet.onnx]
+
+Each labelled hand is cut the way the detector cuts a tracked hand (`crop_for_joints`: the
+square around its 21-joint box x CROP_SCALE, left hands mirrored by the label's handedness
+where the split has one), DetNet runs once, and its 2D joints are mapped back to the frame.
+Prints the mean px error in frame px and relative to the hand's joint-box side, to set
+beside `handeval splits`' whole-frame figures.
+"""
+import argparse
+import glob
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from handmocap.detector import DetNetRunner, crop_for_joints
+
+
+def evaluate(detnet, split_dir):
+    gt = np.load(split_dir / "gt.npz")
+    files = sorted(glob.glob(str(split_dir / "images" / "*")))
+    err, rel = [], []
+    for i, f in enumerate(files):
+        uv = gt["uv"][i]
+        if not np.all(np.isfinite(uv)):
+            continue
+        left = "handedness" in gt.files and gt["handedness"][i] == "left"
+        crop = crop_for_joints(uv, mirrored=left)
+        out = detnet(crop.cut(cv2.imread(f))[None, ..., ::-1])
+        e = np.linalg.norm(crop.to_frame(out["uv"][0]) - uv, axis=1).mean()
+        err.append(e)
+        rel.append(e / np.max(uv.max(0) - uv.min(0)))
+    return len(err), float(np.mean(err)), float(np.median(rel))
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--work", type=Path, default=Path("/tmp/handeval"))
+    p.add_argument("--detnet", type=Path, default=None)
+    p.add_argument("--splits", nargs="+", default=["temugeb_cam0", "temugeb_cam1", "howiema_040", "cmu_sample"])
+    args = p.parse_args()
+    detnet = DetNetRunner.load(args.detnet)
+    print("| split | hands | DetNet on labelled crops: mean px | median error / joint-box side |")
+    print("|---|---|---|---|")
+    for s in args.splits:
+        n, e, r = evaluate(detnet, args.work / s)
+        print(f"| {s} | {n} | {e:.1f} | {r:.3f} |")
+
+
+if __name__ == "__main__":
+    main()
