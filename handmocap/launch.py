@@ -34,6 +34,18 @@ exception) stops the whole container when that node is required or respawns (the
 exits with its code, and handlaunch fails the graph or respawns the container), else the
 others go on without it, as they would with separate processes.
 
+The product launch files put the source (replay, camera or depthai) with detector, shape and
+ik in container `perception` (ROS 2's intra-process pattern for camera drivers): a frame
+goes to the detector over inproc:// (zmq passes the pooled payload buffer, no socket, no
+kernel copy; the detector's decode views the pixels in it), while the recorder, visualizer
+and bridge, processes of their own, get /camera/image over ipc as before. zmq's I/O thread
+writes the frame to them; the source thread does not wait for it (SNDHWM 0). Sources,
+onnxruntime and OpenCV's decoding release the GIL while they work. A source that fails
+(a corrupt video, a camera that can't be opened) stops the container as a required node:
+its one error line, then handlaunch's verdict on the container; what the recorder received
+is in its bag. SIGTERM or a crash takes the source down with perception, and a respawn
+restarts them together.
+
 Everything is checked before any process starts; an error names the file, line and problem.
 The launcher returns when every node has finished (a finite replay ends, its end-of-stream
 drains the graph), with exit 1 if a required node failed; Ctrl-C/SIGTERM stops all nodes.

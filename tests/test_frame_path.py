@@ -84,3 +84,61 @@ def test_a_frame_whose_pixels_are_not_last_decodes_as_before():
     np.testing.assert_array_equal(out["data"], f)
     assert out["note"] == "after the pixels"
     assert not np.shares_memory(out["data"], np.frombuffer(payload, np.uint8))
+
+
+def test_in_a_container_the_detector_reads_the_sources_own_buffer(run_dir, monkeypatch):
+    """Two nodes as threads of one container (shared zmq Context, inproc://): the receiver's
+    pixels are the publisher's pooled payload buffer itself, past the message's small head:
+    no copy on the way (zero-copy send, inproc passes the message, decode views it)."""
+    import threading
+    import time
+    import uuid
+
+    import zmq
+
+    from handmocap import node as nm
+    ctx = zmq.Context()
+    monkeypatch.setitem(nm._SHARED, "ctx", ctx)
+    monkeypatch.setitem(nm._SHARED, "token", uuid.uuid4().hex)
+    sent, got = {}, []
+    encode_view = codec.encode_view
+
+    def spy(msg, type_name=None):
+        view = encode_view(msg, type_name)
+        sent[msg["header"]["seq"]] = (np.frombuffer(view, np.uint8).ctypes.data, len(view))
+        return view
+    monkeypatch.setattr(codec, "encode_view", spy)
+    subscribed = threading.Event()
+
+    def source():
+        nm._local.settings = {"HANDMOCAP_NODE_NAME": "src"}
+        with nm.Node("src") as n:
+            n.advertise("/camera/image", "Image")
+            subscribed.wait(10)
+            deadline = time.monotonic() + 10
+            while n.pub.subscriber_count("/camera/image") < 1 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            f = np.arange(480 * 640 * 3, dtype=np.uint32).astype(np.uint8).reshape(480, 640, 3)
+            for _ in range(6):
+                n.publish("/camera/image", image_message(f))
+                time.sleep(0.02)
+
+    def detector():
+        nm._local.settings = {"HANDMOCAP_NODE_NAME": "det"}
+        with nm.Node("det") as n:
+            n.subscribe("/camera/image", "Image", mode="all")
+            subscribed.set()
+            for m in n:
+                got.append((m.data["header"]["seq"], m.data["data"].ctypes.data, m.data["data"][479, 639, 2]))
+
+    threads = [threading.Thread(target=detector), threading.Thread(target=source)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    ctx.term()
+    assert [s for s, _, _ in got] == list(range(6))
+    assert all(px == (480 * 640 * 3 - 1) % 256 for _, _, px in got)
+    # the first message on a socket is received as bytes (its size is not known yet), the rest in place
+    offsets = {addr - sent[seq][0] for seq, addr, _ in got[1:]}
+    assert len(offsets) == 1 and 0 < offsets.pop() < 200, got
