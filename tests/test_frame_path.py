@@ -142,3 +142,18 @@ def test_in_a_container_the_detector_reads_the_sources_own_buffer(run_dir, monke
     # the first message on a socket is received as bytes (its size is not known yet), the rest in place
     offsets = {addr - sent[seq][0] for seq, addr, _ in got[1:]}
     assert len(offsets) == 1 and 0 < offsets.pop() < 200, got
+
+
+def test_replay_decodes_just_in_time_and_keeps_the_frame_rate(tmp_path, monkeypatch):
+    """At rate 1, replay decodes each frame shortly before it is due (not while the graph still
+    works on the previous one) and still sends every frame on the source's clock."""
+    from conftest import DEMO_CLIP
+    from source_nodes import run_source
+    r = run_source("handmocap.nodes.replay", {"source": str(DEMO_CLIP), "rate": 1.0})
+    assert r.returncode == 0, r.stderr
+    stamps = np.array([m["header"]["stamp_ns"] for m in r.messages["/camera/image"]]) / 1e9
+    assert len(stamps) == 90
+    late = (stamps - stamps[0]) - np.arange(90) / 30.0   # behind the 30 fps schedule, s
+    assert np.median(np.diff(stamps)) == pytest.approx(1 / 30, abs=0.002)
+    assert np.percentile(late, 50) < 0.005 and late.max() < 0.25, late
+
