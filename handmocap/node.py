@@ -500,6 +500,8 @@ class Node:
             return
         _OPEN_NODES.discard(self)
         if self._trace:
+            if threading.get_ident() == self._thread:   # the CPU time of this node's own thread
+                self._trace.append(("cpu", None, None, time.thread_time_ns()))
             Path(os.environ["HANDMOCAP_TRACE"], f"{self.name}.trace.json").write_text(json.dumps(self._trace))
         if self.info.publishes and not self._graph_ready and not self._stop.is_set():
             self.wait_for_subscribers(2.0)   # they must be connected to hear the end-of-stream
