@@ -307,3 +307,25 @@ def test_killed_container_with_the_source_respawns_and_poses_resume(tmp_path, ru
     # container's nodes together (as Ctrl-C stops a graph), the one in flight may go unposed
     after = images[images > kill_ns]
     assert np.isin(after[:-3], poses_).all()
+
+
+def test_a_slow_keep_all_image_subscriber_outside_does_not_hold_the_source(tmp_path, run_dir):
+    """The source in the container, a keep-all consumer of /camera/image in another process
+    that takes 100 ms a frame (3x slower than the camera): zmq's I/O thread queues the frames
+    for it; the source keeps the 30 fps clock and the poses' latency stays that of a frame's
+    processing, not of the slow consumer's backlog; the consumer still gets every frame."""
+    bag = tmp_path / "o.mcap"
+    sink = (f"  slow: {{node: graphnodes.sink, params: {{topic: /camera/image, mode: all, work_s: 0.1, "
+            f"out: {tmp_path}/slow.json}}}}\n")
+    lf = write(tmp_path, chain(bag, rate=1.0, source_inside=True) + sink)
+    r = handlaunch([lf], run_dir, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    msgs = read_bag(bag)
+    images = np.array([m["header"]["stamp_ns"] for m, _ in msgs["/camera/image"]]) / 1e9
+    assert len(images) == 90
+    late = (images - images[0]) - np.arange(90) / 30.0
+    assert np.median(late) < 0.01 and late.max() < 0.5, late   # the source was not held up
+    lat = np.array([(log_ns - m["header"]["stamp_ns"]) / 1e6 for m, log_ns in msgs["/hand/pose"]])
+    assert len(lat) == 90 and np.median(lat[30:]) < 100, lat   # not the consumer's seconds of backlog
+    seen = json.loads((tmp_path / "slow.json").read_text())
+    assert seen["seqs"] == list(range(90)) and max(seen["ages_ms"]) > 3000, seen["ages_ms"][-3:]
