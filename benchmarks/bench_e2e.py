@@ -17,7 +17,9 @@ Rows of the table:
   the receiving side); the recorder is a process of its own, so the pose still crosses a
   process boundary. --source-outside: replay a process of its own, only detector, shape
   and ik in the container (the product's layout before the source joined it: the frame
-  crosses a unix socket). --no-container: every node its own process.
+  crosses a unix socket). --no-container: every node its own process. At rate 1, replay
+  decodes each frame just before it is due (as a camera delivers it), not while the graph
+  still works on the previous one.
   --trace: the 30 fps run with HANDMOCAP_TRACE, and the p50/p95 of each hop from the nodes'
   publish and receive times, and each node thread's CPU time over the run per frame
   (start-up and idle polling included; OpenCV's decoding threads, zmq's I/O threads and the
