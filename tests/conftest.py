@@ -1,8 +1,10 @@
+import json
 import os
 import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -107,3 +109,27 @@ def pose_latencies_ms(bag_msgs):
     """(N,) ms from each /hand/pose's capture stamp to its receipt by the recorder, in order."""
     import numpy as np
     return np.array([(log_ns - m["header"]["stamp_ns"]) / 1e6 for m, log_ns in bag_msgs.get("/hand/pose", [])])
+
+
+# -- a running graph's node files (heartbeats) ---------------------------------------------
+def node_file(run_dir, name):
+    try:
+        return json.loads((run_dir / f"{name}.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def wait_until(what, predicate, timeout_s=60):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def published(run_dir, name, topic):
+    """How many messages node `name` says (in its heartbeat file, every 0.5 s) it published on topic."""
+    info = node_file(run_dir, name)
+    return info["stats"]["published"].get(topic, 0) if info and info.get("stats") else 0

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import DEMO_CLIP, graph_env, handlaunch, read_bag
+from conftest import DEMO_CLIP, graph_env, handlaunch, node_file, published, read_bag, wait_until
 from handmocap.launch import ContainerSpec, LaunchError, load_launch_file, processes
 
 
@@ -108,21 +108,12 @@ def test_killed_container_respawns_and_poses_resume(tmp_path, run_dir):
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
     def info(name):
-        try:
-            return json.loads((run_dir / f"{name}.json").read_text())
-        except (OSError, ValueError):
-            return {}
-
-    def wait(what, pred, timeout=60):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if pred():
-                return
-            time.sleep(0.05)
-        raise AssertionError(f"timed out waiting for {what}")
+        return node_file(run_dir, name) or {}
 
     def poses():
-        return info("ik").get("stats", {}).get("published", {}).get("/hand/pose", 0)
+        return published(run_dir, "ik", "/hand/pose")
+
+    wait = wait_until
 
     try:
         wait("30 poses", lambda: poses() >= 30)
@@ -265,21 +256,12 @@ def test_killed_container_with_the_source_respawns_and_poses_resume(tmp_path, ru
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
     def info(name):
-        try:
-            return json.loads((run_dir / f"{name}.json").read_text())
-        except (OSError, ValueError):
-            return {}
-
-    def wait(what, pred, timeout=60):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if pred():
-                return
-            time.sleep(0.05)
-        raise AssertionError(f"timed out waiting for {what}")
+        return node_file(run_dir, name) or {}
 
     def poses():
-        return info("ik").get("stats", {}).get("published", {}).get("/hand/pose", 0)
+        return published(run_dir, "ik", "/hand/pose")
+
+    wait = wait_until
 
     try:
         wait("30 poses", lambda: poses() >= 30)

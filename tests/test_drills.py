@@ -16,36 +16,13 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import DEMO_CLIP, ROOT, chain_yaml, graph_env, handlaunch, pose_latencies_ms, read_bag
+from conftest import (DEMO_CLIP, ROOT, chain_yaml, graph_env, handlaunch, node_file, pose_latencies_ms, published,
+                      read_bag, wait_until)
 
 FRAME_PERIOD_S = 1 / 30
 MAX_RESPAWN_GAP_S = 20.0     # capture time without /hand/pose around a killed detector; measured 0.7-1.4 s
 WARMUP_FRAMES = 30           # start-up transient left out of latency comparisons (see test_e2e)
 ROUNDS = 2                   # runs with and without the slow subscribers, alternating
-
-
-# -- helpers ------------------------------------------------------------------------------
-def node_file(run_dir, name):
-    try:
-        return json.loads((run_dir / f"{name}.json").read_text())
-    except (OSError, ValueError):
-        return None
-
-
-def wait_until(what, predicate, timeout_s=60):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
-def published(run_dir, name, topic):
-    """How many messages node `name` says (in its heartbeat file, every 0.5 s) it published on topic."""
-    info = node_file(run_dir, name)
-    return info["stats"]["published"].get(topic, 0) if info and info.get("stats") else 0
 
 
 # -- (a) a killed detector respawns ----------------------------------------------------------
