@@ -174,9 +174,10 @@ def build_real_cache(shared, path, seed=0, log=print):
                         break
                 for k, s in enumerate(slots):         # arm-only negatives: a tracked crop that slid up the forearm
                     arm = arm_crop(lab["uv"][f, s], rng)
-                    others = [g for j, g in enumerate(grown) if j != k]
-                    if arm is not None and not _boxes_overlap(arm_box(arm), others) and \
-                            _inside_share(arm_box(arm), w, h) >= 0.8:   # the border fill mirrors the hand in
+                    if arm is None:
+                        continue
+                    box, others = arm_box(arm), [g for j, g in enumerate(grown) if j != k]
+                    if not _boxes_overlap(box, others) and _inside_share(box, w, h) >= 0.8:   # the border fill mirrors the hand in
                         negs.append(real_data.warp(image, arm, 128))
                         neg_held.append(bool(held[f]))
                         neg_arm.append(True)

@@ -14,13 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from handmocap.detector import square_box
 from handmocap.hand_finder import HandFinder, box_iou
-
-
-def square_box(uv):
-    lo, hi = uv.min(0), uv.max(0)
-    c, s = (lo + hi) / 2, np.max(hi - lo)
-    return np.concatenate([c - s / 2, c + s / 2])
 
 
 def evaluate(finder, split_dir, threshold):
