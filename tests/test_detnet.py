@@ -132,3 +132,24 @@ def test_committed_model_interface():
     assert presence.shape == right.shape == (2,)
     assert uv.dtype == np.float32 and np.all((uv >= -8) & (uv <= 136))
     assert np.all((conf >= 0) & (conf <= 1)) and np.all((presence >= 0) & (presence <= 1))
+
+
+def test_arm_negatives_hold_no_keypoint_and_lie_beyond_the_wrist():
+    from handmocap import real_data
+    from handmocap.train_detnet import arm_crop
+    rng = np.random.default_rng(0)
+    for k in range(50):
+        hand = rng.uniform(-1, 1, (21, 2)) * 40 + 300
+        hand[0], hand[9] = (300, 360), (300, 290)          # wrist below the middle MCP: the arm runs down
+        M = arm_crop(hand, rng)
+        assert M is not None
+        inside = real_data.apply_affine(M, hand)
+        assert not np.any(np.all((inside >= 0) & (inside <= 127), axis=1)), k
+        centre = cv_inverse(M) @ np.array([63.5, 63.5, 1.0])
+        assert centre[1] > hand[0, 1]                      # past the wrist, on the forearm's side
+
+
+def cv_inverse(M):
+    """(2,3) affine -> its inverse (2,3)."""
+    A = np.linalg.inv(M[:, :2])
+    return np.hstack([A, -A @ M[:, 2:]])
