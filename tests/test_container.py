@@ -67,24 +67,62 @@ def test_bad_containers_are_rejected_with_file_and_line(tmp_path, replace, words
     assert str(e.value).startswith(f"{path}:") and words in str(e.value), str(e.value)
 
 
+def start_graph(lf, run_dir):
+    return subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def node_files_while_running(proc, run_dir, names, timeout_s=60):
+    """{name: node file} of every node in `names` as soon as each has written one (a short
+    graph's files go when it ends, so they are read while it runs)."""
+    files = {}
+    deadline = time.monotonic() + timeout_s
+    while proc.poll() is None and len(files) < len(names) and time.monotonic() < deadline:
+        for name in names:
+            info = node_file(run_dir, name)
+            if info and "pid" in info:
+                files[name] = info
+        time.sleep(0.02)
+    return files
+
+
+def kill_the_container_midway(lf, run_dir, member):
+    """Run the looping graph `lf`; after 30 poses SIGKILL the container that holds ik and
+    `member`, wait until it is back (one new pid for both) with 30 more poses, then end the
+    source with SIGTERM. Returns (handlaunch's exit code, its output, the kill's time ns)."""
+    proc = start_graph(lf, run_dir)
+
+    def pid(name):
+        return (node_file(run_dir, name) or {}).get("pid")
+
+    def poses():
+        return published(run_dir, "ik", "/hand/pose")
+
+    try:
+        wait_until("30 poses", lambda: poses() >= 30)
+        victim = pid("ik")
+        assert pid(member) == victim
+        kill_ns = time.time_ns()
+        os.kill(victim, signal.SIGKILL)
+        wait_until("a new container", lambda: pid("ik") not in (None, victim) and pid(member) == pid("ik"))
+        wait_until("30 poses after the respawn", lambda: poses() >= 30)
+        os.kill(pid("replay"), signal.SIGTERM)   # ends the source; its end-of-stream ends the graph
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            out, _ = proc.communicate(timeout=30)
+    return proc.returncode, out, kill_ns
+
+
 def test_container_delivers_every_pose_to_a_recorder_outside_it(tmp_path, run_dir):
     """detector + shape + ik in one process; replay and the recorder are processes of their
     own: the recorder gets every frame's keypoints, shape and pose (published inside the
     container, received outside), and the container's nodes run in one pid."""
     bag = tmp_path / "o.mcap"
-    lf = write(tmp_path, chain(bag))
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    pids = {}
-    deadline = time.monotonic() + 60
-    while proc.poll() is None and len(pids) < 5 and time.monotonic() < deadline:
-        for name in ("replay", "detector", "shape", "ik", "recorder"):
-            try:
-                info = json.loads((run_dir / f"{name}.json").read_text())
-                pids[name] = (info["pid"], info.get("inproc"))
-            except (OSError, ValueError):
-                pass
-        time.sleep(0.02)
+    proc = start_graph(write(tmp_path, chain(bag)), run_dir)
+    pids = {name: (info["pid"], info.get("inproc")) for name, info in
+            node_files_while_running(proc, run_dir, ("replay", "detector", "shape", "ik", "recorder")).items()}
     out, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0 and "all nodes finished" in out, out
     assert "started 5 node(s)" in out and "in 3 processes" in out, out
@@ -104,32 +142,8 @@ def test_killed_container_respawns_and_poses_resume(tmp_path, run_dir):
     takes the whole container (detector, shape, ik) down; it respawns as one and poses resume."""
     bag = tmp_path / "o.mcap"
     lf = write(tmp_path, chain(bag, rate=1.0, loop=True, ik=", respawn: true, respawn_delay: 0.2"))
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-    def info(name):
-        return node_file(run_dir, name) or {}
-
-    def poses():
-        return published(run_dir, "ik", "/hand/pose")
-
-    wait = wait_until
-
-    try:
-        wait("30 poses", lambda: poses() >= 30)
-        victim = info("ik")["pid"]
-        assert info("detector")["pid"] == victim
-        os.kill(victim, signal.SIGKILL)
-        wait("a new container", lambda: info("ik").get("pid") not in (None, victim)
-             and info("detector").get("pid") == info("ik").get("pid"))
-        wait("30 poses after the respawn", lambda: poses() >= 30)
-        os.kill(info("replay")["pid"], signal.SIGTERM)
-        out, _ = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            out, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 0 and "all nodes finished" in out, out
+    returncode, out, _ = kill_the_container_midway(lf, run_dir, "detector")
+    assert returncode == 0 and "all nodes finished" in out, out
     assert "container perception (detector, shape, ik) died (killed by signal 9); respawn in 0.2 s" in out, out
     assert "respawning perception" in out and "Traceback" not in out, out
     kill_poses = [m for m, _ in read_bag(bag)["/hand/pose"]]
@@ -179,18 +193,9 @@ def test_source_in_the_container_sends_every_frame_to_a_recorder_outside_it(tmp_
     """replay, detector, shape, ik in one process: the recorder (another process) still gets
     every frame over ipc, byte for byte decodable, and every frame's pose."""
     bag = tmp_path / "o.mcap"
-    lf = write(tmp_path, chain(bag, source_inside=True))
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    pids = {}
-    deadline = time.monotonic() + 60
-    while proc.poll() is None and len(pids) < 5 and time.monotonic() < deadline:
-        for name in ("replay", "detector", "shape", "ik", "recorder"):
-            try:
-                pids[name] = json.loads((run_dir / f"{name}.json").read_text())["pid"]
-            except (OSError, ValueError, KeyError):
-                pass
-        time.sleep(0.02)
+    proc = start_graph(write(tmp_path, chain(bag, source_inside=True)), run_dir)
+    pids = {name: info["pid"] for name, info in
+            node_files_while_running(proc, run_dir, ("replay", "detector", "shape", "ik", "recorder")).items()}
     out, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0 and "all nodes finished" in out, out
     assert "started 5 node(s)" in out and "in 2 processes" in out and "Traceback" not in out, out
@@ -252,33 +257,8 @@ def test_killed_container_with_the_source_respawns_and_poses_resume(tmp_path, ru
     source starts its video again) and every frame after it has its pose."""
     bag = tmp_path / "o.mcap"
     lf = write(tmp_path, chain(bag, rate=1.0, loop=True, source_inside=True, ik=", respawn: true, respawn_delay: 0.2"))
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-    def info(name):
-        return node_file(run_dir, name) or {}
-
-    def poses():
-        return published(run_dir, "ik", "/hand/pose")
-
-    wait = wait_until
-
-    try:
-        wait("30 poses", lambda: poses() >= 30)
-        victim = info("ik")["pid"]
-        assert info("replay")["pid"] == victim
-        kill_ns = time.time_ns()
-        os.kill(victim, signal.SIGKILL)
-        wait("a new container", lambda: info("ik").get("pid") not in (None, victim)
-             and info("replay").get("pid") == info("ik").get("pid"))
-        wait("30 poses after the respawn", lambda: poses() >= 30)
-        os.kill(info("replay")["pid"], signal.SIGTERM)   # the container ends; its end-of-stream ends the recorder
-        out, _ = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            out, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 0 and "all nodes finished" in out, out
+    returncode, out, kill_ns = kill_the_container_midway(lf, run_dir, "replay")
+    assert returncode == 0 and "all nodes finished" in out, out
     assert "container perception (replay, detector, shape, ik) died (killed by signal 9); respawn in 0.2 s" in out, out
     assert "Traceback" not in out, out
     msgs = read_bag(bag)
