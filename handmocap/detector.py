@@ -38,7 +38,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .hand_finder import HandFinder, box_iou
+from .hand_finder import HandFinder, box_iou, square
 from .onnx_models import open_session
 from .rotations import mirror_points
 from .skeleton import normalize_joints
@@ -127,9 +127,7 @@ def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE):
 
 def square_box(uv):
     """(4,) x0, y0, x1, y1 of the square around joints uv (21,2) (the finder's box)."""
-    lo, hi = np.nanmin(uv, axis=0), np.nanmax(uv, axis=0)
-    c, half = (lo + hi) / 2, float(np.max(hi - lo)) / 2
-    return np.array([c[0] - half, c[1] - half, c[0] + half, c[1] + half])
+    return square(np.concatenate([np.nanmin(uv, axis=0), np.nanmax(uv, axis=0)]))
 
 
 def crop_for_box(box, mirrored=False, scale=CROP_SCALE):

@@ -87,6 +87,13 @@ def box_iou(a, b):
     return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
 
 
+def square(boxes):
+    """(..., 4) boxes -> the squares of side max(width, height) on the same centres (the
+    finder's box around a hand's 21-joint box)."""
+    c, side = (boxes[..., :2] + boxes[..., 2:]) / 2, np.max(boxes[..., 2:] - boxes[..., :2], -1, keepdims=True)
+    return np.concatenate([c - side / 2, c + side / 2], -1)
+
+
 def sigmoid(x):
     return 1.0 / (1.0 + np.exp(-np.asarray(x, dtype=np.float64)))
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .hand_finder import BORDER_VALUE, GRID, INPUT_SIZE, STRIDE, box_iou, decode, letterbox
+from .hand_finder import BORDER_VALUE, GRID, INPUT_SIZE, STRIDE, box_iou, decode, letterbox, square
 from .training import warmup_cosine_lr
 
 RUN_DIR = Path("runs/finder")
@@ -242,12 +242,6 @@ def losses(out, heat, reg, mask):
     l_hand = (F.binary_cross_entropy_with_logits(out[:, 4], reg[:, 3], reduction="none") * mask).sum() / n
     return l_heat + l_off + l_size + 0.5 * l_hand, {"heat": l_heat.item(), "off": l_off.item(),
                                                      "size": l_size.item(), "hand": l_hand.item()}
-
-
-def square(boxes):
-    """(..., 4) boxes -> the squares of side max(width, height) on the same centres."""
-    c, side = (boxes[..., :2] + boxes[..., 2:]) / 2, np.max(boxes[..., 2:] - boxes[..., :2], -1, keepdims=True)
-    return np.concatenate([c - side / 2, c + side / 2], -1)
 
 
 def evaluate(model, images, boxes, right, threshold=0.3):
