@@ -236,7 +236,8 @@ class HandDetector:
                     and (len(self.tracks) < self.max_hands or self.reseed_iou > 0)))
 
     def _find(self, image):
-        """New tracks for found hands that no track covers."""
+        """New tracks for found hands that no track covers, and the tracks re-seeded: both
+        are refined from their first prediction."""
         self.stats["finder_runs"] += 1
         self.frames_since_find = 0
         h, w = image.shape[:2]
@@ -246,7 +247,7 @@ class HandDetector:
         else:
             found = [(f.box, f.score, f.right_prob) for f in self.finder.find(image, self.finder_threshold,
                                                                              self.max_hands)]
-        new = []
+        new, reseeded = [], []
         for box, score, right_prob in found:
             covering = [t for t in self.tracks if self._covers(t.crop, box)]
             if covering:
@@ -258,7 +259,7 @@ class HandDetector:
                     t.crop = crop_for_box(box, not t.is_right, self.crop_scale)
                     t.velocity, t.uv = np.zeros(2), None
                     self.stats["reseeds"] += 1
-                    new.append(t)
+                    reseeded.append(t)
                 continue
             if len(self.tracks) + len(new) >= self.max_hands:
                 break
@@ -266,8 +267,8 @@ class HandDetector:
             track.add_handedness(right_prob)
             self.next_id += 1
             new.append(track)
-        self.tracks.extend(t for t in new if t not in self.tracks)
-        return new
+        self.tracks.extend(new)
+        return new + reseeded
 
     @staticmethod
     def _covers(crop, box):

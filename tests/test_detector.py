@@ -298,3 +298,17 @@ nodes:
     frames = len(np.load(ROOT / "data" / "demo" / "hand_clip.npz")["uv"])
     assert len(stamps["Image"]) == frames
     assert stamps["HandKeypoints"] == stamps["Image"]
+
+
+def test_a_reseeded_track_does_not_take_a_new_hands_place():
+    det = detector(redetect_every=5, max_hands=2)
+    frames, truth = two_hand_frames(12, drop=range(0, 3))      # the left hand appears at frame 3
+    for f in frames[:3]:
+        det.process(f)
+    assert len(det.tracks) == 1
+    t = det.tracks[0]
+    t.uv = truth[2][0] - (0, 120)                              # the right track slid off its hand
+    t.crop = CropTransform.around(t.uv.mean(0), 400)
+    det.frames_since_find = det.redetect_every - 1
+    hands = {h["handedness"]: h for h in det.process(frames[3])}
+    assert det.stats["reseeds"] == 1 and set(hands) == {"right", "left"}   # re-seeded, and the new hand found
