@@ -53,7 +53,7 @@ CTX = 176                    # real hand context crops: px, covering CTX_SCALE x
 CTX_SCALE = 2.4
 HELD_OUT_TAIL, HELD_OUT_GAP = 0.15, 15
 HOWIEMA_HELD_OUT = ("L8", "R8")
-REAL_CACHE = "real_v2.npz"          # v2: + arm-only negatives
+REAL_CACHE = "real_v3.npz"          # v2: + arm-only negatives; v3: frame edges repeated as the detector repeats them
 
 
 def add_arguments(p):
@@ -135,7 +135,7 @@ def build_real_cache(shared, path, seed=0, log=print):
         if side < 16:
             return
         M = real_data.crop_affine(cx, cy, side, CTX)
-        hands["image"].append(real_data.warp(image, M, CTX))
+        hands["image"].append(real_data.warp(image, M, CTX, replicate=True))
         hands["uv"].append(real_data.apply_affine(M, uv).astype(np.float32))
         for k, v in (("right", right), ("weight", weight), ("held", held), ("source", source)):
             hands[k].append(v)
@@ -168,7 +168,7 @@ def build_real_cache(shared, path, seed=0, log=print):
                     x0, y0 = rng.uniform(0, w - side), rng.uniform(0, h - side)
                     if not _boxes_overlap((x0, y0, x0 + side, y0 + side), grown):
                         M = real_data.crop_affine(x0 + side / 2, y0 + side / 2, side, 128)
-                        negs.append(real_data.warp(image, M, 128))
+                        negs.append(real_data.warp(image, M, 128, replicate=True))
                         neg_held.append(bool(held[f]))
                         neg_arm.append(False)
                         break
@@ -177,8 +177,8 @@ def build_real_cache(shared, path, seed=0, log=print):
                     if arm is None:
                         continue
                     box, others = arm_box(arm), [g for j, g in enumerate(grown) if j != k]
-                    if not _boxes_overlap(box, others) and _inside_share(box, w, h) >= 0.8:   # the border fill mirrors the hand in
-                        negs.append(real_data.warp(image, arm, 128))
+                    if not _boxes_overlap(box, others) and _inside_share(box, w, h) >= 0.8:   # mostly inside the frame: not a streak of repeated edge pixels
+                        negs.append(real_data.warp(image, arm, 128, replicate=True))
                         neg_held.append(bool(held[f]))
                         neg_arm.append(True)
         log(f"  {rel}: {len(hands['image'])} hands, {len(negs)} negatives so far")
