@@ -26,6 +26,8 @@ TRAIN_VIDEOS = (
     "video/tfjs_asl_hand/asl_hand.25fps.mp4",
 )
 HOWIEMA_TRAIN_SUBJECT, HOWIEMA_EVAL_SUBJECT = "001", "040"
+HOWIEMA_HELD_OUT = ("L8", "R8")          # sequences of subject 001 kept for training-side validation
+HELD_OUT_TAIL, HELD_OUT_GAP = 0.15, 15   # of every training video: the last 15% validate, 15 frames apart
 
 # RHD: wrist, then each finger tip..base. InterHand: each finger tip..base, wrist last.
 RHD_TO_MP = np.array([0, 4, 3, 2, 1, 8, 7, 6, 5, 12, 11, 10, 9, 16, 15, 14, 13, 20, 19, 18, 17])
@@ -56,6 +58,15 @@ def _sample(image, uv, visible=None, handedness=None, xyz=None, K=None, name="")
 
 
 # ------------------------------------------------------------------ videos + MediaPipe pseudo-labels
+def video_split(n_frames):
+    """(train mask, held-out mask) over a training video's frames: the last HELD_OUT_TAIL
+    held out for validation, HELD_OUT_GAP frames between them so that no training frame
+    nearly repeats a held-out one."""
+    cut = int(round(n_frames * (1 - HELD_OUT_TAIL)))
+    idx = np.arange(n_frames)
+    return idx < cut - HELD_OUT_GAP, idx >= cut
+
+
 def load_pseudo_labels(video_path):
     """The `<stem>.mediapipe.npz` beside a video: dict of arrays uv (F,2,21,2), world,
     score (F,2), handedness (F,2) int8 0 Right / 1 Left / -1 empty, found (F,2), fps, size."""

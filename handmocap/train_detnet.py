@@ -51,8 +51,6 @@ DATA_DIR = Path("runs/detnet_data")
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "models" / "detnet.onnx"
 CTX = 176                    # real hand context crops: px, covering CTX_SCALE x the keypoint box
 CTX_SCALE = 2.4
-HELD_OUT_TAIL, HELD_OUT_GAP = 0.15, 15
-HOWIEMA_HELD_OUT = ("L8", "R8")
 REAL_CACHE = "real_v3.npz"          # v2: + arm-only negatives; v3: frame edges repeated as the detector repeats them
 
 
@@ -106,13 +104,6 @@ def load_synth(dirs, limit):
 
 
 # ------------------------------------------------------------------ real data
-def _video_split(n_frames):
-    """(train mask, held-out mask) over frames: the last 15% held out, 15 frames gap."""
-    cut = int(round(n_frames * (1 - HELD_OUT_TAIL)))
-    idx = np.arange(n_frames)
-    return idx < cut - HELD_OUT_GAP, idx >= cut
-
-
 def _boxes_overlap(box, boxes):
     return any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in boxes)
 
@@ -142,12 +133,12 @@ def build_real_cache(shared, path, seed=0, log=print):
 
     for seq in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, shared):
         seq_name = seq["name"].split("/")[1]
-        add_hand(seq["image"], seq["uv"], seq["handedness"] == "right", 1.0, seq_name in HOWIEMA_HELD_OUT,
+        add_hand(seq["image"], seq["uv"], seq["handedness"] == "right", 1.0, seq_name in real_data.HOWIEMA_HELD_OUT,
                  "howiema001/" + seq_name)
     for rel in real_data.TRAIN_VIDEOS:
         video = Path(shared) / rel
         lab = real_data.load_pseudo_labels(video)
-        train, held = _video_split(len(lab["found"]))
+        train, held = real_data.video_split(len(lab["found"]))
         for f, image in real_data.read_video(video):
             if f >= len(lab["found"]) or not (train[f] or held[f]):
                 continue

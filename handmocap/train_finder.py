@@ -6,17 +6,20 @@
     handtrain finder --export-only
 
 Data (each batch half real, half synthetic):
-* real frames of shared/data/video (webcam, dex_retargeting, tfjs_asl_hand; every 2nd
-  frame where MediaPipe found a hand) with the boxes of MediaPipe's 2D pseudo-labels;
-  VAL_VIDEOS are held out for validation; temugeb_stereo (evaluation) is never read;
-* synthetic whole frames (handmocap.synth, `--frames`), both hands' joint boxes; the last
-  shard is held out;
+* real frames of shared/data/video (webcam, dex_retargeting, tfjs_asl_hand; every n-th
+  frame where MediaPipe found a hand, the first 85% of each clip) with the boxes of
+  MediaPipe's 2D pseudo-labels, and howiema_lstm_pm subject 001 (human labels) but for
+  sequences L8 and R8; VAL_VIDEOS, the clips' last 15% and L8/R8 are held out for
+  validation; temugeb_stereo and howiema 040 (evaluation) are never read;
+* synthetic whole frames (handmocap.synth, `--frames`) of one or more `--synth` folders,
+  both hands' joint boxes; the first folder's last shard is held out;
 * 10% hand-free real background crops (the synth engine's cache, held-out videos excluded).
 Augmentation: random zoom/shift of the letterboxed frame, horizontal flip (handedness
 flips with it), brightness/contrast. Losses (CenterNet): focal loss on the centre heatmap,
 L1 on offset and log size, BCE on handedness at the centre cells.
 Validation: recall of hands (a peak whose box has IoU >= 0.3 with the true box) and false
-peaks per frame at the default threshold, on the held-out real video and synthetic shard.
+peaks per frame at the default threshold, every --val-every iterations, on each held-out
+set (val_history.jsonl in the run folder).
 """
 import json
 import time
@@ -25,6 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from . import real_data
 from .hand_finder import BORDER_VALUE, GRID, INPUT_SIZE, STRIDE, box_iou, decode, letterbox, square
 from .training import warmup_cosine_lr
 
@@ -40,8 +44,8 @@ MIN_SIDE_PX = 5.0        # hands smaller than this (input px) are not targets
 
 
 def add_arguments(p):
-    p.add_argument("--synth", type=Path, required=False, default=Path("/tmp/finder/synth"),
-                   help="handsynth generate --frames --size 160 output (default %(default)s)")
+    p.add_argument("--synth", type=Path, nargs="+", default=[Path("/tmp/finder/synth")],
+                   help="handsynth generate --frames --size 160 output folders (default %(default)s)")
     p.add_argument("--data", type=Path, default=SHARED_DATA, help="real data pack (default %(default)s)")
     p.add_argument("--iters", type=int, default=1500)
     p.add_argument("--real-stride", type=int, default=2, help="every n-th frame of the real videos (default %(default)s)")
@@ -55,6 +59,7 @@ def add_arguments(p):
     p.add_argument("--ckpt-every", type=int, default=200)
     p.add_argument("--run-dir", type=Path, default=RUN_DIR)
     p.add_argument("--export", type=Path, default=DEFAULT_EXPORT)
+    p.add_argument("--val-every", type=int, default=1000, help="validate every n iterations (default %(default)s)")
     p.add_argument("--resume", action="store_true")
     p.add_argument("--export-only", action="store_true")
 
@@ -65,22 +70,25 @@ def joint_box(uv):
     return np.concatenate([uv.min(-2), uv.max(-2)], -1)
 
 
-def load_real_frames(data_dir, videos, stride=2, size=REAL_SIZE):
+def load_real_frames(data_dir, videos, stride=2, size=REAL_SIZE, part="all"):
     """Letterboxed RGB frames (N,size,size,3) of the videos where MediaPipe found a hand,
     their boxes (N,2,4) input px (NaN: none) and right-hand flags (N,2) (as MediaPipe labels
-    the hand as it appears)."""
+    the hand as it appears). part: "all" frames, or of real_data.video_split "train" (the
+    first 85%) or "tail" (the held-out last 15%)."""
     images, boxes, right = [], [], []
     for stem in videos:
         video = data_dir / "video" / f"{stem}.mp4"
         labels = np.load(data_dir / "video" / f"{stem}.mediapipe.npz")
+        n = len(labels["found"])
+        keep = dict(zip(("train", "tail"), real_data.video_split(n))).get(part, np.ones(n, bool))
         cap = cv2.VideoCapture(str(video))
         i = 0
         while True:
             ok, frame = cap.read()
-            if not ok or i >= len(labels["found"]):
+            if not ok or i >= n:
                 break
             found = labels["found"][i]
-            if i % stride == 0 and found.any():
+            if i % stride == 0 and found.any() and keep[i]:
                 boxed, lb = letterbox(frame, size)
                 b = np.full((2, 4), np.nan)
                 b[found] = joint_box(lb.to_input(labels["uv"][i][found]))
@@ -89,6 +97,23 @@ def load_real_frames(data_dir, videos, stride=2, size=REAL_SIZE):
                 right.append(labels["handedness"][i] == 0)
             i += 1
         cap.release()
+    return np.stack(images), np.stack(boxes), np.stack(right)
+
+
+def load_howiema_frames(data_dir, held_out, size=REAL_SIZE):
+    """howiema_lstm_pm subject 001 (256x256 webcam frames, human 2D labels), letterboxed:
+    the sequences of real_data.HOWIEMA_HELD_OUT if held_out, else the others. Returns
+    images (N,size,size,3) RGB, boxes (N,2,4) input px, right (N,2)."""
+    images, boxes, right = [], [], []
+    for s in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, data_dir):
+        if (s["name"].split("/")[1] in real_data.HOWIEMA_HELD_OUT) != held_out:
+            continue
+        boxed, lb = letterbox(s["image"], size)
+        b = np.full((2, 4), np.nan)
+        b[0] = joint_box(lb.to_input(s["uv"]))
+        images.append(boxed)
+        boxes.append(b)
+        right.append([s["handedness"] == "right", False])
     return np.stack(images), np.stack(boxes), np.stack(right)
 
 
@@ -295,18 +320,24 @@ def main(args):
         model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
         export(model, args.export)
         return
-    meta = json.loads((args.synth / "meta.json").read_text())
-    n_shards = len(meta["shards"])
-    synth = load_synth(args.synth, range(n_shards - 1))
-    synth_val = load_synth(args.synth, [n_shards - 1])
+    n_shards = len(json.loads((args.synth[0] / "meta.json").read_text())["shards"])
+    synth = concat(load_synth(args.synth[0], range(n_shards - 1)),
+                   *(load_synth(d, range(len(json.loads((d / "meta.json").read_text())["shards"])))
+                     for d in args.synth[1:]))
+    synth_val = load_synth(args.synth[0], [n_shards - 1])
     have_real = (args.data / "video").is_dir()
-    real = load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride) if have_real else (np.zeros((0,)), None, None)
+    if have_real:
+        real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, part="train"),
+                      load_howiema_frames(args.data, held_out=False))
+    else:
+        real = (np.zeros((0,)), None, None)
     negatives = background_crops(Path(__file__).resolve().parent.parent)
     print(f"synthetic {len(synth[0])} (+{len(synth_val[0])} val), real {len(real[0])}, negatives {len(negatives)}")
     val_sets = {"synth": synth_val}
-    if have_real:
-        imgs, boxes, right = load_real_frames(args.data, VAL_VIDEOS, stride=1, size=INPUT_SIZE)
-        val_sets["real"] = (imgs, boxes, right)
+    if have_real:   # never trained on: a whole video, the tails of the training videos, 2 howiema sequences
+        val_sets["real"] = load_real_frames(args.data, VAL_VIDEOS, stride=1, size=INPUT_SIZE)
+        val_sets["tails"] = load_real_frames(args.data, TRAIN_VIDEOS, stride=1, size=INPUT_SIZE, part="tail")
+        val_sets["howiema"] = load_howiema_frames(args.data, held_out=True, size=INPUT_SIZE)
     batches = Batches(real, synth, negatives, args.real_zoom)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     start = 0
@@ -331,7 +362,17 @@ def main(args):
                   + f" lr {lr:.2e} {(time.time() - t0) / (it - start + 1):.2f} s/it", flush=True)
         if (it + 1) % args.ckpt_every == 0 or it + 1 == args.iters:
             torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "iter": it + 1}, ckpt)
-    results = {name: evaluate(model, *v) for name, v in val_sets.items()}
+        if (it + 1) % args.val_every == 0 or it + 1 == args.iters:
+            results = {name: evaluate(model, *v) for name, v in val_sets.items()}
+            print(f"val {it + 1}: " + ", ".join(f"{k} recall {r['recall']:.3f} false {r['false_per_frame']:.2f}"
+                                                 for k, r in results.items()), flush=True)
+            with open(args.run_dir / "val_history.jsonl", "a") as f:
+                f.write(json.dumps({"iter": it + 1, **results}) + "\n")
     print(json.dumps(results, indent=1))
     (args.run_dir / "val.json").write_text(json.dumps(results, indent=1))
     export(model, args.export)
+
+
+def concat(*sets):
+    """Concatenate (images, boxes, right) triples."""
+    return tuple(np.concatenate(parts) for parts in zip(*sets))
