@@ -75,7 +75,9 @@ def motion_kernel(length, angle):
 def optics(img, rng, native_scale):
     """Per image, in place: resolution loss (native_scale (n,) = camera pixels per output
     pixel; below 1 the hand was smaller in the real frame than the crop), defocus
-    (Gaussian blur, always a little: no lens is perfectly sharp), motion blur."""
+    (Gaussian blur, always a little: no lens is perfectly sharp), motion blur.
+    Returns (n,) sensor pixels per output pixel (below 1: the image was upsampled from
+    fewer pixels), for SensorNoise."""
     n, h, w = img.shape[:3]
     extra_down = np.where(rng.random(n) < 0.25, rng.uniform(1.2, 3.0, n), 1.0)
     scale = np.minimum(native_scale, 1.0) / extra_down
@@ -90,7 +92,7 @@ def optics(img, rng, native_scale):
         if motion[i]:
             x = cv2.filter2D(x, -1, motion_kernel(rng.uniform(3, 11), rng.uniform(0, np.pi)))
         img[i] = x
-    return img
+    return np.where(scale < 0.95, scale, np.maximum(native_scale, 1.0))
 
 
 class SensorNoise:
@@ -100,19 +102,33 @@ class SensorNoise:
     def __init__(self, rng, bank_size=1 << 22):
         self.bank = rng.standard_normal(bank_size, dtype=np.float32)
 
-    def __call__(self, img, rng):
+    def __call__(self, img, rng, sensor_scale=None):
         """img (n,H,W,3) uint8 -> new uint8 array with noise. The noise's standard
         deviation per grey level, sqrt(read^2 + shot^2 * level) DN, is a 256-entry
-        table per image, so each pixel costs one lookup and one multiply-add."""
+        table per image, so each pixel costs one lookup and one multiply-add.
+
+        sensor_scale (n,): sensor pixels per output pixel (optics' return). The noise is
+        the sensor's, per sensor pixel: an image that was downsampled from k x k sensor
+        pixels per output pixel has 1/k of it; one upsampled from fewer pixels has the
+        noise of its native pixels, upsampled (smooth, correlated), not fresh per-pixel grain."""
         n, size = len(img), img[0].size
-        read = rng.uniform(0.5, 6.0, n).astype(np.float32)                       # DN
-        shot = rng.uniform(0.0, 0.5, n).astype(np.float32)                       # DN per sqrt(DN)
+        read = rng.uniform(0.3, 2.5, n).astype(np.float32)                       # DN
+        shot = rng.uniform(0.0, 0.25, n).astype(np.float32)                       # DN per sqrt(DN)
         sigma = np.sqrt(read[:, None] ** 2 + shot[:, None] ** 2 * np.arange(256, dtype=np.float32))   # (n,256)
         starts = rng.integers(0, len(self.bank) - size, n)
         mono = rng.random(n) < 0.5                                               # luminance-only noise
         out = np.empty_like(img)
+        h, w = img.shape[1:3]
+        k = np.ones(n) if sensor_scale is None else np.asarray(sensor_scale, np.float64)
         for i in range(n):
-            noise = self.bank[starts[i]:starts[i] + size].reshape(img.shape[1:])
+            if k[i] < 0.95:              # upsampled: noise of the native pixels, upsampled
+                sh, sw = max(4, int(round(h * k[i]))), max(4, int(round(w * k[i])))
+                small = self.bank[starts[i]:starts[i] + sh * sw * 3].reshape(sh, sw, 3)
+                noise = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+            else:                        # averaged over k x k sensor pixels
+                noise = self.bank[starts[i]:starts[i] + size].reshape(img.shape[1:])
+                if k[i] > 1.05:
+                    noise = noise * np.float32(1.0 / k[i])
             if mono[i]:
                 noise = np.broadcast_to(noise[..., :1], noise.shape)
             x = sigma[i][img[i]]

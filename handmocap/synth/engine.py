@@ -207,9 +207,9 @@ class SynthEngine:
         augment.ambient_occlusion(rgb, depth, alpha, rng.uniform(0.2, 0.6, n))
         augment.contact_shadow(bg, alpha, rng, rng.random(n) < 0.3)
         img = augment.composite(rgb, alpha, bg)
-        augment.optics(img, rng, native_scale)
+        sensor_scale = augment.optics(img, rng, native_scale)
         augment.colour_jitter(img, rng)
-        img = self.noise(img, rng)
+        img = self.noise(img, rng, sensor_scale)
         return augment.jpeg(img, rng)
 
     def release(self):
