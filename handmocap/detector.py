@@ -14,9 +14,12 @@ Per frame (`HandDetector.process`):
    flipped horizontally, so DetNet always sees a right hand; its 2D is un-flipped and its
    3D mirrored back (x -> -x): HandKeypoints' xyz_rel is the hand as seen.
 3. One batched DetNet call for all crops; presence below `presence_threshold` or a mean
-   heatmap peak below `min_confidence` ends the track, and so do joints centred outside the frame or spread over more than twice its
-   size; a new track's crop is refined once from its own first 2D prediction (and flipped
-   the other way if DetNet's handedness outweighs the finder's).
+   heatmap peak below `min_confidence` ends the track, and so do joints centred outside
+   the frame or spread over more than twice its size; a new track's crop is refined once
+   from its own first 2D prediction (and flipped the other way if DetNet's handedness
+   outweighs the finder's), and the track is only born if its mean heatmap peak there
+   reaches `birth_confidence`: DetNet's presence head is sure of almost anything the
+   finder proposes (a mouse on a desk, a face), its heatmap peaks are not.
 4. The next frame's crop of a track comes from this frame's 2D joints (their box, centre
    moved on by half the last displacement, side changing by at most 1.33x per frame), as
    MediaPipe and the paper's videos do.
@@ -197,18 +200,21 @@ class HandDetector:
     the paper's release did); detnet: a DetNetRunner. presence_threshold: below it a track
     is lost; redetect_every: frames between finder runs while fewer than max_hands hands
     are tracked; crop_scale: crop side / joint-box side; min_confidence: below this mean
-    heatmap peak a track is lost too.
+    heatmap peak a track is lost too; birth_confidence: a found hand becomes a track only
+    if DetNet's mean heatmap peak on its refined crop reaches this (the two thresholds are
+    a hysteresis, chosen on training-side held-out clips by scripts/detector_thresholds.py).
     """
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
-                 crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.0, reseed_iou=0.3):
+                 crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.15, reseed_iou=0.3,
+                 birth_confidence=0.3):
         self.detnet, self.finder = detnet, finder
         self.max_hands, self.presence_threshold = max_hands, presence_threshold
         self.redetect_every, self.crop_scale = redetect_every, crop_scale
         self.finder_threshold = finder_threshold
         # the presence head stays sure on a crop that slid onto the forearm; the heatmap
         # peaks (mean over joints) do drop there, so they end such a track too
-        self.min_confidence = min_confidence
+        self.min_confidence, self.birth_confidence = min_confidence, birth_confidence
         # the finder checks the tracks every `redetect_every` frames: a found hand inside a
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
@@ -217,7 +223,7 @@ class HandDetector:
         self.next_id = 0
         self.frames_since_find = 0
         self.lost_last_frame = False
-        self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0}
+        self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0}
 
     @classmethod
     def load(cls, detnet_path=None, finder_path=None, threads=1, **kwargs):
@@ -308,8 +314,11 @@ class HandDetector:
                     out[key][i] = again[key][k]
         hands, keep = [], []
         for i, t in enumerate(self.tracks):
-            presence = float(out["presence"][i])
-            if presence < self.presence_threshold or float(np.mean(out["confidence"][i])) < self.min_confidence:
+            presence, confidence = float(out["presence"][i]), float(np.mean(out["confidence"][i]))
+            if t.age == 0 and confidence < self.birth_confidence:   # not a hand after all: no loss to report
+                self.stats["unborn"] += 1
+                continue
+            if presence < self.presence_threshold or confidence < self.min_confidence:
                 self.lost_last_frame = True
                 continue
             uv = t.crop.to_frame(out["uv"][i])

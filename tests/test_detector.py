@@ -236,6 +236,31 @@ def test_a_track_whose_joints_left_the_found_hand_is_reseeded_from_the_finder():
     np.testing.assert_allclose(hands["right"]["uv"], truth[-1][0], atol=DOT_TOL)
 
 
+class DimDetNet(FakeDetNet):
+    """FakeDetNet whose heatmap peaks (confidence) are `levels[k]` on its k-th call."""
+
+    def __init__(self, levels):
+        super().__init__()
+        self.levels = levels
+
+    def __call__(self, crops_rgb):
+        out = super().__call__(crops_rgb)
+        out["confidence"] *= self.levels[min(self.calls - 1, len(self.levels) - 1)]
+        return out
+
+
+def test_a_found_hand_needs_birth_confidence_and_a_track_lives_down_to_min_confidence():
+    frames, _ = two_hand_frames(6)
+    # calls: the first frame's crops, then its refined crops, then one call per frame
+    dim_at_birth = HandDetector(DimDetNet([0.2, 0.2, 0.2]), FakeFinder(), birth_confidence=0.3, min_confidence=0.15)
+    assert [len(dim_at_birth.process(f)) for f in frames[:3]] == [0, 0, 0]
+    assert dim_at_birth.stats["unborn"] == 6 and dim_at_birth.stats["finder_runs"] == 3   # tries again each frame
+    dims_later = HandDetector(DimDetNet([0.5, 0.5, 0.2, 0.2, 0.1]), FakeFinder(), birth_confidence=0.3,
+                              min_confidence=0.15)
+    assert [len(dims_later.process(f)) for f in frames[:4]] == [2, 2, 2, 0]    # kept at 0.2, lost at 0.1
+    assert dims_later.stats["unborn"] == 0
+
+
 def test_a_second_track_inside_a_hand_is_a_duplicate_and_crops_change_size_slowly():
     det = detector()
     big = canonical_hand((300, 300), 150)

@@ -1,0 +1,101 @@
+"""Choose the detector's track-keeping thresholds on training-side held-out real data.
+
+    python scripts/detector_thresholds.py [--detnet models/detnet.onnx] [--finder models/finder.onnx]
+
+Runs the detector (finder + DetNet tracking, every frame in order) over real clips it never
+trained on: the held-out video, the held-out tails of the training videos
+(real_data.video_split) and howiema 001 sequences L8/R8 (frames in order). The evaluation
+splits (temugeb_stereo, howiema 040, ...) are never read: thresholds chosen here are then
+only measured there.
+
+Every hand the detector outputs is "true" when its joints' centre lies within half a hand
+size of a labelled hand (MediaPipe pseudo-labels on the clips, human labels on howiema),
+else "false" (a desk object, a face, the forearm; or a hand MediaPipe missed, such as one
+half out of the frame). Prints the presence and mean heatmap peak (`confidence`) of both
+kinds with every track kept, then for each (birth_confidence, min_confidence) pair the
+labelled hands found and the false hands output, the detector run again with them.
+"""
+import argparse
+
+import numpy as np
+
+from handmocap import real_data
+from handmocap.detector import HandDetector
+from handmocap.pose_data import SHARED_DATA
+
+HELD_OUT_VIDEO = "video/webcam/alimostafa_hand.mp4"
+
+
+def clips(shared):
+    """(name, frames) of held-out clips; frames is a list of (BGR image, labelled uv list)."""
+    lab = real_data.load_pseudo_labels(shared / HELD_OUT_VIDEO)
+    yield "held-out video", [(img[..., ::-1], list(lab["uv"][i][lab["found"][i]]))
+                             for i, img in real_data.read_video(shared / HELD_OUT_VIDEO)]
+    for rel in real_data.TRAIN_VIDEOS:
+        if rel == HELD_OUT_VIDEO:
+            continue
+        lab = real_data.load_pseudo_labels(shared / rel)
+        _, tail = real_data.video_split(len(lab["found"]))
+        keep = set(np.flatnonzero(tail))
+        yield f"tail {rel.split('/')[-1]}", [(img[..., ::-1], list(lab["uv"][i][lab["found"][i]]))
+                                              for i, img in real_data.read_video(shared / rel, keep)]
+    seqs = {}
+    for s in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, shared):
+        seq = s["name"].split("/")[1]
+        if seq in real_data.HOWIEMA_HELD_OUT:
+            seqs.setdefault(seq, []).append((s["image"][..., ::-1].copy(), [s["uv"]]))
+    for seq, frames in seqs.items():
+        yield f"howiema 001 {seq}", frames
+
+
+def score_hands(detector, frames):
+    """(presence, confidence, is_true) per output hand, and the labelled hands found."""
+    detector.reset()
+    rows, found, labelled = [], 0, 0
+    for image, labels in frames:
+        hands = detector.process(np.ascontiguousarray(image))
+        labelled += len(labels)
+        hit = set()
+        for h in hands:
+            c = h["uv"].mean(0)
+            near = [k for k, uv in enumerate(labels)
+                    if np.linalg.norm(c - uv.mean(0)) < 0.5 * np.max(uv.max(0) - uv.min(0))]
+            rows.append((h["score"], float(np.mean(h["confidence"])), bool(near)))
+            hit.update(near)
+        found += len(hit)
+    return rows, found, labelled
+
+
+SETTINGS = ((0.0, 0.0), (0.0, 0.15), (0.0, 0.2), (0.25, 0.15), (0.3, 0.15), (0.3, 0.2), (0.35, 0.15))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--detnet", default=None)
+    ap.add_argument("--finder", default=None)
+    ap.add_argument("--shared", type=lambda p: __import__("pathlib").Path(p), default=SHARED_DATA)
+    args = ap.parse_args()
+    data = list(clips(args.shared))
+    print("| birth_confidence | min_confidence | labelled hands found | false hands output | of which on clips with a labelled hand |")
+    print("|---|---|---|---|---|")
+    for birth, keep in SETTINGS:
+        detector = HandDetector.load(args.detnet, args.finder, min_confidence=keep, birth_confidence=birth)
+        rows, found, labelled, false_labelled = [], 0, 0, 0
+        for name, frames in data:
+            r, f, n = score_hands(detector, frames)
+            rows += r
+            found, labelled = found + f, labelled + n
+            false_labelled += sum(not t for *_, t in r) if n else 0
+        false = sum(not t for *_, t in rows)
+        print(f"| {birth:.2f} | {keep:.2f} | {found}/{labelled} ({found / labelled:.1%}) | {false} | {false_labelled} |")
+        if birth == keep == 0.0:
+            r = np.array(rows, float)
+            true = r[:, 2] > 0
+            quantiles = [f"{kind} hands ({m.sum()}): presence q10/50/90 {np.quantile(r[m, 0], [.1, .5, .9]).round(3)}, "
+                         f"confidence q01/10/50/90 {np.quantile(r[m, 1], [.01, .1, .5, .9]).round(3)}"
+                         for kind, m in (("true", true), ("false", ~true)) if m.any()]
+    print("\nwith every track kept: " + "; ".join(quantiles))
+
+
+if __name__ == "__main__":
+    main()
