@@ -10,7 +10,8 @@ HandKeypoints per processed image with its stamp; `hands` may be empty.
 Params: detnet (ONNX path, default models/detnet.onnx), finder (ONNX path, default
 models/finder.onnx; "none": try the centre square of the frame), threads (onnxruntime
 intra-op threads per network), max_hands, presence_threshold (a track ends below it),
-min_confidence (a track ends below this mean heatmap peak; 0 = off, see models/README.md),
+min_confidence (a track ends below this mean heatmap peak; 0 = off), birth_confidence (a found
+hand becomes a track only from this mean heatmap peak on; see models/README.md),
 redetect_every (frames between finder runs, which also check the tracks), reseed_iou (a track
 whose joints overlap the hand the finder sees in its crop less than this restarts from the
 finder's box; 0 = never), crop_scale (crop side / joint-box side), every_frame.
@@ -24,7 +25,7 @@ from handmocap.frames import frame_bgr
 from handmocap.node import Node, run
 
 PARAMS = {"detnet": None, "finder": None, "threads": 1, "max_hands": 2, "presence_threshold": 0.5,
-          "min_confidence": 0.0, "redetect_every": 10, "reseed_iou": 0.3, "crop_scale": CROP_SCALE,
+          "min_confidence": 0.15, "birth_confidence": 0.3, "redetect_every": 10, "reseed_iou": 0.3, "crop_scale": CROP_SCALE,
           "every_frame": False}
 
 
@@ -55,7 +56,8 @@ def main() -> None:
     node.advertise("/hand/keypoints", "HandKeypoints")
     detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]), max_hands=int(p["max_hands"]),
                                  presence_threshold=float(p["presence_threshold"]),
-                                 min_confidence=float(p["min_confidence"]), redetect_every=int(p["redetect_every"]),
+                                 min_confidence=float(p["min_confidence"]),
+                                 birth_confidence=float(p["birth_confidence"]), redetect_every=int(p["redetect_every"]),
                                  reseed_iou=float(p["reseed_iou"]), crop_scale=float(p["crop_scale"]))
     warm_up(detector, p)
     for msg in node:
