@@ -17,14 +17,18 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import threading
 import time
+import weakref
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import zmq
 
 EOS = b"_eos"
+LARGE = 65536   # payloads above this are sent without a copy (zmq holds on to the sender's buffer)
 HEARTBEAT_S = 0.5
 STALE_S = 5.0   # a node file whose heartbeat is older than this, or whose pid is gone, is dead
 
@@ -111,6 +115,8 @@ class Publisher:
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.subscriptions: Counter[bytes] = Counter()
         self._frames: dict[tuple, tuple] = {}   # (topic, type) -> their wire frames
+        self.in_flight = 0   # large payloads sent and not yet released by zmq and every receiver
+        self._landed = threading.Condition()
 
     def bind_inproc(self, endpoint: str, token: str) -> dict:
         """Also bind `inproc://...` (a container: the nodes of one process share one Context and
@@ -135,15 +141,37 @@ class Publisher:
         return sum(n for prefix, n in self.subscriptions.items() if t.startswith(prefix))
 
     def send(self, topic: str, type_name: str, payload: bytes | memoryview) -> None:
-        """One message; a payload over 64 kB (bytes or a read-only view such as
-        `codec.encode_view` gives) goes without a copy: zmq holds on to it until it is sent."""
+        """One message; a payload over LARGE bytes (bytes or a read-only view such as
+        `codec.encode_view` gives) goes without a copy: zmq holds on to it until it is sent
+        to every outside subscriber and every receiver in this process has let go of it
+        (`in_flight` counts those)."""
         frames = self._frames.get((topic, type_name))
         if frames is None:
             frames = self._frames[(topic, type_name)] = (topic_frame(topic), type_name.encode())
         sock = self.sock
         sock.send(frames[0], zmq.SNDMORE)
         sock.send(frames[1], zmq.SNDMORE)
-        sock.send(payload, copy=len(payload) <= 65536)   # zero-copy only pays for large frames
+        if len(payload) <= LARGE:   # zero-copy only pays for large frames
+            sock.send(payload)
+            return
+        # zmq keeps this array alive while the frame is in use (pyzmq drops it from its gc
+        # thread once libzmq frees the message); a memoryview can't carry the finalizer
+        held = np.frombuffer(payload, np.uint8)
+        with self._landed:
+            self.in_flight += 1
+        weakref.finalize(held, self._release)
+        sock.send(held, copy=False)
+
+    def _release(self) -> None:
+        with self._landed:
+            self.in_flight -= 1
+            self._landed.notify_all()
+
+    def wait_in_flight(self, limit: int, timeout_s: float) -> bool:
+        """Block until fewer than `limit` large payloads are in flight (see `send`), at most
+        `timeout_s`; returns whether they are."""
+        with self._landed:
+            return self._landed.wait_for(lambda: self.in_flight < limit, timeout_s)
 
     def close(self) -> None:
         self.sock.close()

@@ -63,7 +63,7 @@ def shared_context() -> "zmq.Context | None":
 
 
 _SHARED = {"ctx": None, "token": None}   # set by handmocap.container
-LARGE = 65536   # payloads above this go without copies (zero-copy send, receive into a zmq frame)
+LARGE = bus.LARGE   # payloads above this go without copies (zero-copy send, receive into a zmq frame)
 
 
 @dataclass
@@ -214,6 +214,16 @@ class Node:
         self.stats["published"][topic] += 1
         if self._trace is not None:
             self._trace.append(("pub1", topic, None, time.time_ns()))
+
+    def wait_in_flight(self, limit: int, timeout_s: float = 1.0) -> bool:
+        """Block until fewer than `limit` of this node's large messages (frames, sent without a
+        copy) are still on their way: queued for or held by a subscriber. A source that sends
+        as fast as the graph takes its frames (replay at rate 0) waits here before each one,
+        so frames do not pile up in keep-all queues: bounded memory, and its pooled send
+        buffers stay warm (a fresh 1 MB buffer per frame costs ~0.6 ms of page faults, with
+        the interpreter lock held). Returns False after `timeout_s` (a stuck subscriber
+        slows such a source down, never stops it)."""
+        return self.pub.wait_in_flight(limit, timeout_s)
 
     def wait_for_graph(self) -> None:
         """Hold the first message until the launcher says every node is up and every node

@@ -3,7 +3,8 @@
 Source: a video file, a folder of images (sorted by name) or an MCAP bag (its /camera/image
 messages; their stamps are replaced by the replay time, as a camera would stamp them).
 `rate` is a speed factor over the source's frame rate (1 = real time, 0 = as fast as the
-graph takes them); `start` skips that many seconds; `loop` restarts at the end. /camera/info
+graph takes them: the next frame is decoded once fewer than AHEAD sent frames are still
+queued for or held by a subscriber); `start` skips that many seconds; `loop` restarts at the end. /camera/info
 comes from `calibration` (a file, see handmocap.camera_info) or, failing that, from the
 bag's own /camera/info, or from a default field of view (camera_info.DEFAULT_HFOV_DEG) that
 the message marks with source "default-fov". It is sent with every frame, so late subscribers
@@ -21,6 +22,7 @@ from handmocap.frames import image_message, open_frames
 from handmocap.node import Node, run
 
 JIT_MARGIN_S = 0.002   # decode the next frame this long plus twice its recent decoding time before it is due
+AHEAD = 3   # at rate 0, frames sent and not yet taken by every subscriber before the next is decoded
 
 PARAMS = {"source": None, "rate": 1.0, "fps": None, "start": 0.0, "loop": False,
           "calibration": None, "frame_id": "camera"}
@@ -102,6 +104,8 @@ def replay(node: Node) -> None:
                 early = t_start + (t_next - t_first) / rate - lead - time.monotonic()
                 if early > 0:
                     time.sleep(early)
+            elif rate == 0:   # as fast as the graph takes frames, not as fast as they decode
+                node.wait_in_flight(AHEAD)
             t0 = time.monotonic()
             item = next(frames_in, None)
             if item is None:

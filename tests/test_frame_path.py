@@ -157,3 +157,86 @@ def test_replay_decodes_just_in_time_and_keeps_the_frame_rate(tmp_path, monkeypa
     assert np.median(np.diff(stamps)) == pytest.approx(1 / 30, abs=0.002)
     assert np.percentile(late, 50) < 0.005 and late.max() < 0.25, late
 
+
+
+def test_a_large_payload_is_in_flight_until_every_receiver_lets_go():
+    """Publisher.in_flight counts zero-copy payloads that zmq or a receiver in this process
+    still holds; wait_in_flight blocks until fewer than the limit are."""
+    import time
+
+    import zmq
+
+    from handmocap import bus
+    ctx = zmq.Context()
+    pub = bus.Publisher(ctx, "inproc://flight")
+    sub = ctx.socket(zmq.SUB)
+    sub.connect("inproc://flight")
+    sub.subscribe(bus.topic_frame("/camera/image"))
+    deadline = time.monotonic() + 5
+    while pub.subscriber_count("/camera/image") < 1 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    _, payload = frame_payload(view=True)
+    for _ in range(3):
+        pub.send("/camera/image", "Image", payload)
+    pub.send("/camera/info", "CameraInfo", b"small")   # copied: never in flight
+    held = [sub.recv_multipart(copy=False) for _ in range(3)]
+    assert pub.in_flight == 3 and not pub.wait_in_flight(3, 0.05)
+    del held[0]
+    assert pub.wait_in_flight(3, 5.0)
+    held.clear()
+    assert pub.wait_in_flight(1, 5.0) and pub.in_flight == 0
+    sub.close()
+    pub.close()
+    ctx.term()
+
+
+def test_replay_at_rate_0_runs_only_a_few_frames_ahead_of_a_slow_subscriber(run_dir, monkeypatch):
+    """At rate 0 ("as fast as the graph takes them") replay does not decode the whole video
+    into a keep-all queue: a slow keep-all subscriber in its container holds it back, so each
+    frame waits there a few frames' time at most (and every frame arrives)."""
+    import threading
+    import time
+    import uuid
+
+    import zmq
+
+    from conftest import DEMO_CLIP
+    from handmocap import node as nm
+    from handmocap.nodes import replay
+    ctx = zmq.Context()
+    monkeypatch.setitem(nm._SHARED, "ctx", ctx)
+    monkeypatch.setitem(nm._SHARED, "token", uuid.uuid4().hex)
+    waited, subscribed = [], threading.Event()
+
+    def source():
+        subscribed.wait(10)
+        nm._local.settings = {"HANDMOCAP_NODE_NAME": "replay",
+                              "HANDMOCAP_PARAMS": f'{{"source": "{DEMO_CLIP}", "rate": 0, "start": 2.3}}'}
+        n = nm.Node("replay", params=replay.PARAMS)
+        n.advertise("/camera/image", "Image")   # (replay does it too) so that the subscriber connects first
+        deadline = time.monotonic() + 10
+        while n.pub.subscriber_count("/camera/image") < 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        try:
+            replay.replay(n)
+        finally:
+            n.close()
+
+    def slow():
+        nm._local.settings = {"HANDMOCAP_NODE_NAME": "slow"}
+        with nm.Node("slow") as n:
+            n.subscribe("/camera/image", "Image", mode="all")
+            subscribed.set()
+            for m in n:
+                waited.append((m.recv_ns - m.stamp_ns) / 1e9)
+                time.sleep(0.05)
+
+    threads = [threading.Thread(target=slow), threading.Thread(target=source)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    ctx.term()
+    assert len(waited) == 21, len(waited)
+    # without the bound, frame i would wait ~i * 50 ms (a whole video's backlog)
+    assert max(waited) < (replay.AHEAD + 2) * 0.05, waited
