@@ -41,7 +41,8 @@ Costs: graph CPU per frame = (CPU of the whole unthrottled graph over `--frames`
 the same graph over 30 frames) / (frames - 30): process start, imports and model loading
 cancel out (CPU of the launcher and every node, from getrusage of reaped children). It
 includes replay's video decoding, which the in-process row does not (its frames come
-decoded); the decoding's own CPU time is printed beside it.
+decoded); the decoding's own CPU time (replay's reader over the whole clip in a process of
+its own, decoder threads included) is printed beside it.
 Graph overhead is given three ways: latency at 30 fps (p50) - in-process at 30 fps (p50;
 and, for reference, - the back-to-back median);
 graph CPU per frame - in-process CPU per frame; 1000 / unthrottled frames/s - in-process
@@ -76,10 +77,9 @@ LAYOUTS = {"source": "replay, detector, shape, ik in one container (the product'
            None: "every node its own process"}
 
 
-def make_clip(path: Path, n: int) -> tuple[list[np.ndarray], float]:
+def make_clip(path: Path, n: int) -> list[np.ndarray]:
     """Write the demo clip ping-ponged to n frames at `path` (mp4v, 30 fps); return the frames
-    as OpenCV decodes the written file (what replay will publish), each (480,640,3) uint8,
-    and the median CPU ms that decoding one took (replay pays it, the in-process row not)."""
+    as OpenCV decodes the written file (what replay will publish), each (480,640,3) uint8."""
     src = read_video(CLIP)
     h, w = src[0].shape[:2]
     if (w, h) != (640, 480):
@@ -90,15 +90,25 @@ def make_clip(path: Path, n: int) -> tuple[list[np.ndarray], float]:
     for i in range(n):
         writer.write(order[i % len(order)])
     writer.release()
-    cap = cv2.VideoCapture(str(path))
-    frames, cpu = [], []
-    for _ in range(n):
-        c = time.process_time()
-        ok, f = cap.read()
-        cpu.append(time.process_time() - c)
-        assert ok
-        frames.append(f)
-    return frames, 1e3 * float(np.median(cpu))
+    frames = read_video(path)
+    assert len(frames) == n
+    return frames
+
+
+def decode_cpu_ms(path: Path) -> float:
+    """CPU ms per frame that replay's reader (frames.open_frames) spends decoding `path`: the
+    whole file in a fresh process, its decoder threads included, total / frames (replay pays
+    it, the in-process row not). Timed per frame in this process, the figure swung between
+    0.7 and 3.5 ms from run to run: it also counted OpenCV's worker threads, still busy
+    after writing the clip."""
+    code = ("import sys, time\n"
+            "from handmocap.frames import open_frames\n"
+            "frames = open_frames(sys.argv[1])\n"
+            "c = time.process_time()\n"
+            "n = sum(1 for _ in frames)\n"
+            "print(1e3 * (time.process_time() - c) / n)\n")
+    r = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)
+    return float(r.stdout.strip().splitlines()[-1])
 
 
 def children_cpu_s() -> float:
@@ -246,7 +256,8 @@ def main():
     load0 = os.getloadavg()
     tmp = Path(tempfile.mkdtemp(prefix="bench_e2e"))
     try:
-        frames, decode_ms = make_clip(tmp / "clip.mp4", args.frames)
+        frames = make_clip(tmp / "clip.mp4", args.frames)
+        decode_ms = decode_cpu_ms(tmp / "clip.mp4")
         make_clip(tmp / "short.mp4", WARMUP_FRAMES)
         live = run_graph(tmp, tmp / "clip.mp4", 1.0, args.record_all, "live", args.max_hands, container,
                          trace=tmp / "trace" if args.trace else None)
