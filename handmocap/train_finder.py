@@ -7,10 +7,11 @@
 
 Data (each batch half real, half synthetic):
 * real frames of shared/data/video (webcam, dex_retargeting, tfjs_asl_hand; every n-th
-  frame where MediaPipe found a hand, the first 85% of each clip) with the boxes of
-  MediaPipe's 2D pseudo-labels, and howiema_lstm_pm subject 001 (human labels) but for
-  sequences L8 and R8; VAL_VIDEOS, the clips' last 15% and L8/R8 are held out for
-  validation; temugeb_stereo and howiema 040 (evaluation) are never read;
+  frame where MediaPipe found a hand, the first 85% of each clip, or all of it with
+  `--real-part all`) with the boxes of MediaPipe's 2D pseudo-labels, and howiema_lstm_pm
+  subject 001 (human labels) but for sequences L8 and R8; VAL_VIDEOS, the clips' last 15%
+  and L8/R8 are held out for validation; temugeb_stereo and howiema 040 (evaluation) are
+  never read;
 * synthetic whole frames (handmocap.synth, `--frames`) of one or more `--synth` folders,
   both hands' joint boxes; the first folder's last shard is held out;
 * 10% hand-free real background crops (the synth engine's cache, held-out videos excluded).
@@ -59,6 +60,9 @@ def add_arguments(p):
     p.add_argument("--ckpt-every", type=int, default=200)
     p.add_argument("--run-dir", type=Path, default=RUN_DIR)
     p.add_argument("--export", type=Path, default=DEFAULT_EXPORT)
+    p.add_argument("--real-part", choices=("train", "all"), default="train",
+                   help="frames of the training videos: the first 85%% (the tails validate) or all of them "
+                        "(default %(default)s)")
     p.add_argument("--val-every", type=int, default=1000, help="validate every n iterations (default %(default)s)")
     p.add_argument("--resume", action="store_true")
     p.add_argument("--export-only", action="store_true")
@@ -327,7 +331,7 @@ def main(args):
     synth_val = load_synth(args.synth[0], [n_shards - 1])
     have_real = (args.data / "video").is_dir()
     if have_real:
-        real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, part="train"),
+        real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, part=args.real_part),
                       load_howiema_frames(args.data, held_out=False))
     else:
         real = (np.zeros((0,)), None, None)
@@ -336,7 +340,8 @@ def main(args):
     val_sets = {"synth": synth_val}
     if have_real:   # never trained on: a whole video, the tails of the training videos, 2 howiema sequences
         val_sets["real"] = load_real_frames(args.data, VAL_VIDEOS, stride=1, size=INPUT_SIZE)
-        val_sets["tails"] = load_real_frames(args.data, TRAIN_VIDEOS, stride=1, size=INPUT_SIZE, part="tail")
+        if args.real_part == "train":
+            val_sets["tails"] = load_real_frames(args.data, TRAIN_VIDEOS, stride=1, size=INPUT_SIZE, part="tail")
         val_sets["howiema"] = load_howiema_frames(args.data, held_out=True, size=INPUT_SIZE)
     batches = Batches(real, synth, negatives, args.real_zoom)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
