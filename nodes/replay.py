@@ -86,6 +86,7 @@ def replay(node: Node) -> None:
         # graph's start-up, and the frames due meanwhile go out in one burst that queues)
         node.wait_for_graph()
     sent = 0
+    own_info = {"width": None, "height": None}   # the CameraInfo body of our frame size (publish copies it)
     while node.ok():
         if is_bag:
             seq = ((ns / 1e9, f, info) for ns, f, info in bag_frames(source, float(p["start"])))
@@ -126,8 +127,10 @@ def replay(node: Node) -> None:
             if calib is None and bag_info is not None:
                 info = bag_info
             else:
-                intr = for_frames(calib, w, h, p["calibration"])
-                info = camera_info.camera_info_message(intr.K, intr.distortion, w, h, intr.source)
+                if (own_info["width"], own_info["height"]) != (w, h):   # computed once per frame size
+                    intr = for_frames(calib, w, h, p["calibration"])
+                    own_info = camera_info.camera_info_message(intr.K, intr.distortion, w, h, intr.source)
+                info = own_info
             stamp = time.time_ns()
             node.publish("/camera/image", image_message(frame), stamp_ns=stamp, frame_id=p["frame_id"])
             node.publish("/camera/info", info, stamp_ns=stamp, frame_id=p["frame_id"])
