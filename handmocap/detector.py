@@ -202,7 +202,9 @@ class HandDetector:
     are tracked; crop_scale: crop side / joint-box side; min_confidence: below this mean
     heatmap peak a track is lost too; birth_confidence: a found hand becomes a track only
     if DetNet's mean heatmap peak on its refined crop reaches this (the two thresholds are
-    a hysteresis, chosen on training-side held-out clips by scripts/detector_thresholds.py).
+    a hysteresis, chosen on training-side held-out clips by scripts/detector_thresholds.py;
+    0.3 is for video, where a hand refused on one frame is found again on the next: for
+    unrelated photos, one chance each, use 0).
     """
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,

@@ -94,7 +94,9 @@ def predict(source, K=None, out=None, sequence=None, tracker=None, models=None, 
     is_video = not Path(source).is_dir()
     sequence = is_video if sequence is None else sequence
     n = frames.frame_count
-    tracker = tracker or HandTracker(smooth=sequence, max_hands=MAX_HANDS, **(models or {}))
+    # a photo has one chance: no later frame confirms a doubtful hand, so no birth threshold
+    stills = {} if sequence else {"birth_confidence": 0.0}
+    tracker = tracker or HandTracker(smooth=sequence, max_hands=MAX_HANDS, **stills, **(models or {}))
     tracker.poses.p["smooth"] = sequence
     pred = empty_prediction(n)
     count = 0

@@ -13,7 +13,9 @@ size of a labelled hand (MediaPipe pseudo-labels on the clips, human labels on h
 else "false" (a desk object, a face, the forearm; or a hand MediaPipe missed, such as one
 half out of the frame). Prints the presence and mean heatmap peak (`confidence`) of both
 kinds with every track kept, then for each (birth_confidence, min_confidence) pair the
-labelled hands found and the false hands output, the detector run again with them.
+labelled hands found and the false hands output, the detector run again with them: on the
+clips in order (tracking), and on every 4th frame of them as a still image (the detector
+reset before each, as `handeval predict` treats a folder of photos: one birth per hand).
 """
 import argparse
 
@@ -48,11 +50,14 @@ def clips(shared):
         yield f"howiema 001 {seq}", frames
 
 
-def score_hands(detector, frames):
-    """(presence, confidence, is_true) per output hand, and the labelled hands found."""
+def score_hands(detector, frames, stills=False):
+    """(presence, confidence, is_true) per output hand, and the labelled hands found.
+    stills: every frame on its own (the detector reset before each)."""
     detector.reset()
     rows, found, labelled = [], 0, 0
     for image, labels in frames:
+        if stills:
+            detector.reset()
         hands = detector.process(np.ascontiguousarray(image))
         labelled += len(labels)
         hit = set()
@@ -66,7 +71,7 @@ def score_hands(detector, frames):
     return rows, found, labelled
 
 
-SETTINGS = ((0.0, 0.0), (0.0, 0.15), (0.0, 0.2), (0.25, 0.15), (0.3, 0.15), (0.3, 0.2), (0.35, 0.15))
+SETTINGS = ((0.0, 0.0), (0.0, 0.1), (0.0, 0.15), (0.0, 0.2), (0.2, 0.15), (0.3, 0.15))
 
 
 def main():
@@ -76,24 +81,25 @@ def main():
     ap.add_argument("--shared", type=lambda p: __import__("pathlib").Path(p), default=SHARED_DATA)
     args = ap.parse_args()
     data = list(clips(args.shared))
-    print("| birth_confidence | min_confidence | labelled hands found | false hands output | of which on clips with a labelled hand |")
-    print("|---|---|---|---|---|")
+    print("| birth_confidence | min_confidence | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
+    print("|---|---|---|---|---|---|")
     for birth, keep in SETTINGS:
         detector = HandDetector.load(args.detnet, args.finder, min_confidence=keep, birth_confidence=birth)
-        rows, found, labelled, false_labelled = [], 0, 0, 0
-        for name, frames in data:
-            r, f, n = score_hands(detector, frames)
-            rows += r
-            found, labelled = found + f, labelled + n
-            false_labelled += sum(not t for *_, t in r) if n else 0
-        false = sum(not t for *_, t in rows)
-        print(f"| {birth:.2f} | {keep:.2f} | {found}/{labelled} ({found / labelled:.1%}) | {false} | {false_labelled} |")
-        if birth == keep == 0.0:
-            r = np.array(rows, float)
-            true = r[:, 2] > 0
-            quantiles = [f"{kind} hands ({m.sum()}): presence q10/50/90 {np.quantile(r[m, 0], [.1, .5, .9]).round(3)}, "
-                         f"confidence q01/10/50/90 {np.quantile(r[m, 1], [.01, .1, .5, .9]).round(3)}"
-                         for kind, m in (("true", true), ("false", ~true)) if m.any()]
+        cells = []
+        for stills in (False, True):
+            rows, found, labelled = [], 0, 0
+            for name, frames in data:
+                r, f, n = score_hands(detector, frames[::4] if stills else frames, stills)
+                rows += r
+                found, labelled = found + f, labelled + n
+            cells += [f"{found}/{labelled} ({found / labelled:.1%})", str(sum(not t for *_, t in rows))]
+            if birth == keep == 0.0 and not stills:
+                r = np.array(rows, float)
+                true = r[:, 2] > 0
+                quantiles = [f"{kind} hands ({m.sum()}): presence q10/50/90 {np.quantile(r[m, 0], [.1, .5, .9]).round(3)}, "
+                             f"confidence q01/10/50/90 {np.quantile(r[m, 1], [.01, .1, .5, .9]).round(3)}"
+                             for kind, m in (("true", true), ("false", ~true)) if m.any()]
+        print(f"| {birth:.2f} | {keep:.2f} | " + " | ".join(cells) + " |", flush=True)
     print("\nwith every track kept: " + "; ".join(quantiles))
 
 
