@@ -27,9 +27,10 @@ Rows of the table:
   Latency = receipt of /hand/pose - capture stamp, p50/p95 over the frames after the first
   second (the start-up transient, when 5 processes start on 2 cores, is left out and
   reported on its own line).
-- graph unthrottled: the same with rate 0 (replay sends as fast as it decodes; keep-all
-  queues hold the rest). Throughput = /hand/pose messages per second of receipt time after
-  the first second of poses; its "latency" is queueing and not a latency figure.
+- graph unthrottled: the same with rate 0 (replay sends as fast as the graph takes frames:
+  it decodes the next one once fewer than 3 sent frames are still queued or held).
+  Throughput = /hand/pose messages per second of receipt time after the first second of
+  poses; its "latency" includes up to 3 frames of queueing and is not a latency figure.
 - in-process: HandTracker.process on the same decoded frames, one after the other, after
   one warm-up pass (wall and CPU time per frame).
 - in-process @30 fps: the same, each frame started on a 30 fps clock as a camera delivers
