@@ -4,6 +4,7 @@
     handtrain finder --synth /tmp/finder/synth            # from scratch (runs/finder/ replaced)
     handtrain finder --synth /tmp/finder/synth --resume   # continue runs/finder/last.pt
     handtrain finder --export-only
+    handtrain finder --val-only --run-dir runs/finder_v2   # a run's last.pt on the held-out sets
 
 Data (each batch half real, half synthetic):
 * real frames of shared/data/video (webcam, dex_retargeting, tfjs_asl_hand; every n-th
@@ -66,6 +67,7 @@ def add_arguments(p):
     p.add_argument("--val-every", type=int, default=1000, help="validate every n iterations (default %(default)s)")
     p.add_argument("--resume", action="store_true")
     p.add_argument("--export-only", action="store_true")
+    p.add_argument("--val-only", action="store_true", help="validate RUN_DIR/last.pt on the held-out sets and stop")
 
 
 # ----------------------------------------------------------------------------- data
@@ -343,6 +345,10 @@ def main(args):
         if args.real_part == "train":
             val_sets["tails"] = load_real_frames(args.data, TRAIN_VIDEOS, stride=1, size=INPUT_SIZE, part="tail")
         val_sets["howiema"] = load_howiema_frames(args.data, held_out=True, size=INPUT_SIZE)
+    if args.val_only:
+        model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
+        print(json.dumps({name: evaluate(model, *v) for name, v in val_sets.items()}, indent=1))
+        return
     batches = Batches(real, synth, negatives, args.real_zoom)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     start = 0
