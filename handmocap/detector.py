@@ -208,7 +208,7 @@ class HandDetector:
     """
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
-                 crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.15, reseed_iou=0.3,
+                 crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
                  birth_confidence=0.3):
         self.detnet, self.finder = detnet, finder
         self.max_hands, self.presence_threshold = max_hands, presence_threshold

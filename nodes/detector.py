@@ -25,7 +25,7 @@ from handmocap.frames import frame_bgr
 from handmocap.node import Node, run
 
 PARAMS = {"detnet": None, "finder": None, "threads": 1, "max_hands": 2, "presence_threshold": 0.5,
-          "min_confidence": 0.15, "birth_confidence": 0.3, "redetect_every": 10, "reseed_iou": 0.3, "crop_scale": CROP_SCALE,
+          "min_confidence": 0.1, "birth_confidence": 0.3, "redetect_every": 10, "reseed_iou": 0.3, "crop_scale": CROP_SCALE,
           "every_frame": False}
 
 

@@ -71,7 +71,7 @@ def score_hands(detector, frames, stills=False):
     return rows, found, labelled
 
 
-SETTINGS = ((0.0, 0.0), (0.0, 0.1), (0.0, 0.15), (0.0, 0.2), (0.2, 0.15), (0.3, 0.15))
+SETTINGS = ((0.0, 0.0), (0.0, 0.1), (0.0, 0.15), (0.0, 0.2), (0.2, 0.15), (0.3, 0.1), (0.3, 0.15))
 
 
 def main():
