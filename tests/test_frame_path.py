@@ -1,5 +1,7 @@
 """The frame's path: a large Image decodes without copying its pixels (codec fast path), and
 malformed frames are still rejected with the same reasons as by a full unpack."""
+import threading
+
 import msgpack
 import numpy as np
 import pytest
@@ -22,6 +24,27 @@ def slow_decode(payload, type_name):
         return codec.decode(payload, type_name)
     finally:
         codec._TAIL_MIN = old
+
+
+def image_subscriber(name, subscribed, on_message):
+    """A node thread `name` in this process: keep-all /camera/image, `subscribed` set once it
+    listens, on_message(msg) for each image until the node closes."""
+    from handmocap import node as nm
+    nm._local.settings = {"HANDMOCAP_NODE_NAME": name}
+    with nm.Node(name) as n:
+        n.subscribe("/camera/image", "Image", mode="all")
+        subscribed.set()
+        for m in n:
+            on_message(m)
+
+
+def run_threads(targets, timeout):
+    """Run the functions in threads of their own and wait for them (each at most `timeout` s)."""
+    threads = [threading.Thread(target=f) for f in targets]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout)
 
 
 @pytest.mark.parametrize("view", [False, True])
@@ -90,7 +113,6 @@ def test_in_a_container_the_detector_reads_the_sources_own_buffer(run_dir, monke
     """Two nodes as threads of one container (shared zmq Context, inproc://): the receiver's
     pixels are the publisher's pooled payload buffer itself, past the message's small head:
     no copy on the way (zero-copy send, inproc passes the message, decode views it)."""
-    import threading
     import time
     import uuid
 
@@ -124,18 +146,10 @@ def test_in_a_container_the_detector_reads_the_sources_own_buffer(run_dir, monke
                 time.sleep(0.02)
 
     def detector():
-        nm._local.settings = {"HANDMOCAP_NODE_NAME": "det"}
-        with nm.Node("det") as n:
-            n.subscribe("/camera/image", "Image", mode="all")
-            subscribed.set()
-            for m in n:
-                got.append((m.data["header"]["seq"], m.data["data"].ctypes.data, m.data["data"][479, 639, 2]))
+        image_subscriber("det", subscribed, lambda m: got.append(
+            (m.data["header"]["seq"], m.data["data"].ctypes.data, m.data["data"][479, 639, 2])))
 
-    threads = [threading.Thread(target=detector), threading.Thread(target=source)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(30)
+    run_threads([detector, source], timeout=30)
     ctx.term()
     assert [s for s, _, _ in got] == list(range(6))
     assert all(px == (480 * 640 * 3 - 1) % 256 for _, _, px in got)
@@ -194,7 +208,6 @@ def test_replay_at_rate_0_runs_only_a_few_frames_ahead_of_a_slow_subscriber(run_
     """At rate 0 ("as fast as the graph takes them") replay does not decode the whole video
     into a keep-all queue: a slow keep-all subscriber in its container holds it back, so each
     frame waits there a few frames' time at most (and every frame arrives)."""
-    import threading
     import time
     import uuid
 
@@ -223,19 +236,12 @@ def test_replay_at_rate_0_runs_only_a_few_frames_ahead_of_a_slow_subscriber(run_
             n.close()
 
     def slow():
-        nm._local.settings = {"HANDMOCAP_NODE_NAME": "slow"}
-        with nm.Node("slow") as n:
-            n.subscribe("/camera/image", "Image", mode="all")
-            subscribed.set()
-            for m in n:
-                waited.append((m.recv_ns - m.stamp_ns) / 1e9)
-                time.sleep(0.05)
+        def on_image(m):
+            waited.append((m.recv_ns - m.stamp_ns) / 1e9)
+            time.sleep(0.05)
+        image_subscriber("slow", subscribed, on_image)
 
-    threads = [threading.Thread(target=slow), threading.Thread(target=source)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(60)
+    run_threads([slow, source], timeout=60)
     ctx.term()
     assert len(waited) == 21, len(waited)
     # without the bound, frame i would wait ~i * 50 ms (a whole video's backlog)
