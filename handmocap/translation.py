@@ -162,3 +162,39 @@ def _reprojection_error(K, xyz, uv):
         seen = ~np.isnan(dist)           # np.nanmean's own sum / count, without its overhead
         err = np.sum(np.where(seen, dist, 0.0), axis=-1) / np.sum(seen, axis=-1)
     return np.where(np.isfinite(err), err, np.inf)
+
+
+def root_fitting_keypoints(K, uv, rel_m):
+    """Root position (..., 3) metres that puts the root-relative joints rel_m (..., 21, 3)
+    metres (camera axes) onto the keypoints uv (..., 21, 2) pixels: linear least squares
+    over every joint (the paper's Eq. 5 uses the root and wrist only). For a translation t,
+    a joint p projects onto u when fx (p_x + t_x) - (u - cx) (p_z + t_z) = 0, and the same
+    for v: 42 equations linear in t (the algebraic error, i.e. the pixel error weighted by
+    the joint's depth, which varies little across a hand). Joints with a non-finite pixel
+    are left out. Returns root (..., 3) and ok (...,) bool: False (root NaN) where fewer
+    than 3 joints are usable or the root would be nearer than MIN_DEPTH_M.
+    """
+    K = _k_matrix(K)
+    fx, fy, cx, cy = K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2]
+    uv = np.asarray(uv, dtype=np.float64)
+    p = np.asarray(rel_m, dtype=np.float64)
+    seen = np.all(np.isfinite(uv), axis=-1) & np.all(np.isfinite(p), axis=-1)          # (..., 21)
+    du = np.where(seen, uv[..., 0] - cx[..., None], 0.0)
+    dv = np.where(seen, uv[..., 1] - cy[..., None], 0.0)
+    p = np.where(seen[..., None], p, 0.0)
+    zero = np.zeros_like(du)
+    w = seen.astype(np.float64)
+    # rows [fx, 0, -du] t = du p_z - fx p_x and [0, fy, -dv] t = dv p_z - fy p_y, per joint
+    A = np.concatenate([np.stack([fx[..., None] * w, zero, -du], -1),
+                        np.stack([zero, fy[..., None] * w, -dv], -1)], axis=-2)         # (..., 42, 3)
+    b = np.concatenate([du * p[..., 2] - fx[..., None] * p[..., 0] * w,
+                        dv * p[..., 2] - fy[..., None] * p[..., 1] * w], axis=-1)      # (..., 42)
+    AtA = np.swapaxes(A, -1, -2) @ A
+    Atb = (np.swapaxes(A, -1, -2) @ b[..., None])[..., 0]
+    enough = seen.sum(-1) >= 3
+    AtA = np.where(enough[..., None, None], AtA, np.eye(3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.linalg.solve(AtA, Atb[..., None])[..., 0]
+    nearest = np.min(np.where(seen, p[..., 2], np.inf), axis=-1) + t[..., 2]
+    ok = enough & np.all(np.isfinite(t), axis=-1) & (nearest > MIN_DEPTH_M)
+    return np.where(ok[..., None], t, np.nan), ok

@@ -6,6 +6,7 @@ from handmocap.joint_limits import JointLimits
 from handmocap.rotations import axis_angle_to_matrix
 from handmocap.translation import (
     DEFAULT_DEPTH_M, camera_joints_from_keypoints, depth_from_hand_size, root_depth_from_intrinsics,
+    root_fitting_keypoints,
 )
 
 MODEL = HandModel.load()
@@ -110,3 +111,32 @@ def test_camera_joints_pick_the_root_that_reprojects_best():
     np.testing.assert_array_equal(valid, ok)
     np.testing.assert_allclose(root, ray * z[:, None], rtol=1e-12)
     assert 0 < (np.abs(z_near - z_far) > 1e-6)[ok].sum(), "no sample with two distinct roots"
+
+
+@settings(deadline=None, max_examples=40)
+@given(st.integers(0, 2 ** 31), st.floats(0.25, 2.0))
+def test_all_joint_fit_recovers_the_root_exactly_and_averages_out_joint_errors(seed, depth):
+    rng = np.random.default_rng(seed)
+    xyz = hand_in_camera(rng, depth)
+    rel = xyz - xyz[9]
+    root, ok = root_fitting_keypoints(K, project(xyz), rel)
+    assert ok and np.linalg.norm(root - xyz[9]) / depth < 1e-9
+    # a skeleton whose joints are off by 5 mm (5% of a hand): the root stays within ~10% of its depth
+    noisy = rel + rng.normal(0, 0.005, rel.shape)
+    root, ok = root_fitting_keypoints(K, project(xyz), noisy)
+    assert ok and np.linalg.norm(root - xyz[9]) < 0.1 * depth + 0.01
+
+
+def test_all_joint_fit_skips_missing_joints_and_refuses_degenerate_input():
+    rng = np.random.default_rng(3)
+    xyz = np.stack([hand_in_camera(rng, d) for d in (0.4, 0.9)])
+    uv = project(xyz)
+    uv[0, [4, 8, 12]] = np.nan                                   # joints without a pixel are left out
+    root, ok = root_fitting_keypoints(np.array([620.0, 615.0, 318.0, 242.0]), uv, xyz - xyz[:, 9:10])
+    assert ok.all() and np.allclose(root, xyz[:, 9], atol=1e-9)
+    uv[1, 2:] = np.nan                                           # two joints: not enough
+    root, ok = root_fitting_keypoints(K, uv, xyz - xyz[:, 9:10])
+    assert ok.tolist() == [True, False] and np.all(np.isnan(root[1]))
+    behind = xyz[0] * np.array([1, 1, -1])                       # a hand behind the camera
+    root, ok = root_fitting_keypoints(K, project(behind), behind - behind[9])
+    assert not ok and np.all(np.isnan(root))
