@@ -70,16 +70,15 @@ def pose_fields(hand, quats, beta, K, model):
     rel = joints - joints[ROOT]
     if hand["handedness"] == "left":
         rel = mirror_points(rel)
-    _, root, valid = camera_joints_from_keypoints(K, hand["uv"], rel / ref_m, ref_m)
-    fitted, fit_ok = root_fitting_keypoints(K, hand["uv"], rel)
-    if fit_ok:
-        root = fitted
+    root, valid = root_fitting_keypoints(K, hand["uv"], rel)
+    if not valid:
+        _, root, valid = camera_joints_from_keypoints(K, hand["uv"], rel / ref_m, ref_m)
     return {"track_id": int(hand["track_id"]), "handedness": hand["handedness"], "score": float(hand["score"]),
             "xyz": (root + rel).astype(np.float32), "root": root.astype(np.float32),
             "quat": quat_normalize(quats).astype(np.float32),
             "pose": global_quats_to_relative(R).astype(np.float32),
             "beta": np.asarray(beta, dtype=np.float32), "uv": np.asarray(hand["uv"], dtype=np.float32),
-            "translation_valid": bool(valid or fit_ok)}
+            "translation_valid": bool(valid)}
 
 
 def pose_from_keypoints(hand, K, rest, solver, model, beta=None, limits=None):
