@@ -18,7 +18,7 @@ Per hand (pose_from_keypoints):
    root that puts all 21 posed joints onto the keypoints in the least-squares sense
    (translation.root_fitting_keypoints), else (fewer than 3 usable joints, or behind the
    camera) Eq. 5 (translation.camera_joints_from_keypoints, root and wrist only). On the
-   rendered demo clip the all-joint fit has 41 mm mean root error (median 20) against Eq.
+   rendered demo clip the all-joint fit has 38 mm mean root error (median 20) against Eq.
    5's 111 (75), and the posed joints land 18.8 px from the true 2D against 21.3 px:
    Eq. 5 rests on one bone of the posed skeleton, whose errors it turns into depth.
    `translation_valid` is False only where both failed (the hand-size fallback depth).

@@ -138,6 +138,11 @@ def background_crops(repo_root, exclude=VAL_VIDEOS):
     return crops[keep]
 
 
+def shard_count(root):
+    """Number of shards in a handsynth output folder."""
+    return len(json.loads((root / "meta.json").read_text())["shards"])
+
+
 def load_synth(root, shards):
     """Synthetic frames of the given shards: images (N,S,S,3) RGB, boxes (N,2,4), right (N,2)."""
     meta = json.loads((root / "meta.json").read_text())
@@ -326,20 +331,9 @@ def main(args):
         model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
         export(model, args.export)
         return
-    n_shards = len(json.loads((args.synth[0] / "meta.json").read_text())["shards"])
-    synth = concat(load_synth(args.synth[0], range(n_shards - 1)),
-                   *(load_synth(d, range(len(json.loads((d / "meta.json").read_text())["shards"])))
-                     for d in args.synth[1:]))
-    synth_val = load_synth(args.synth[0], [n_shards - 1])
+    n_shards = shard_count(args.synth[0])
     have_real = (args.data / "video").is_dir()
-    if have_real:
-        real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, part=args.real_part),
-                      load_howiema_frames(args.data, held_out=False))
-    else:
-        real = (np.zeros((0,)), None, None)
-    negatives = background_crops(Path(__file__).resolve().parent.parent)
-    print(f"synthetic {len(synth[0])} (+{len(synth_val[0])} val), real {len(real[0])}, negatives {len(negatives)}")
-    val_sets = {"synth": synth_val}
+    val_sets = {"synth": load_synth(args.synth[0], [n_shards - 1])}
     if have_real:   # never trained on: a whole video, the tails of the training videos, 2 howiema sequences
         val_sets["real"] = load_real_frames(args.data, VAL_VIDEOS, stride=1, size=INPUT_SIZE)
         if args.real_part == "train":
@@ -349,6 +343,16 @@ def main(args):
         model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
         print(json.dumps({name: evaluate(model, *v) for name, v in val_sets.items()}, indent=1))
         return
+    synth = concat(load_synth(args.synth[0], range(n_shards - 1)),
+                   *(load_synth(d, range(shard_count(d))) for d in args.synth[1:]))
+    if have_real:
+        real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, part=args.real_part),
+                      load_howiema_frames(args.data, held_out=False))
+    else:
+        real = (np.zeros((0,)), None, None)
+    negatives = background_crops(Path(__file__).resolve().parent.parent)
+    print(f"synthetic {len(synth[0])} (+{len(val_sets['synth'][0])} val), real {len(real[0])}, "
+          f"negatives {len(negatives)}")
     batches = Batches(real, synth, negatives, args.real_zoom)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     start = 0
