@@ -18,14 +18,19 @@ finder's box; 0 = never), crop_scale (crop side / joint-box side), every_frame.
 """
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 
-from handmocap.detector import CROP, CROP_SCALE, DETNET_PATH, HandDetector
+from handmocap.detector import CROP, DETNET_PATH, HandDetector
 from handmocap.frames import frame_bgr
 from handmocap.node import Node, run
 
-PARAMS = {"detnet": None, "finder": None, "threads": 1, "max_hands": 2, "presence_threshold": 0.5,
-          "min_confidence": 0.1, "birth_confidence": 0.3, "redetect_every": 10, "reseed_iou": 0.3, "crop_scale": CROP_SCALE,
+# HandDetector's settings, with its own defaults (one place for them: the class)
+TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "redetect_every", "reseed_iou",
+           "crop_scale")
+_DEFAULTS = inspect.signature(HandDetector).parameters
+PARAMS = {"detnet": None, "finder": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
           "every_frame": False}
 
 
@@ -54,11 +59,8 @@ def main() -> None:
     # load and are connected when the first frame comes (else the first publish waits for them)
     node.subscribe("/camera/image", "Image", mode="all" if p["every_frame"] else "latest")
     node.advertise("/hand/keypoints", "HandKeypoints")
-    detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]), max_hands=int(p["max_hands"]),
-                                 presence_threshold=float(p["presence_threshold"]),
-                                 min_confidence=float(p["min_confidence"]),
-                                 birth_confidence=float(p["birth_confidence"]), redetect_every=int(p["redetect_every"]),
-                                 reseed_iou=float(p["reseed_iou"]), crop_scale=float(p["crop_scale"]))
+    detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]),
+                                 **{k: type(PARAMS[k])(p[k]) for k in TUNABLE})   # int or float, as the default
     warm_up(detector, p)
     for msg in node:
         try:

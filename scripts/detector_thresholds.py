@@ -2,9 +2,10 @@
 
     python scripts/detector_thresholds.py [--detnet models/detnet.onnx] [--finder models/finder.onnx]
 
-Runs the detector (finder + DetNet tracking, every frame in order) over real clips it never
-trained on: the held-out video, the held-out tails of the training videos
-(real_data.video_split) and howiema 001 sequences L8/R8 (frames in order). The evaluation
+Runs the detector (finder + DetNet tracking, every frame in order) over real clips kept out
+of training: the finder's held-out video (train_finder.VAL_VIDEOS; DetNet trained on its
+first 85%), the held-out tails of the training videos (real_data.video_split) and howiema
+001 sequences L8/R8 (frames in order). The evaluation
 splits (temugeb_stereo, howiema 040, ...) are never read: thresholds chosen here are then
 only measured there.
 
@@ -18,14 +19,16 @@ clips in order (tracking), and on every 4th frame of them as a still image (the 
 reset before each, as `handeval predict` treats a folder of photos: one birth per hand).
 """
 import argparse
+from pathlib import Path
 
 import numpy as np
 
 from handmocap import real_data
 from handmocap.detector import HandDetector
 from handmocap.pose_data import SHARED_DATA
+from handmocap.train_finder import VAL_VIDEOS
 
-HELD_OUT_VIDEO = "video/webcam/alimostafa_hand.mp4"
+HELD_OUT_VIDEO = f"video/{VAL_VIDEOS[0]}.mp4"
 
 
 def clips(shared):
@@ -78,7 +81,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--detnet", default=None)
     ap.add_argument("--finder", default=None)
-    ap.add_argument("--shared", type=lambda p: __import__("pathlib").Path(p), default=SHARED_DATA)
+    ap.add_argument("--shared", type=Path, default=SHARED_DATA)
     args = ap.parse_args()
     data = list(clips(args.shared))
     print("| birth_confidence | min_confidence | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
