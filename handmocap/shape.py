@@ -159,8 +159,17 @@ class ShapeTracker:
     >>> beta, n = tracker.update(xyz_rel)     # per frame
     """
 
-    def __init__(self, fitter, window=600, trim=3.0, min_frames_for_noise=8, prior_until_noise_known=1e-3):
+    def __init__(self, fitter, window=600, trim=3.0, min_frames_for_noise=8, prior_until_noise_known=1e-3,
+                 refresh_every=8, refresh_all_until=64):
         self.fitter = fitter
+        # the median and MAD of a full window take two partitions of (600, 20..40) values,
+        # ~0.45 ms a frame; one frame moves them by ~1/window, so past `refresh_all_until`
+        # frames they are recomputed every `refresh_every` frames (the trimmed mean itself,
+        # over every frame in the window, still every frame)
+        self.refresh_every = refresh_every
+        self.refresh_all_until = refresh_all_until
+        self._robust = None        # (median (40,), spread of sq (20,), noise variance), from
+        self._robust_age = 0       # this many frames ago
         self.prior_until_noise_known = prior_until_noise_known   # strong shrinkage for the first frames
         # per frame: squared bone lengths (20) and the lengths (20), kept side by side so the
         # square roots are taken once per frame, not over the whole window every frame
@@ -180,6 +189,7 @@ class ShapeTracker:
 
     def reset(self):
         self.frames.clear()
+        self._robust = None
         self.beta = np.zeros(self.fitter.num_betas)
 
     def update(self, xyz):
@@ -202,21 +212,30 @@ class ShapeTracker:
         if len(sq) < self.min_frames_for_noise:
             ratios = np.sqrt(np.median(sq, axis=0) / np.median(sq[:, _REF_INDEX]))
             return ratios, self.prior_until_noise_known
-        # lengths = sqrt(sq) keeps the order: one partition gives both medians (np.median's values)
-        lo, hi = _middle(sq)
-        med = _median_of(lo, hi)
-        lmed = _median_of(np.sqrt(lo), np.sqrt(hi))
-        deviation = np.abs(both - np.concatenate([med, lmed]))                  # (n,40)
-        mad = _column_median(deviation)                                         # MAD of sq, of lengths
-        spread = 1.4826 * mad[:len(BONES)] + 1e-12
-        keep = deviation[:, :len(BONES)] <= self.trim * spread
+        self._robust_age += 1
+        if self._robust is None or len(sq) < self.refresh_all_until or self._robust_age >= self.refresh_every:
+            self._robust, self._robust_age = self._robust_stats(both), 0
+        med, spread, noise_var = self._robust
+        keep = np.abs(sq - med) <= self.trim * spread
         mean_sq = np.sum(sq * keep, axis=0) / np.maximum(keep.sum(0), 1)
-        # noise per bone-vector coordinate from the spread of lengths of rigid bones
-        noise_var = np.median((1.4826 * mad[len(BONES):]) ** 2)
         corrected = np.maximum(mean_sq - 3.0 * noise_var, 0.05 * mean_sq)
         # a ratio l/l_ref carries the noise of both lengths: var ≈ sigma_d^2 (1 + r^2) / l_ref^2
         ratio_var = 2.0 * noise_var / corrected[_REF_INDEX]
         return np.sqrt(corrected / corrected[_REF_INDEX]), ratio_var
+
+    @staticmethod
+    def _robust_stats(both):
+        """Per bone, of (n, 40) squared lengths and lengths: the median squared length (20,),
+        the robust SD of squared lengths (20,), and the joint-noise variance per bone-vector
+        coordinate, from the spread of the lengths of rigid bones."""
+        sq = both[:, :len(BONES)]
+        # lengths = sqrt(sq) keeps the order: one partition gives both medians (np.median's values)
+        lo, hi = _middle(sq)
+        med = _median_of(lo, hi)
+        lmed = _median_of(np.sqrt(lo), np.sqrt(hi))
+        mad = _column_median(np.abs(both - np.concatenate([med, lmed])))   # MAD of sq, of lengths
+        spread = 1.4826 * mad[:len(BONES)] + 1e-12
+        return med, spread, np.median((1.4826 * mad[len(BONES):]) ** 2)
 
 
 class ShapeEstimator:
