@@ -12,16 +12,18 @@ Rows of the table:
   launch/demo.yaml) -> shape -> ik -> recorder of /hand/pose only (the probe: its MCAP log
   time is the receipt time; with --record-all it records every topic as the demo does).
   As in the product launch files, replay, detector, shape and ik run in one container
-  process (`container: perception`: threads sharing one zmq Context, inproc:// between
-  them; the frame reaches the detector without a socket, and its pixels without a copy on
-  the receiving side); the recorder is a process of its own, so the pose still crosses a
+  process (`container: perception`: one zmq Context, inproc:// between them; the frame
+  reaches the detector without a socket, and its pixels without a copy on the receiving
+  side; detector, shape and ik called in turn by one executor thread, the source a thread
+  of its own); the recorder is a process of its own, so the pose still crosses a
   process boundary. --source-outside: replay a process of its own, only detector, shape
   and ik in the container (the product's layout before the source joined it: the frame
   crosses a unix socket). --no-container: every node its own process. At rate 1, replay
   decodes each frame just before it is due (as a camera delivers it), not while the graph
   still works on the previous one.
   --trace: the 30 fps run with HANDMOCAP_TRACE, and the p50/p95 of each hop from the nodes'
-  publish and receive times, and each node thread's CPU time over the run per frame
+  publish and receive times, and each thread's CPU time over the run per frame (the
+  container's executor thread runs detector, shape and ik)
   (start-up and idle polling included; OpenCV's decoding threads, zmq's I/O threads and the
   heartbeats are not in any node's figure); tracing itself costs a little.
   Latency = receipt of /hand/pose - capture stamp, p50/p95 over the frames after the first
@@ -171,8 +173,8 @@ def trace_breakdown(trace: Path) -> list[tuple[str, float, float]]:
         node = f.name.split(".")[0]
         last = {}
         for kind, topic, stamp, t in json.loads(f.read_text()):
-            if kind == "cpu":   # the node thread's CPU time at close
-                cpu[node] = t / 1e6
+            if kind == "cpu":   # CPU time at close of the thread that ran the node (an executor's: shared)
+                cpu[topic or node] = t / 1e6
             elif kind == "pub0":
                 last[topic] = stamp
                 ev[(node, "pub0", topic, stamp)] = t
@@ -205,8 +207,8 @@ def trace_breakdown(trace: Path) -> list[tuple[str, float, float]]:
         if d:
             out.append((label, float(np.percentile(d, 50)), float(np.percentile(d, 95))))
     n = len(stamps) + WARMUP_FRAMES
-    for node, ms in sorted(cpu.items()):   # (a "p95" column of the per-frame mean: the same)
-        out.append((f"{node} thread CPU per frame (whole run)", ms / n, ms / n))   # printed once
+    for thread, ms in sorted(cpu.items()):   # (a "p95" column of the per-frame mean: the same)
+        out.append((f"{thread} thread CPU per frame (whole run)", ms / n, ms / n))   # printed once
     return out
 
 

@@ -23,11 +23,15 @@ A launch file:
         if: $(var bag)        # optional: the node runs only when this is true (see is_true)
       detector: {node: detector, container: perception}   # optional: see below
 
-Containers (ROS 2 composition): nodes with the same `container: NAME` run as threads of one
-process, unchanged: each is the same thin loop, binds its own socket (so every other process,
-handtopic and the recorder still see its topics) and also an inproc:// endpoint of the
-process's one zmq Context, over which the container's other nodes receive its messages
-without a socket hop. The container is one supervised process: it is required when one of
+Containers (ROS 2 composition): nodes with the same `container: NAME` run in one process,
+unchanged: each binds its own socket (so every other process, handtopic and the recorder
+still see its topics) and also an inproc:// endpoint of the process's one zmq Context, over
+which the container's other nodes receive its messages without a socket hop. Nodes whose
+module offers start() -> (node, handler) (detector, shape, ik) are called in turn by one
+executor thread (handmocap.executor, as ROS 2's single-threaded executor): a frame goes
+detector -> shape -> ik in one pass, and no two of them fight over the interpreter lock;
+the others (sources) run their own loop in a thread each. The container is one supervised
+process: it is required when one of
 its nodes is, respawns when one of its nodes does (after the shortest respawn_delay), and
 its output lines carry each node's own name. A node that fails inside it (exit code or
 exception) stops the whole container when that node is required or respawns (the container
@@ -516,14 +520,27 @@ def member_settings(spec: NodeSpec) -> dict:
 
 
 # -- a container process ------------------------------------------------------------------
+def _name_thread(name: str) -> None:
+    """Give the calling OS thread the node's name (Linux, 15 bytes), so top -H, ps -L and perf
+    show which node of a container a thread runs; elsewhere a no-op."""
+    try:
+        import ctypes
+        ctypes.CDLL(None).prctl(15, name.encode()[:15] + b"\0", 0, 0, 0)   # PR_SET_NAME
+    except (OSError, AttributeError):
+        pass
+
+
 def run_container(members: list[dict]) -> int:
-    """Run the nodes `members` (member_settings) as threads of this process, sharing one zmq
-    Context; returns the exit code: 0, or that of the first required (or respawning) node that
-    failed, which stops the others. A failed node that is neither only ends its own thread."""
+    """Run the nodes `members` (member_settings) in this process, sharing one zmq Context:
+    those whose module offers start() (detector, shape, ik) called in turn by one executor
+    thread (handmocap.executor), the others (sources) as threads of their own. Returns the
+    exit code: 0, or that of the first required (or respawning) node that failed, which
+    stops the others. A failed node that is neither only ends on its own."""
     import logging
 
     import zmq
 
+    from . import executor
     from . import node as node_mod
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="[%(name)s] %(levelname)s %(message)s")
     log = logging.getLogger("container")
@@ -534,34 +551,40 @@ def run_container(members: list[dict]) -> int:
         signal.signal(sig, lambda *_: stopping.set())
     failed: list[tuple[str, int]] = []
 
+    def on_exit(m: dict, code: int) -> None:
+        if not code:
+            return
+        failed.append((m["name"], code))
+        if m["fatal"]:
+            stopping.set()
+        else:
+            log.warning("node %s failed (exit code %d); the container goes on without it", m["name"], code)
+            # as the launcher marks a node process that died for good: its streams are over,
+            # and the graph does not wait for it to come up
+            bus.write_node_file(bus.run_dir(), bus.NodeInfo(m["name"], os.getpid(), "", ended=True))
+
     def member(m: dict) -> None:
         node_mod._local.settings = m["settings"]
-        code = 0
+        _name_thread(m["name"])
         try:
-            importlib.import_module(m["module"]).main()
-        except KeyboardInterrupt:
-            pass
-        except SystemExit as e:
-            code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-        except node_mod.EXPECTED_ERRORS as e:   # as node.run: one clear line, exit code 2
-            logging.getLogger(m["name"]).error("%s", e)
-            code = 2
-        except Exception:
-            logging.getLogger(m["name"]).exception("failed")
-            code = 1
+            code = executor.exit_code(importlib.import_module(m["module"]).main, m["name"])
         finally:
             node_mod._close_open_nodes(threading.get_ident())   # end of stream downstream
-        if code:
-            failed.append((m["name"], code))
-            if m["fatal"]:
-                stopping.set()
-            else:
-                log.warning("node %s failed (exit code %d); the container goes on without it", m["name"], code)
-                # as the launcher marks a node process that died for good: its streams are over,
-                # and the graph does not wait for it to come up
-                bus.write_node_file(bus.run_dir(), bus.NodeInfo(m["name"], os.getpid(), "", ended=True))
+        on_exit(m, code)
 
-    threads = [threading.Thread(target=member, args=(m,), name=m["name"], daemon=True) for m in members]
+    def in_turn(group: list[dict]) -> None:
+        _name_thread("+".join(m["name"] for m in group))
+        try:
+            executor.run_in_turn(group, on_exit)
+        finally:
+            node_mod._close_open_nodes(threading.get_ident())
+
+    group = [m for m in members if executor.can_run_in_turn(m["module"])]
+    threads = [threading.Thread(target=member, args=(m,), name=m["name"], daemon=True)
+               for m in members if m not in group]
+    if group:
+        threads.append(threading.Thread(target=in_turn, args=(group,), name="+".join(m["name"] for m in group),
+                                        daemon=True))
     for t in threads:
         t.start()
     while any(t.is_alive() for t in threads):

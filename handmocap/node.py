@@ -45,6 +45,7 @@ READY_TIMEOUT_S = 60  # how long a publisher waits for its graph to start
 
 
 _EOS = bus.EOS
+IDLE = object()   # Node.steps(): nothing more queued for now
 _local = threading.local()   # a container's node thread: its own launch settings (see container.py)
 
 
@@ -150,6 +151,7 @@ class Node:
         self._validate_send = bool(os.environ.get("HANDMOCAP_VALIDATE_SEND"))
         self._trace = [] if os.environ.get("HANDMOCAP_TRACE") else None   # timing of every message (diagnostics)
         self._closed = False
+        self._at_close = []
         self._old_handlers = {}
         if threading.current_thread() is threading.main_thread():   # signals reach the main thread only
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -287,12 +289,29 @@ class Node:
         the bookkeeping (discovery scans, end-of-stream checks, ticks) runs after the consumer
         comes back for the next one. With one subscription socket (the usual case) the loop
         blocks in recv itself (RCVTIMEO), with two it polls both."""
+        return self._events(timeout, block=True)
+
+    def steps(self):
+        """events() that never blocks, for an executor that runs several nodes in one thread
+        (handmocap.executor): yields the Messages queued now, then IDLE, and again on the
+        next call; ends as events() does."""
+        return self._events(None, block=False)
+
+    def sockets(self) -> list:
+        """The zmq sockets this node receives on (an executor polls them)."""
+        return list(self.sub.socks.values())
+
+    def at_close(self, fn) -> None:
+        """Call fn() when the node closes, before its end of stream goes out (final stats)."""
+        self._at_close.append(fn)
+
+    def _events(self, timeout, block):
         self.ready()
         socks = {s: mode for mode, s in self.sub.socks.items()}
         poller = None
         if len(socks) == 1:
             (only, only_mode), = socks.items()
-            only.setsockopt(zmq.RCVTIMEO, POLL_MS)
+            only.setsockopt(zmq.RCVTIMEO, POLL_MS if block else 0)
         elif socks:
             poller = zmq.Poller()
             for s in socks:
@@ -307,23 +326,27 @@ class Node:
             if poller is None:
                 try:
                     frames = self._recv(only, 0) if socks else None
-                except zmq.Again:   # RCVTIMEO: nothing for POLL_MS
+                except zmq.Again:   # RCVTIMEO: nothing for POLL_MS (or now, when not blocking)
                     frames = None
                 if frames is None:
-                    if not socks:
+                    if not socks and block:
                         self._stop.wait(POLL_MS / 1000)
                     batches = ()
                 elif only_mode == "all":   # keep-all: straight from the receive to the consumer
+                    # not blocking (an executor's turn): what is queued now, no more, so a
+                    # busy input can't keep the nodes after this one waiting
+                    queued = () if block else list(self._pending(only))
                     msg = self._decode(frames)
                     if msg is not None:
                         got = True
                         yield msg
-                    batches = (self._pending(only),)   # then whatever queued meanwhile
+                    batches = (self._pending(only),) if block else (queued,)   # then whatever queued meanwhile
                 else:
                     batches = (self._drain_latest(only, frames),)
             else:
-                batches = (self._drain_latest(s) if socks[s] == "latest" else self._pending(s)
-                           for s, _ in poller.poll(POLL_MS))
+                batches = [self._drain_latest(s) if socks[s] == "latest" else
+                           (self._pending(s) if block else list(self._pending(s)))
+                           for s, _ in poller.poll(POLL_MS if block else 0)]
             for batch in batches:
                 for frames in batch:
                     msg = self._decode(frames)
@@ -335,6 +358,8 @@ class Node:
             elif timeout is not None and time.monotonic() - last >= timeout:
                 last = time.monotonic()
                 yield None
+            if not block:
+                yield IDLE
 
     def _recv(self, s: zmq.Socket, flags: int = zmq.NOBLOCK) -> list:
         """One multipart message. Where the last payload on this socket was large (frames), the
@@ -509,9 +534,17 @@ class Node:
         if self._closed:
             return
         _OPEN_NODES.discard(self)
+        for fn in self._at_close:
+            try:
+                fn()
+            except Exception:   # closing goes on: downstream must still hear the end of stream
+                self.log.exception("at close")
+        self._at_close = []
         if self._trace:
             if threading.get_ident() == self._thread:   # the CPU time of this node's own thread
-                self._trace.append(("cpu", None, None, time.thread_time_ns()))
+                thread = threading.current_thread()     # (an executor's: shared, named after its nodes)
+                label = self.name if thread is threading.main_thread() else thread.name
+                self._trace.append(("cpu", label, None, time.thread_time_ns()))
             Path(os.environ["HANDMOCAP_TRACE"], f"{self.name}.trace.json").write_text(json.dumps(self._trace))
         if self.info.publishes and not self._graph_ready and not self._stop.is_set():
             self.wait_for_subscribers(2.0)   # they must be connected to hear the end-of-stream

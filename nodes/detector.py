@@ -19,12 +19,13 @@ finder's box; 0 = never), crop_scale (crop side / joint-box side), every_frame.
 from __future__ import annotations
 
 import inspect
+from typing import Callable
 
 import numpy as np
 
 from handmocap.detector import CROP, DETNET_PATH, HandDetector
 from handmocap.frames import frame_bgr
-from handmocap.node import Node, run
+from handmocap.node import Message, Node, run
 
 # HandDetector's settings, with its own defaults (one place for them: the class)
 TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "redetect_every", "reseed_iou",
@@ -52,7 +53,8 @@ def warm_up(detector: HandDetector, params: dict) -> None:
                              f"frame: {str(e).splitlines()[0][:200]}") from None
 
 
-def main() -> None:
+def start() -> tuple[Node, Callable[[Message], None]]:
+    """The node, set up (topics, models), and its handler of one /camera/image message."""
     node = Node("detector", params=PARAMS)
     p = node.params
     # topics first, models second: the graph's other nodes see /hand/keypoints while the models
@@ -62,17 +64,25 @@ def main() -> None:
     detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]),
                                  **{k: type(PARAMS[k])(p[k]) for k in TUNABLE})   # int or float, as the default
     warm_up(detector, p)
-    for msg in node:
+    node.at_close(lambda: node.log.info("%d frames, %d finder runs, %d crops", detector.stats["frames"],
+                                        detector.stats["finder_runs"], detector.stats["crops"]))
+
+    def on_image(msg: Message) -> None:
         try:
             frame = frame_bgr(msg.data)
         except ValueError as e:
             node.log.warning("skipped an image: %s", e)
-            continue
+            return
         hands = detector.process(frame)
         node.publish("/hand/keypoints", {"width": int(frame.shape[1]), "height": int(frame.shape[0]), "hands": hands},
                      stamp_ns=msg.stamp_ns, frame_id=msg.data["header"]["frame_id"])
-    node.log.info("%d frames, %d finder runs, %d crops", detector.stats["frames"], detector.stats["finder_runs"],
-                  detector.stats["crops"])
+    return node, on_image
+
+
+def main() -> None:
+    node, on_image = start()
+    for msg in node:
+        on_image(msg)
     node.close()
 
 

@@ -16,18 +16,21 @@ detector's real output.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from handmocap import camera_info
 from handmocap.hand_model import HandModel
 from handmocap.ik_solver import IKSolver
-from handmocap.node import Node, run
+from handmocap.node import Message, Node, run
 from handmocap.pose import POSE_DEFAULTS, PoseEstimator
 
 PARAMS = {"model": None, "iknet": None, "threads": 1, **POSE_DEFAULTS}
 
 
-def main() -> None:
+def start() -> tuple[Node, Callable[[Message], None]]:
+    """The node, set up (topics, models), and its handler of one received message."""
     node = Node("ik", params=PARAMS)
     p = node.params
     # topics first, models second: subscribers of /hand/pose connect while the models load
@@ -44,7 +47,9 @@ def main() -> None:
                          f"{str(e).splitlines()[0][:200]}") from None
     estimator = PoseEstimator(solver, model, p)
     K = None
-    for msg in node:
+
+    def on_message(msg: Message) -> None:
+        nonlocal K
         if msg.type == "CameraInfo":
             K = np.asarray(msg.data["K"], dtype=np.float64)
         elif msg.type == "HandShape":
@@ -54,6 +59,13 @@ def main() -> None:
             K_frame = K if K is not None else camera_info.default_K(data["width"], data["height"])
             hands = estimator.update(data["hands"], K_frame, msg.stamp_ns / 1e9)
             node.publish("/hand/pose", {"hands": hands}, stamp_ns=msg.stamp_ns, frame_id=data["header"]["frame_id"])
+    return node, on_message
+
+
+def main() -> None:
+    node, on_message = start()
+    for msg in node:
+        on_message(msg)
     node.close()
 
 

@@ -12,24 +12,34 @@ A track not seen for `forget_after_s` is dropped.
 from __future__ import annotations
 
 import time
+from typing import Callable
 
 from handmocap.hand_model import HandModel
-from handmocap.node import Node, run
+from handmocap.node import Message, Node, run
 from handmocap.shape import ShapeEstimator
 
 PARAMS = {"model": None, "forget_after_s": 2.0, "window": 600}
 
 
-def main() -> None:
+def start() -> tuple[Node, Callable[[Message], None]]:
+    """The node, set up, and its handler of one /hand/keypoints message."""
     node = Node("shape", params=PARAMS)
     p = node.params
     estimator = ShapeEstimator(HandModel.load(p["model"]), p["forget_after_s"], p["window"])
     node.subscribe("/hand/keypoints", "HandKeypoints", mode="all")
     node.advertise("/hand/shape", "HandShape")
-    for msg in node:
+
+    def on_keypoints(msg: Message) -> None:
         shapes = estimator.update(msg.data["hands"], time.monotonic())
         node.publish("/hand/shape", {"shapes": shapes}, stamp_ns=msg.stamp_ns,
                      frame_id=msg.data["header"]["frame_id"])
+    return node, on_keypoints
+
+
+def main() -> None:
+    node, on_keypoints = start()
+    for msg in node:
+        on_keypoints(msg)
     node.close()
 
 

@@ -1,0 +1,157 @@
+"""handmocap.executor: several nodes of a container called in turn by one thread."""
+import threading
+import time
+import uuid
+
+import numpy as np
+import pytest
+import zmq
+
+from handmocap import executor
+from handmocap import node as nm
+
+
+@pytest.fixture
+def container(run_dir, monkeypatch):
+    """This process as a container: one zmq Context, inproc:// between its nodes."""
+    ctx = zmq.Context()
+    monkeypatch.setitem(nm._SHARED, "ctx", ctx)
+    monkeypatch.setitem(nm._SHARED, "token", uuid.uuid4().hex)
+    yield ctx
+    ctx.term()
+
+
+def make_node(name, sub=None, pub=None):
+    nm._local.settings = {"HANDMOCAP_NODE_NAME": name}
+    n = nm.Node(name)
+    if sub:
+        n.subscribe(sub, "Blob", mode="all")
+    if pub:
+        n.advertise(pub, "Blob")
+    return n
+
+
+def text(s):
+    return {"data": np.frombuffer(s.encode(), np.uint8)}
+
+
+def read(msg):
+    return bytes(msg.data["data"]).decode()
+
+
+def source(n_messages, started, every_s=0.0):
+    """A source thread: waits for its subscriber, sends n_messages on /a (one every `every_s`),
+    closes (end of stream)."""
+    with make_node("src", pub="/a") as src:
+        started.wait(10)
+        deadline = time.monotonic() + 10
+        while src.pub.subscriber_count("/a") < 1 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        for i in range(n_messages):
+            src.publish("/a", text(str(i)))
+            time.sleep(every_s)
+
+
+def chain(fail_at=None):
+    """Nodes A (/a -> /b) and B (/b): their handlers log (node, thread, text); A raises at fail_at."""
+    calls = []
+    a, b = make_node("A", sub="/a", pub="/b"), make_node("B", sub="/b")
+
+    def on_a(msg):
+        calls.append(("A", threading.get_ident(), read(msg)))
+        if read(msg) == fail_at:
+            raise ValueError("bad message")
+        a.publish("/b", text(read(msg)), stamp_ns=msg.stamp_ns)
+
+    def on_b(msg):
+        calls.append(("B", threading.get_ident(), read(msg)))
+    return [({"name": "A"}, a, on_a), ({"name": "B"}, b, on_b)], calls
+
+
+def spin_in_thread(exits, **kw):
+    """Set up A and B and spin them in a thread of their own (as a container's executor
+    thread: nodes close in the thread that made them); returns (thread, calls)."""
+    out = {}
+
+    def run():
+        out["nodes"], out["calls"] = chain(**kw)
+        executor.spin(out["nodes"], lambda m, code: exits.append((m["name"], code)))
+    t = threading.Thread(target=run)
+    t.start()
+    deadline = time.monotonic() + 10
+    while "calls" not in out and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return t, out["calls"]
+
+
+def test_nodes_are_called_in_turn_on_one_thread_and_end_in_order(container):
+    exits, started = [], threading.Event()
+    spinner, calls = spin_in_thread(exits)
+    src = threading.Thread(target=source, args=(50, started, 0.002))
+    src.start()
+    started.set()
+    spinner.join(30)
+    src.join(10)
+    assert not spinner.is_alive(), "the executor did not end when its inputs ended"
+    assert exits == [("A", 0), ("B", 0)]            # A ends first, B once it heard A's end of stream
+    assert [c[2] for c in calls if c[0] == "A"] == [str(i) for i in range(50)]
+    assert [c[2] for c in calls if c[0] == "B"] == [str(i) for i in range(50)]
+    assert {c[1] for c in calls} == {spinner.ident}
+
+
+def test_a_handler_that_raises_ends_its_node_and_the_others_hear_the_end(container, caplog):
+    exits, started = [], threading.Event()
+    spinner, calls = spin_in_thread(exits, fail_at="3")
+    src = threading.Thread(target=source, args=(10, started))
+    src.start()
+    started.set()
+    spinner.join(30)
+    src.join(10)
+    assert not spinner.is_alive()
+    assert exits == [("A", 2), ("B", 0)]            # ValueError: an expected error, one line, code 2
+    assert [c[2] for c in calls if c[0] == "B"] == ["0", "1", "2"]
+    assert any("bad message" in r.getMessage() and r.levelname == "ERROR" for r in caplog.records)
+
+
+def test_a_node_that_fails_to_start_is_closed_and_reported(container, tmp_path, monkeypatch):
+    mod = tmp_path / "failing_node.py"
+    mod.write_text("from handmocap.node import Node\n"
+                   "def start():\n"
+                   "    node = Node('failing')\n"
+                   "    node.advertise('/x', 'Blob')\n"
+                   "    raise FileNotFoundError('model nope.onnx not found')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    exits = []
+    started = executor.start_nodes([{"name": "failing", "module": "failing_node", "settings": {}}],
+                                   lambda m, code: exits.append((m["name"], code)))
+    assert started == [] and exits == [("failing", 2)]
+    assert not [n for n in nm._OPEN_NODES if n.name == "failing"]
+    assert executor.can_run_in_turn("nodes.detector") and not executor.can_run_in_turn("nodes.replay")
+
+
+def test_a_turn_takes_what_was_queued_when_it_began(container):
+    """Node.steps(): a turn yields the messages queued when it began, then IDLE, however
+    many arrive meanwhile (a source that always has the next frame ready can't keep the
+    nodes after this one waiting)."""
+    src, sink = make_node("src", pub="/a"), make_node("sink", sub="/a")
+    steps = sink.steps()
+    assert next(steps) is nm.IDLE    # nothing yet (the first turn also connects to src)
+    deadline = time.monotonic() + 10
+    while src.pub.subscriber_count("/a") < 1 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    for i in range(3):
+        src.publish("/a", text(str(i)))
+    time.sleep(0.1)
+    got = [read(next(steps))]
+    for i in range(3, 8):               # arrive during the turn
+        src.publish("/a", text(str(i)))
+    time.sleep(0.1)
+    while (msg := next(steps)) is not nm.IDLE:
+        got.append(read(msg))
+    assert got == ["0", "1", "2"]
+    while (msg := next(steps)) is not nm.IDLE:
+        got.append(read(msg))
+    assert got == [str(i) for i in range(8)]
+    steps.close()
+    sink.close()
+    src.close()
