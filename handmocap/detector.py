@@ -209,7 +209,7 @@ class HandDetector:
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
-                 birth_confidence=0.3):
+                 birth_confidence=0.3, candidates=0):
         self.detnet, self.finder = detnet, finder
         self.max_hands, self.presence_threshold = max_hands, presence_threshold
         self.redetect_every, self.crop_scale = redetect_every, crop_scale
@@ -221,6 +221,10 @@ class HandDetector:
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
         self.reseed_iou = reseed_iou
+        # the finder's best `candidates` boxes are considered (0: max_hands); where more
+        # than the free track slots are new, DetNet's mean heatmap peak on each one's crop
+        # picks which become tracks (the finder's own score ranks desk objects too high)
+        self.candidates = candidates
         self.tracks: list[Track] = []
         self.next_id = 0
         self.frames_since_find = 0
@@ -253,9 +257,9 @@ class HandDetector:
             half = min(h, w) / 2 / self.crop_scale      # the joint box whose crop is the centre square
             found = [(np.array([w / 2 - half, h / 2 - half, w / 2 + half, h / 2 + half]), 0.5, 0.5)]
         else:
-            found = [(f.box, f.score, f.right_prob) for f in self.finder.find(image, self.finder_threshold,
-                                                                             self.max_hands)]
-        new, reseeded = [], []
+            found = [(f.box, f.score, f.right_prob) for f in self.finder.find(
+                image, self.finder_threshold, max(self.max_hands, self.candidates))]
+        new, reseeded, fresh = [], [], []
         for box, score, right_prob in found:
             covering = [t for t in self.tracks if self._covers(t.crop, box)]
             if covering:
@@ -269,8 +273,13 @@ class HandDetector:
                     self.stats["reseeds"] += 1
                     reseeded.append(t)
                 continue
-            if len(self.tracks) + len(new) >= self.max_hands:
-                break
+            fresh.append((box, right_prob))
+        free = self.max_hands - len(self.tracks)
+        if self.candidates and len(fresh) > free > 0:   # DetNet says which of them look most like a hand
+            crops = [crop_for_box(box, right_prob < 0.5, self.crop_scale) for box, right_prob in fresh]
+            peak = self._run(image, crops)["confidence"].mean(axis=1)
+            fresh = [fresh[i] for i in np.argsort(-peak, kind="stable")]
+        for box, right_prob in fresh[:max(free, 0)]:
             track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale))
             track.add_handedness(right_prob)
             self.next_id += 1
@@ -286,12 +295,13 @@ class HandDetector:
         return inside or box_iou(cb, box)[0, 0] >= 0.3
 
     # -------------------------------------------------------------- per frame
-    def _run(self, image_bgr, tracks):
+    def _run(self, image_bgr, crops):
+        """DetNet's outputs on the CropTransforms `crops` of a frame."""
         # cut from the BGR frame and reverse the channels of the crops only: cutting from a
         # reversed-channel view of the frame made OpenCV copy the whole frame for each crop
-        crops = np.ascontiguousarray(np.stack([t.crop.cut(image_bgr) for t in tracks])[..., ::-1])
-        self.stats["crops"] += len(tracks)
-        return self.detnet(crops)
+        pixels = np.ascontiguousarray(np.stack([c.cut(image_bgr) for c in crops])[..., ::-1])
+        self.stats["crops"] += len(crops)
+        return self.detnet(pixels)
 
     def process(self, image_bgr):
         """HandKeypoints hands of one BGR frame (H,W,3) uint8, sorted by track id."""
@@ -301,7 +311,7 @@ class HandDetector:
         self.lost_last_frame = False
         if not self.tracks:
             return []
-        out = self._run(image_bgr, self.tracks)
+        out = self._run(image_bgr, [t.crop for t in self.tracks])
         if new:   # refine a new track's crop from its own first prediction, once
             idx = [i for i, t in enumerate(self.tracks) if t in new]
             for i in idx:
@@ -310,7 +320,7 @@ class HandDetector:
                     right_seen = float(out["handedness"][i])
                     t.add_handedness(1.0 - right_seen if t.crop.mirrored else right_seen)
                     t.crop = crop_for_joints(t.crop.to_frame(out["uv"][i]), not t.is_right, self.crop_scale)
-            again = self._run(image_bgr, [self.tracks[i] for i in idx])
+            again = self._run(image_bgr, [self.tracks[i].crop for i in idx])
             for k, i in enumerate(idx):
                 for key in out:
                     out[key][i] = again[key][k]

@@ -1,6 +1,7 @@
 """Choose the detector's track-keeping thresholds on training-side held-out real data.
 
     python scripts/detector_thresholds.py [--detnet models/detnet.onnx] [--finder models/finder.onnx]
+                                          [--candidates]
 
 Runs the detector (finder + DetNet tracking, every frame in order) over real clips kept out
 of training: the finder's held-out video (train_finder.VAL_VIDEOS; DetNet trained on its
@@ -17,6 +18,8 @@ kinds with every track kept, then for each (birth_confidence, min_confidence) pa
 labelled hands found and the false hands output, the detector run again with them: on the
 clips in order (tracking), and on every 4th frame of them as a still image (the detector
 reset before each, as `handeval predict` treats a folder of photos: one birth per hand).
+--candidates: the same table for how many of the finder's boxes DetNet picks new tracks
+from (HandDetector's `candidates`) and the finder's threshold, at the default thresholds.
 """
 import argparse
 from pathlib import Path
@@ -75,6 +78,8 @@ def score_hands(detector, frames, stills=False):
 
 
 SETTINGS = ((0.0, 0.0), (0.0, 0.1), (0.0, 0.15), (0.0, 0.2), (0.2, 0.15), (0.3, 0.1), (0.3, 0.15))
+# --candidates: (candidates, finder_threshold) at the shipped birth/end thresholds
+CANDIDATES = ((0, 0.3), (4, 0.3), (4, 0.15), (6, 0.1))
 
 
 def main():
@@ -82,12 +87,22 @@ def main():
     ap.add_argument("--detnet", default=None)
     ap.add_argument("--finder", default=None)
     ap.add_argument("--shared", type=Path, default=SHARED_DATA)
+    ap.add_argument("--candidates", action="store_true",
+                    help="compare how many finder boxes DetNet chooses from (HandDetector's candidates, "
+                         "finder_threshold) at the default birth/end thresholds, instead")
     args = ap.parse_args()
     data = list(clips(args.shared))
-    print("| birth_confidence | min_confidence | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
+    if args.candidates:
+        settings = [dict(candidates=k, finder_threshold=t) for k, t in CANDIDATES]
+        print("| candidates | finder_threshold | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
+    else:
+        settings = [dict(birth_confidence=b, min_confidence=k) for b, k in SETTINGS]
+        print("| birth_confidence | min_confidence | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
     print("|---|---|---|---|---|---|")
-    for birth, keep in SETTINGS:
-        detector = HandDetector.load(args.detnet, args.finder, min_confidence=keep, birth_confidence=birth)
+    quantiles = []
+    for setting in settings:
+        birth, keep = setting.get("birth_confidence", 0.3), setting.get("min_confidence", 0.1)
+        detector = HandDetector.load(args.detnet, args.finder, **setting)
         cells = []
         for stills in (False, True):
             rows, found, labelled = [], 0, 0
@@ -96,14 +111,16 @@ def main():
                 rows += r
                 found, labelled = found + f, labelled + n
             cells += [f"{found}/{labelled} ({found / labelled:.1%})", str(sum(not t for *_, t in rows))]
-            if birth == keep == 0.0 and not stills:
+            if not args.candidates and birth == keep == 0.0 and not stills:
                 r = np.array(rows, float)
                 true = r[:, 2] > 0
                 quantiles = [f"{kind} hands ({m.sum()}): presence q10/50/90 {np.quantile(r[m, 0], [.1, .5, .9]).round(3)}, "
                              f"confidence q01/10/50/90 {np.quantile(r[m, 1], [.01, .1, .5, .9]).round(3)}"
                              for kind, m in (("true", true), ("false", ~true)) if m.any()]
-        print(f"| {birth:.2f} | {keep:.2f} | " + " | ".join(cells) + " |", flush=True)
-    print("\nwith every track kept: " + "; ".join(quantiles))
+        first, second = setting.values()
+        print(f"| {first:g} | {second:g} | " + " | ".join(cells) + " |", flush=True)
+    if quantiles:
+        print("\nwith every track kept: " + "; ".join(quantiles))
 
 
 if __name__ == "__main__":

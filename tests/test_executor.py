@@ -18,6 +18,7 @@ def container(run_dir, monkeypatch):
     monkeypatch.setitem(nm._SHARED, "ctx", ctx)
     monkeypatch.setitem(nm._SHARED, "token", uuid.uuid4().hex)
     yield ctx
+    nm._local.__dict__.pop("settings", None)   # this thread's launch settings (make_node): not for later tests
     ctx.term()
 
 
