@@ -337,3 +337,20 @@ def test_a_reseeded_track_does_not_take_a_new_hands_place():
     det.frames_since_find = det.redetect_every - 1
     hands = {h["handedness"]: h for h in det.process(frames[3])}
     assert det.stats["reseeds"] == 1 and set(hands) == {"right", "left"}   # re-seeded, and the new hand found
+
+
+def test_with_candidates_detnet_picks_the_new_track_among_the_finders_boxes():
+    """max_hands 1, two found boxes: the finder's first (the larger blob) is a partial hand
+    (3 joints missing: lower heatmap peaks). Without candidates it becomes the track; with
+    candidates=2 DetNet's mean peak picks the whole hand."""
+    frame = np.zeros((480, 640, 3), np.uint8)
+    decoy = canonical_hand((150, 330), 160)
+    draw(frame, decoy[:18])
+    hand = canonical_hand((500, 330), 120)
+    draw(frame, hand)
+    assert len(FakeFinder().find(frame, max_hands=2)) == 2
+    first = HandDetector(FakeDetNet(), FakeFinder(), max_hands=1, birth_confidence=0.0).process(frame)
+    picked = HandDetector(FakeDetNet(), FakeFinder(), max_hands=1, birth_confidence=0.0, candidates=2).process(frame)
+    assert len(first) == len(picked) == 1
+    assert np.linalg.norm(first[0]["uv"].mean(0) - decoy[:18].mean(0)) < 40
+    assert np.abs(picked[0]["uv"] - hand).max() < 3 * DOT_TOL
