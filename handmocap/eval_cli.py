@@ -13,8 +13,12 @@ frame of a video file (tracked, smoothed). PRED.npz holds, per image, the best-s
   normalized joints (the hand as seen)         uv (N,21,2) px       found (N,) bool
   handedness (N,) str ("" when none)           score (N,)
 and every hand (up to MAX_HANDS per image): all_xyz (N,H,21,3), all_xyz_rel, all_uv,
-all_found (N,H), all_handedness (N,H). K.npy: (4,) or (N,4) fx, fy, cx, cy, or (3,3) / (N,3,3). Without K, the
-default field of view of camera_info.default_K (60 degrees horizontal).
+all_found (N,H), all_handedness (N,H); unreadable (N,) bool, and for a folder names (N,)
+str, the file of each row. A file that cannot be decoded is reported (one warning line),
+its row left empty (not found), and the other images go on. K.npy: (4,) or (N,4) fx, fy,
+cx, cy, or (3,3) / (N,3,3). Without K, the default field of view of
+camera_info.default_K (60 degrees horizontal). Grey, alpha and 16-bit images are read as
+8-bit BGR.
 
 score: GT.npz with uv (N,21,2) px, optional xyz (N,21,3) m camera frame (NaN where there
 is none) and joint_valid (N,21). When PRED has all_* arrays, the predicted hand nearest to
@@ -92,6 +96,8 @@ def predict(source, K=None, out=None, sequence=None, tracker=None, models=None, 
     from .tracker import HandTracker
     frames = open_frames(source)
     is_video = not Path(source).is_dir()
+    if not is_video:
+        frames.skip_unreadable = True   # reported and left "not found"; the other photos go on
     sequence = is_video if sequence is None else sequence
     n = frames.frame_count
     # a photo has one chance: no later frame confirms a doubtful hand, so no birth threshold
@@ -99,20 +105,30 @@ def predict(source, K=None, out=None, sequence=None, tracker=None, models=None, 
     tracker = tracker or HandTracker(smooth=sequence, max_hands=MAX_HANDS, **stills, **(models or {}))
     tracker.poses.p["smooth"] = sequence
     pred = empty_prediction(n)
+    unreadable = np.zeros(n, bool)
     count = 0
     for i, frame in frames:
         if i >= n:    # a video whose frame count was underestimated
             pred = {k: np.concatenate([v, empty_prediction(1)[k]]) for k, v in pred.items()}
+            unreadable = np.append(unreadable, False)
             n += 1
+        count = i + 1
+        if frame is None:
+            log(f"warning: {frames.files[i]}: cannot be decoded; its row is left empty (not found)")
+            unreadable[i] = True
+            continue
         if not sequence:
             tracker.reset()
         K_i = None if K is None else K[min(i, len(K) - 1)]
         put_hands(pred, i, tracker.process(frame, K_i, stamp_ns=int(i * 1e9 / frames.fps)))
-        count = i + 1
     pred = {k: v[:count] for k, v in pred.items()}
+    pred["unreadable"] = unreadable[:count]
+    if not is_video:   # which row is which photo
+        pred["names"] = np.array([p.name for p in frames.files[:count]])
     if out is not None:
         np.savez(out, **pred)
-    log(f"{source}: {count} images, a hand found in {pred['found'].sum()} ({pred['found'].mean():.1%})")
+    bad = f" ({unreadable.sum()} unreadable)" if unreadable.any() else ""
+    log(f"{source}: {count} images{bad}, a hand found in {pred['found'].sum()} ({pred['found'].mean():.1%})")
     return pred
 
 

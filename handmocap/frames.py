@@ -64,10 +64,13 @@ class VideoFrames:
 
 
 class ImageFolderFrames:
-    """Images of a folder, sorted by name; unreadable files are an error, not a silent skip."""
+    """Images of a folder, sorted by name; an unreadable file is an error (a camera stream
+    must not skip silently), or with skip_unreadable a (i, None) for the caller to report
+    (a folder of photos: one bad file must not cost the others)."""
 
-    def __init__(self, path: str | Path, fps: float = 30.0, start_s: float = 0.0):
+    def __init__(self, path: str | Path, fps: float = 30.0, start_s: float = 0.0, skip_unreadable: bool = False):
         self.path = Path(path)
+        self.skip_unreadable = skip_unreadable
         self.files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not self.files:
             raise ValueError(f"image folder {self.path}: no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
@@ -77,8 +80,8 @@ class ImageFolderFrames:
 
     def __iter__(self):
         for i, p in enumerate(self.files[self.start_frame:], self.start_frame):
-            frame = cv2.imread(str(p), cv2.IMREAD_COLOR)
-            if frame is None:
+            frame = cv2.imread(str(p), cv2.IMREAD_COLOR)   # grey, alpha, 16-bit: all as 8-bit BGR
+            if frame is None and not self.skip_unreadable:
                 raise ValueError(f"image {p}: cannot be decoded")
             yield i, frame
 

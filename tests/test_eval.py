@@ -119,6 +119,22 @@ def test_predict_writes_the_documented_arrays(tmp_path):
     np.testing.assert_allclose(p["uv"][[0, 2, 3]], np.round(truth[[0, 2, 3]]), atol=DOT_TOL)
 
 
+@pytest.mark.skipif(not (ROOT / "models" / "iknet.onnx").is_file(), reason="models/iknet.onnx not present")
+def test_an_unreadable_photo_is_reported_and_the_others_are_predicted(tmp_path):
+    truth = dot_images(tmp_path / "imgs")
+    (tmp_path / "imgs" / "002.png").write_bytes(b"\x89PNG\r\n\x1a\n not a png")   # replaces a hand image
+    lines = []
+    tracker = HandTracker(detector=HandDetector(FakeDetNet(), FakeFinder()), smooth=False)
+    eval_cli.predict(tmp_path / "imgs", None, tmp_path / "pred.npz", tracker=tracker, log=lines.append)
+    p = check_prediction_file(tmp_path / "pred.npz", 4)
+    assert p["names"].tolist() == ["000.png", "001.png", "002.png", "003.png"]
+    assert p["unreadable"].tolist() == [False, False, True, False]
+    assert p["found"].tolist() == [True, False, False, True]
+    np.testing.assert_allclose(p["uv"][[0, 3]], np.round(truth[[0, 3]]), atol=DOT_TOL)
+    assert any("002.png: cannot be decoded" in line for line in lines)
+    assert "4 images (1 unreadable)" in lines[-1]
+
+
 DETNET, FINDER = ROOT / "models" / "detnet.onnx", ROOT / "models" / "finder.onnx"
 
 
