@@ -209,8 +209,10 @@ class HandDetector:
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
-                 birth_confidence=0.3, candidates=0):
+                 birth_confidence=0.3, candidates=0, fallback=None):
         self.detnet, self.finder = detnet, finder
+        # a second hand finder, tried on a frame where the first one's boxes gave no track
+        self.fallback = fallback
         self.max_hands, self.presence_threshold = max_hands, presence_threshold
         self.redetect_every, self.crop_scale = redetect_every, crop_scale
         self.finder_threshold = finder_threshold
@@ -229,12 +231,13 @@ class HandDetector:
         self.next_id = 0
         self.frames_since_find = 0
         self.lost_last_frame = False
-        self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0}
+        self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0}
 
     @classmethod
-    def load(cls, detnet_path=None, finder_path=None, threads=1, **kwargs):
+    def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, **kwargs):
         finder = HandFinder.load(finder_path, threads=threads) if finder_path != "none" else None
-        return cls(DetNetRunner.load(detnet_path, threads=threads), finder, **kwargs)
+        fallback = HandFinder.load(fallback_path, threads=threads) if fallback_path else None
+        return cls(DetNetRunner.load(detnet_path, threads=threads), finder, fallback=fallback, **kwargs)
 
     def reset(self):
         self.tracks.clear()
@@ -247,17 +250,18 @@ class HandDetector:
                 or (self.frames_since_find >= self.redetect_every
                     and (len(self.tracks) < self.max_hands or self.reseed_iou > 0)))
 
-    def _find(self, image):
+    def _find(self, image, finder=None):
         """New tracks for found hands that no track covers, and the tracks re-seeded: both
-        are refined from their first prediction."""
+        are refined from their first prediction. finder: another than self.finder."""
         self.stats["finder_runs"] += 1
         self.frames_since_find = 0
         h, w = image.shape[:2]
-        if self.finder is None:
+        finder = finder or self.finder
+        if finder is None:
             half = min(h, w) / 2 / self.crop_scale      # the joint box whose crop is the centre square
             found = [(np.array([w / 2 - half, h / 2 - half, w / 2 + half, h / 2 + half]), 0.5, 0.5)]
         else:
-            found = [(f.box, f.score, f.right_prob) for f in self.finder.find(
+            found = [(f.box, f.score, f.right_prob) for f in finder.find(
                 image, self.finder_threshold, max(self.max_hands, self.candidates))]
         new, reseeded, fresh = [], [], []
         for box, score, right_prob in found:
@@ -307,7 +311,15 @@ class HandDetector:
         """HandKeypoints hands of one BGR frame (H,W,3) uint8, sorted by track id."""
         self.stats["frames"] += 1
         self.frames_since_find += 1
-        new = self._find(image_bgr) if self._should_find() else []
+        searched = self._should_find()
+        hands = self._track(image_bgr, self._find(image_bgr) if searched else [])
+        if searched and not self.tracks and self.fallback is not None:   # nothing became a track
+            self.stats["fallback_runs"] += 1
+            hands = self._track(image_bgr, self._find(image_bgr, self.fallback))
+        return hands
+
+    def _track(self, image_bgr, new):
+        """DetNet on every track's crop (the `new` ones refined once): the frame's hands."""
         self.lost_last_frame = False
         if not self.tracks:
             return []

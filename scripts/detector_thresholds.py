@@ -1,7 +1,7 @@
 """Choose the detector's track-keeping thresholds on training-side held-out real data.
 
     python scripts/detector_thresholds.py [--detnet models/detnet.onnx] [--finder models/finder.onnx]
-                                          [--candidates]
+                                          [--candidates | --fallback F.onnx ...]
 
 Runs the detector (finder + DetNet tracking, every frame in order) over real clips kept out
 of training: the finder's held-out video (train_finder.VAL_VIDEOS; DetNet trained on its
@@ -20,6 +20,8 @@ clips in order (tracking), and on every 4th frame of them as a still image (the 
 reset before each, as `handeval predict` treats a folder of photos: one birth per hand).
 --candidates: the same table for how many of the finder's boxes DetNet picks new tracks
 from (HandDetector's `candidates`) and the finder's threshold, at the default thresholds.
+--fallback F.onnx ...: the same for a second finder tried where the first one's boxes gave
+no track (HandDetector's `fallback`), each against none.
 """
 import argparse
 from pathlib import Path
@@ -87,12 +89,18 @@ def main():
     ap.add_argument("--detnet", default=None)
     ap.add_argument("--finder", default=None)
     ap.add_argument("--shared", type=Path, default=SHARED_DATA)
+    ap.add_argument("--fallback", nargs="+", metavar="FINDER.onnx",
+                    help="compare a second hand finder tried where the first one's boxes gave no track "
+                         "(HandDetector's fallback), each of these against none, at the default thresholds")
     ap.add_argument("--candidates", action="store_true",
                     help="compare how many finder boxes DetNet chooses from (HandDetector's candidates, "
                          "finder_threshold) at the default birth/end thresholds, instead")
     args = ap.parse_args()
     data = list(clips(args.shared))
-    if args.candidates:
+    if args.fallback:
+        settings = [dict(fallback_path=None, candidates=0)] + [dict(fallback_path=f, candidates=0) for f in args.fallback]
+        print("| fallback finder | candidates | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
+    elif args.candidates:
         settings = [dict(candidates=k, finder_threshold=t) for k, t in CANDIDATES]
         print("| candidates | finder_threshold | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
     else:
@@ -111,14 +119,15 @@ def main():
                 rows += r
                 found, labelled = found + f, labelled + n
             cells += [f"{found}/{labelled} ({found / labelled:.1%})", str(sum(not t for *_, t in rows))]
-            if not args.candidates and birth == keep == 0.0 and not stills:
+            if not (args.candidates or args.fallback) and birth == keep == 0.0 and not stills:
                 r = np.array(rows, float)
                 true = r[:, 2] > 0
                 quantiles = [f"{kind} hands ({m.sum()}): presence q10/50/90 {np.quantile(r[m, 0], [.1, .5, .9]).round(3)}, "
                              f"confidence q01/10/50/90 {np.quantile(r[m, 1], [.01, .1, .5, .9]).round(3)}"
                              for kind, m in (("true", true), ("false", ~true)) if m.any()]
         first, second = setting.values()
-        print(f"| {first:g} | {second:g} | " + " | ".join(cells) + " |", flush=True)
+        print(f"| {first if isinstance(first, str) or first is None else f'{first:g}'} | {second:g} | "
+              + " | ".join(cells) + " |", flush=True)
     if quantiles:
         print("\nwith every track kept: " + "; ".join(quantiles))
 

@@ -354,3 +354,17 @@ def test_with_candidates_detnet_picks_the_new_track_among_the_finders_boxes():
     assert len(first) == len(picked) == 1
     assert np.linalg.norm(first[0]["uv"].mean(0) - decoy[:18].mean(0)) < 40
     assert np.abs(picked[0]["uv"] - hand).max() < 3 * DOT_TOL
+
+
+def test_a_fallback_finder_is_tried_only_where_the_first_gave_no_track():
+    frames, truth = two_hand_frames(3)
+
+    class Blind(FakeFinder):
+        def find(self, image_bgr, threshold=None, max_hands=2):
+            self.calls += 1
+            return []
+    blind, fallback = Blind(), FakeFinder()
+    detector = HandDetector(FakeDetNet(), blind, fallback=fallback, redetect_every=100, reseed_iou=0)
+    assert [len(detector.process(f)) for f in frames] == [2, 2, 2]
+    assert blind.calls == fallback.calls == detector.stats["fallback_runs"] == 1   # then tracked
+    assert len(HandDetector(FakeDetNet(), Blind()).process(frames[0])) == 0
