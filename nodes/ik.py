@@ -11,8 +11,8 @@ Params: model (hand model path, default bundled), iknet ("int8", the default:
 models/iknet_int8.onnx; "float32": models/iknet.onnx; or an ONNX path), threads (onnxruntime intra-op threads), and PoseEstimator's settings
 (handmocap.pose.POSE_DEFAULTS): clamp_to_limits, smooth, rot_min_cutoff Hz / rot_beta on
 quaternion components, root_min_cutoff Hz / root_beta on metres, d_cutoff Hz, reset_after_s.
-The filter defaults are starting points measured on synthetic jitter only; tune them on the
-detector's real output.
+The filter defaults were chosen on the detector's output on real clips
+(scripts/tune_smoothing.py): lower cut-offs smooth more and lag more.
 """
 from __future__ import annotations
 
