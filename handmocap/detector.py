@@ -209,10 +209,12 @@ class HandDetector:
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
-                 birth_confidence=0.3, candidates=0, fallback=None):
+                 birth_confidence=0.3, candidates=0, fallback=None, refine_passes=1):
         self.detnet, self.finder = detnet, finder
         # a second hand finder, tried on a frame where the first one's boxes gave no track
         self.fallback = fallback
+        # DetNet passes on a new track's crop re-cut around its own last prediction
+        self.refine_passes = refine_passes
         self.max_hands, self.presence_threshold = max_hands, presence_threshold
         self.redetect_every, self.crop_scale = redetect_every, crop_scale
         self.finder_threshold = finder_threshold
@@ -324,8 +326,8 @@ class HandDetector:
         if not self.tracks:
             return []
         out = self._run(image_bgr, [t.crop for t in self.tracks])
-        if new:   # refine a new track's crop from its own first prediction, once
-            idx = [i for i, t in enumerate(self.tracks) if t in new]
+        idx = [i for i, t in enumerate(self.tracks) if t in new]
+        for _ in range(self.refine_passes if new else 0):   # a new track's crop from its own prediction
             for i in idx:
                 t = self.tracks[i]
                 if out["presence"][i] >= self.presence_threshold:

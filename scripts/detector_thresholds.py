@@ -1,7 +1,7 @@
 """Choose the detector's track-keeping thresholds on training-side held-out real data.
 
     python scripts/detector_thresholds.py [--detnet models/detnet.onnx] [--finder models/finder.onnx]
-                                          [--candidates | --fallback F.onnx ...]
+                                          [--candidates | --fallback F.onnx ... | --refine]
 
 Runs the detector (finder + DetNet tracking, every frame in order) over real clips kept out
 of training: the finder's held-out video (train_finder.VAL_VIDEOS; DetNet trained on its
@@ -21,7 +21,8 @@ reset before each, as `handeval predict` treats a folder of photos: one birth pe
 --candidates: the same table for how many of the finder's boxes DetNet picks new tracks
 from (HandDetector's `candidates`) and the finder's threshold, at the default thresholds.
 --fallback F.onnx ...: the same for a second finder tried where the first one's boxes gave
-no track (HandDetector's `fallback`), each against none.
+no track (HandDetector's `fallback`), each against none. --refine: the same for the DetNet
+passes on a new track's re-cut crop, with the found hands' 2D error.
 """
 import argparse
 from pathlib import Path
@@ -58,6 +59,9 @@ def clips(shared):
         yield f"howiema 001 {seq}", frames
 
 
+ERRORS = []   # per true output hand: mean 2D joint error / the label's joint-box side (--refine)
+
+
 def score_hands(detector, frames, stills=False):
     """(presence, confidence, is_true) per output hand, and the labelled hands found.
     stills: every frame on its own (the detector reset before each)."""
@@ -75,6 +79,9 @@ def score_hands(detector, frames, stills=False):
                     if np.linalg.norm(c - uv.mean(0)) < 0.5 * np.max(uv.max(0) - uv.min(0))]
             rows.append((h["score"], float(np.mean(h["confidence"])), bool(near)))
             hit.update(near)
+            if near:
+                uv = labels[near[0]]
+                ERRORS.append(float(np.mean(np.linalg.norm(h["uv"] - uv, axis=1)) / np.max(uv.max(0) - uv.min(0))))
         found += len(hit)
     return rows, found, labelled
 
@@ -92,12 +99,19 @@ def main():
     ap.add_argument("--fallback", nargs="+", metavar="FINDER.onnx",
                     help="compare a second hand finder tried where the first one's boxes gave no track "
                          "(HandDetector's fallback), each of these against none, at the default thresholds")
+    ap.add_argument("--refine", action="store_true",
+                    help="compare DetNet passes on a new track's re-cut crop (HandDetector's refine_passes) by "
+                         "hands found and their 2D error, at the default thresholds")
     ap.add_argument("--candidates", action="store_true",
                     help="compare how many finder boxes DetNet chooses from (HandDetector's candidates, "
                          "finder_threshold) at the default birth/end thresholds, instead")
     args = ap.parse_args()
     data = list(clips(args.shared))
-    if args.fallback:
+    if args.refine:
+        settings = [dict(refine_passes=k, candidates=0) for k in (1, 2, 3)]
+        print("| refine_passes | candidates | clips: labelled hands found | false hands | stills: labelled hands found "
+              "| false hands | 2D error / hand size, median (clips; stills) |")
+    elif args.fallback:
         settings = [dict(fallback_path=None, candidates=0)] + [dict(fallback_path=f, candidates=0) for f in args.fallback]
         print("| fallback finder | candidates | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
     elif args.candidates:
@@ -106,26 +120,30 @@ def main():
     else:
         settings = [dict(birth_confidence=b, min_confidence=k) for b, k in SETTINGS]
         print("| birth_confidence | min_confidence | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|" + ("---|" if args.refine else ""))
     quantiles = []
     for setting in settings:
         birth, keep = setting.get("birth_confidence", 0.3), setting.get("min_confidence", 0.1)
         detector = HandDetector.load(args.detnet, args.finder, **setting)
-        cells = []
+        cells, errors = [], []
         for stills in (False, True):
             rows, found, labelled = [], 0, 0
+            ERRORS.clear()
             for name, frames in data:
                 r, f, n = score_hands(detector, frames[::4] if stills else frames, stills)
                 rows += r
                 found, labelled = found + f, labelled + n
             cells += [f"{found}/{labelled} ({found / labelled:.1%})", str(sum(not t for *_, t in rows))]
-            if not (args.candidates or args.fallback) and birth == keep == 0.0 and not stills:
+            errors.append(f"{np.median(ERRORS):.4f} (n {len(ERRORS)})")
+            if not (args.candidates or args.fallback or args.refine) and birth == keep == 0.0 and not stills:
                 r = np.array(rows, float)
                 true = r[:, 2] > 0
                 quantiles = [f"{kind} hands ({m.sum()}): presence q10/50/90 {np.quantile(r[m, 0], [.1, .5, .9]).round(3)}, "
                              f"confidence q01/10/50/90 {np.quantile(r[m, 1], [.01, .1, .5, .9]).round(3)}"
                              for kind, m in (("true", true), ("false", ~true)) if m.any()]
         first, second = setting.values()
+        if args.refine:
+            cells.append("; ".join(errors))
         print(f"| {first if isinstance(first, str) or first is None else f'{first:g}'} | {second:g} | "
               + " | ".join(cells) + " |", flush=True)
     if quantiles:

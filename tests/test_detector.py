@@ -368,3 +368,11 @@ def test_a_fallback_finder_is_tried_only_where_the_first_gave_no_track():
     assert [len(detector.process(f)) for f in frames] == [2, 2, 2]
     assert blind.calls == fallback.calls == detector.stats["fallback_runs"] == 1   # then tracked
     assert len(HandDetector(FakeDetNet(), Blind()).process(frames[0])) == 0
+
+
+def test_refine_passes_recut_a_new_tracks_crop_that_many_times():
+    frames, _ = two_hand_frames(1)
+    for passes in (0, 1, 3):
+        net = FakeDetNet()
+        HandDetector(net, FakeFinder(), refine_passes=passes).process(frames[0])
+        assert net.calls == 1 + passes
