@@ -46,7 +46,7 @@ READY_TIMEOUT_S = 60  # how long a publisher waits for its graph to start
 
 _EOS = bus.EOS
 IDLE = object()   # Node.steps(): nothing more queued for now
-_local = threading.local()   # a container's node thread: its own launch settings (see container.py)
+_local = threading.local()   # a container's node thread: its own launch settings (see launch.run_container)
 
 
 def _setting(key: str, default=None):
@@ -63,7 +63,7 @@ def shared_context() -> "zmq.Context | None":
     return _SHARED["ctx"]
 
 
-_SHARED = {"ctx": None, "token": None}   # set by handmocap.container
+_SHARED = {"ctx": None, "token": None}   # set by launch.run_container
 LARGE = bus.LARGE   # payloads above this go without copies (zero-copy send, receive into a zmq frame)
 
 
