@@ -209,12 +209,14 @@ class HandDetector:
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
-                 birth_confidence=0.3, candidates=0, fallback=None, refine_passes=1):
+                 birth_confidence=0.3, candidates=0, fallback=None, refine_passes=1, duplicate_joints=0.0):
         self.detnet, self.finder = detnet, finder
         # a second hand finder, tried on a frame where the first one's boxes gave no track
         self.fallback = fallback
         # DetNet passes on a new track's crop re-cut around its own last prediction
         self.refine_passes = refine_passes
+        # two overlapping tracks are one hand only if their joints agree this well (0: always)
+        self.duplicate_joints = duplicate_joints
         self.max_hands, self.presence_threshold = max_hands, presence_threshold
         self.redetect_every, self.crop_scale = redetect_every, crop_scale
         self.finder_threshold = finder_threshold
@@ -397,14 +399,22 @@ class HandDetector:
 
     def _drop_duplicates(self, hands, iou=0.5, inside=0.7):
         """Two tracks on one hand (joint boxes with IoU >= `iou`, or the smaller box at
-        least `inside` covered by the other): keep the higher score (ties: the older track)."""
+        least `inside` covered by the other; with `duplicate_joints`, also joints that agree:
+        median distance below that fraction of the hand's size): keep the higher score
+        (ties: the older track)."""
         order = sorted(hands, key=lambda h: (-h["score"], h["track_id"]))
         kept, kept_boxes = [], []
         for h in order:
             box = np.concatenate([h["uv"].min(0), h["uv"].max(0)])
-            if kept_boxes and (box_iou(box, np.array(kept_boxes)).max() >= iou
-                               or box_overlap_of_smaller(box, np.array(kept_boxes)).max() >= inside):
-                continue
+            if kept_boxes:
+                overlap = (box_iou(box, np.array(kept_boxes))[0] >= iou) | \
+                          (box_overlap_of_smaller(box, np.array(kept_boxes)) >= inside)
+                if self.duplicate_joints:   # overlapping boxes, but two hands (clasped, clapping)?
+                    size = np.max(box[2:] - box[:2])
+                    overlap &= np.array([np.median(np.linalg.norm(h["uv"] - k["uv"], axis=1))
+                                         < self.duplicate_joints * size for k in kept])
+                if overlap.any():
+                    continue
             kept.append(h)
             kept_boxes.append(box)
         ids = {h["track_id"] for h in kept}

@@ -1,7 +1,8 @@
 """Choose the detector's track-keeping thresholds on training-side held-out real data.
 
     python scripts/detector_thresholds.py [--detnet models/detnet.onnx] [--finder models/finder.onnx]
-                                          [--candidates | --fallback F.onnx ... | --refine]
+                                          [--candidates | --fallback F.onnx ... | --refine
+                                           | --compare KEY=VALUE[,KEY=VALUE] ...]
 
 Runs the detector (finder + DetNet tracking, every frame in order) over real clips kept out
 of training: the finder's held-out video (train_finder.VAL_VIDEOS; DetNet trained on its
@@ -22,7 +23,8 @@ reset before each, as `handeval predict` treats a folder of photos: one birth pe
 from (HandDetector's `candidates`) and the finder's threshold, at the default thresholds.
 --fallback F.onnx ...: the same for a second finder tried where the first one's boxes gave
 no track (HandDetector's `fallback`), each against none. --refine: the same for the DetNet
-passes on a new track's re-cut crop, with the found hands' 2D error.
+passes on a new track's re-cut crop, with the found hands' 2D error. --compare K=V[,K=V]
+...: any HandDetector settings against the defaults, likewise.
 """
 import argparse
 from pathlib import Path
@@ -99,6 +101,9 @@ def main():
     ap.add_argument("--fallback", nargs="+", metavar="FINDER.onnx",
                     help="compare a second hand finder tried where the first one's boxes gave no track "
                          "(HandDetector's fallback), each of these against none, at the default thresholds")
+    ap.add_argument("--compare", nargs="+", metavar="KEY=VALUE[,KEY=VALUE]",
+                    help="compare HandDetector settings (e.g. duplicate_joints=0.3) against the defaults, "
+                         "with the found hands' 2D error")
     ap.add_argument("--refine", action="store_true",
                     help="compare DetNet passes on a new track's re-cut crop (HandDetector's refine_passes) by "
                          "hands found and their 2D error, at the default thresholds")
@@ -107,7 +112,14 @@ def main():
                          "finder_threshold) at the default birth/end thresholds, instead")
     args = ap.parse_args()
     data = list(clips(args.shared))
-    if args.refine:
+    if args.compare:
+        import yaml
+        settings = [{"setting": "defaults"}] + [
+            {"setting": c, **{k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in c.split(","))}}
+            for c in args.compare]
+        print("| setting | clips: labelled hands found | false hands | stills: labelled hands found "
+              "| false hands | 2D error / hand size, median (clips; stills) |")
+    elif args.refine:
         settings = [dict(refine_passes=k, candidates=0) for k in (1, 2, 3)]
         print("| refine_passes | candidates | clips: labelled hands found | false hands | stills: labelled hands found "
               "| false hands | 2D error / hand size, median (clips; stills) |")
@@ -120,11 +132,11 @@ def main():
     else:
         settings = [dict(birth_confidence=b, min_confidence=k) for b, k in SETTINGS]
         print("| birth_confidence | min_confidence | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
-    print("|---|---|---|---|---|---|" + ("---|" if args.refine else ""))
+    print("|---|---|---|---|---|" + ("" if args.compare else "---|") + ("---|" if args.refine or args.compare else ""))
     quantiles = []
     for setting in settings:
         birth, keep = setting.get("birth_confidence", 0.3), setting.get("min_confidence", 0.1)
-        detector = HandDetector.load(args.detnet, args.finder, **setting)
+        detector = HandDetector.load(args.detnet, args.finder, **{k: v for k, v in setting.items() if k != "setting"})
         cells, errors = [], []
         for stills in (False, True):
             rows, found, labelled = [], 0, 0
@@ -135,12 +147,16 @@ def main():
                 found, labelled = found + f, labelled + n
             cells += [f"{found}/{labelled} ({found / labelled:.1%})", str(sum(not t for *_, t in rows))]
             errors.append(f"{np.median(ERRORS):.4f} (n {len(ERRORS)})")
-            if not (args.candidates or args.fallback or args.refine) and birth == keep == 0.0 and not stills:
+            if not (args.candidates or args.fallback or args.refine or args.compare) and birth == keep == 0.0 \
+                    and not stills:
                 r = np.array(rows, float)
                 true = r[:, 2] > 0
                 quantiles = [f"{kind} hands ({m.sum()}): presence q10/50/90 {np.quantile(r[m, 0], [.1, .5, .9]).round(3)}, "
                              f"confidence q01/10/50/90 {np.quantile(r[m, 1], [.01, .1, .5, .9]).round(3)}"
                              for kind, m in (("true", true), ("false", ~true)) if m.any()]
+        if args.compare:
+            print(f"| {setting['setting']} | " + " | ".join(cells + ["; ".join(errors)]) + " |", flush=True)
+            continue
         first, second = setting.values()
         if args.refine:
             cells.append("; ".join(errors))

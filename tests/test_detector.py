@@ -376,3 +376,18 @@ def test_refine_passes_recut_a_new_tracks_crop_that_many_times():
         net = FakeDetNet()
         HandDetector(net, FakeFinder(), refine_passes=passes).process(frames[0])
         assert net.calls == 1 + passes
+
+
+def test_with_duplicate_joints_two_overlapping_hands_are_kept_and_one_hand_twice_is_not():
+    from handmocap.detector import CropTransform, Track
+    right = canonical_hand((300, 300), 150)
+    left = right.copy()                                           # clasped: the same box, other joints
+    left[:, 0] = right[:, 0].min() + right[:, 0].max() - right[:, 0]
+    def hand(tid, uv, score):
+        return {"track_id": tid, "score": score, "uv": uv.astype(np.float32)}
+    for joints, kept in ((0.0, [0]), (0.3, [0, 1])):
+        d = HandDetector(FakeDetNet(), FakeFinder(), duplicate_joints=joints)
+        d.tracks = [Track(i, CropTransform.around(np.array([300.0, 300.0]), 200.0)) for i in range(3)]
+        assert [h["track_id"] for h in d._drop_duplicates([hand(0, right, 0.9), hand(1, left, 0.8)])] == kept
+        # the same hand twice (joints a few px apart) stays one track either way
+        assert [h["track_id"] for h in d._drop_duplicates([hand(0, right, 0.9), hand(2, right + 3.0, 0.8)])] == [0]
