@@ -1,8 +1,7 @@
 """Choose the detector's track-keeping thresholds on training-side held-out real data.
 
     python scripts/detector_thresholds.py [--detnet models/detnet.onnx] [--finder models/finder.onnx]
-                                          [--candidates | --fallback F.onnx ... | --refine
-                                           | --compare KEY=VALUE[,KEY=VALUE] ...]
+                                          [--compare KEY=VALUE[,KEY=VALUE] ...]
 
 Runs the detector (finder + DetNet tracking, every frame in order) over real clips kept out
 of training: the finder's held-out video (train_finder.VAL_VIDEOS; DetNet trained on its
@@ -19,12 +18,9 @@ kinds with every track kept, then for each (birth_confidence, min_confidence) pa
 labelled hands found and the false hands output, the detector run again with them: on the
 clips in order (tracking), and on every 4th frame of them as a still image (the detector
 reset before each, as `handeval predict` treats a folder of photos: one birth per hand).
---candidates: the same table for how many of the finder's boxes DetNet picks new tracks
-from (HandDetector's `candidates`) and the finder's threshold, at the default thresholds.
---fallback F.onnx ...: the same for a second finder tried where the first one's boxes gave
-no track (HandDetector's `fallback`), each against none. --refine: the same for the DetNet
-passes on a new track's re-cut crop, with the found hands' 2D error. --compare K=V[,K=V]
-...: any HandDetector settings against the defaults, likewise.
+--compare K=V[,K=V] ...: the same table for any HandDetector settings against the defaults
+(HandDetector.load's keywords: candidates=4,finder_threshold=0.15; fallback_path=F.onnx;
+refine_passes=2; duplicate_joints=0.3), with the found hands' median 2D error / hand size.
 """
 import argparse
 from pathlib import Path
@@ -61,7 +57,7 @@ def clips(shared):
         yield f"howiema 001 {seq}", frames
 
 
-ERRORS = []   # per true output hand: mean 2D joint error / the label's joint-box side (--refine)
+ERRORS = []   # per true output hand: mean 2D joint error / the label's joint-box side (--compare)
 
 
 def score_hands(detector, frames, stills=False):
@@ -89,8 +85,12 @@ def score_hands(detector, frames, stills=False):
 
 
 SETTINGS = ((0.0, 0.0), (0.0, 0.1), (0.0, 0.15), (0.0, 0.2), (0.2, 0.15), (0.3, 0.1), (0.3, 0.15))
-# --candidates: (candidates, finder_threshold) at the shipped birth/end thresholds
-CANDIDATES = ((0, 0.3), (4, 0.3), (4, 0.15), (6, 0.1))
+
+
+def parse_setting(text):
+    """'candidates=4,finder_threshold=0.15' -> {"candidates": 4, "finder_threshold": 0.15}."""
+    import yaml
+    return {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in text.split(","))}
 
 
 def main():
@@ -98,45 +98,23 @@ def main():
     ap.add_argument("--detnet", default=None)
     ap.add_argument("--finder", default=None)
     ap.add_argument("--shared", type=Path, default=SHARED_DATA)
-    ap.add_argument("--fallback", nargs="+", metavar="FINDER.onnx",
-                    help="compare a second hand finder tried where the first one's boxes gave no track "
-                         "(HandDetector's fallback), each of these against none, at the default thresholds")
     ap.add_argument("--compare", nargs="+", metavar="KEY=VALUE[,KEY=VALUE]",
-                    help="compare HandDetector settings (e.g. duplicate_joints=0.3) against the defaults, "
-                         "with the found hands' 2D error")
-    ap.add_argument("--refine", action="store_true",
-                    help="compare DetNet passes on a new track's re-cut crop (HandDetector's refine_passes) by "
-                         "hands found and their 2D error, at the default thresholds")
-    ap.add_argument("--candidates", action="store_true",
-                    help="compare how many finder boxes DetNet chooses from (HandDetector's candidates, "
-                         "finder_threshold) at the default birth/end thresholds, instead")
+                    help="instead of the threshold table: these HandDetector settings (e.g. duplicate_joints=0.3, "
+                         "fallback_path=F.onnx) against the defaults, with the found hands' 2D error")
     args = ap.parse_args()
     data = list(clips(args.shared))
     if args.compare:
-        import yaml
-        settings = [{"setting": "defaults"}] + [
-            {"setting": c, **{k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in c.split(","))}}
-            for c in args.compare]
+        settings = [("defaults", {})] + [(c, parse_setting(c)) for c in args.compare]
         print("| setting | clips: labelled hands found | false hands | stills: labelled hands found "
               "| false hands | 2D error / hand size, median (clips; stills) |")
-    elif args.refine:
-        settings = [dict(refine_passes=k, candidates=0) for k in (1, 2, 3)]
-        print("| refine_passes | candidates | clips: labelled hands found | false hands | stills: labelled hands found "
-              "| false hands | 2D error / hand size, median (clips; stills) |")
-    elif args.fallback:
-        settings = [dict(fallback_path=None, candidates=0)] + [dict(fallback_path=f, candidates=0) for f in args.fallback]
-        print("| fallback finder | candidates | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
-    elif args.candidates:
-        settings = [dict(candidates=k, finder_threshold=t) for k, t in CANDIDATES]
-        print("| candidates | finder_threshold | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
+        print("|---|---|---|---|---|---|")
     else:
-        settings = [dict(birth_confidence=b, min_confidence=k) for b, k in SETTINGS]
+        settings = [(f"{b:.2f} | {k:.2f}", dict(birth_confidence=b, min_confidence=k)) for b, k in SETTINGS]
         print("| birth_confidence | min_confidence | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
-    print("|---|---|---|---|---|" + ("" if args.compare else "---|") + ("---|" if args.refine or args.compare else ""))
+        print("|---|---|---|---|---|---|")
     quantiles = []
-    for setting in settings:
-        birth, keep = setting.get("birth_confidence", 0.3), setting.get("min_confidence", 0.1)
-        detector = HandDetector.load(args.detnet, args.finder, **{k: v for k, v in setting.items() if k != "setting"})
+    for label, setting in settings:
+        detector = HandDetector.load(args.detnet, args.finder, **setting)
         cells, errors = [], []
         for stills in (False, True):
             rows, found, labelled = [], 0, 0
@@ -147,24 +125,17 @@ def main():
                 found, labelled = found + f, labelled + n
             cells += [f"{found}/{labelled} ({found / labelled:.1%})", str(sum(not t for *_, t in rows))]
             errors.append(f"{np.median(ERRORS):.4f} (n {len(ERRORS)})")
-            if not (args.candidates or args.fallback or args.refine or args.compare) and birth == keep == 0.0 \
-                    and not stills:
+            if not args.compare and setting["birth_confidence"] == setting["min_confidence"] == 0.0 and not stills:
                 r = np.array(rows, float)
                 true = r[:, 2] > 0
                 quantiles = [f"{kind} hands ({m.sum()}): presence q10/50/90 {np.quantile(r[m, 0], [.1, .5, .9]).round(3)}, "
                              f"confidence q01/10/50/90 {np.quantile(r[m, 1], [.01, .1, .5, .9]).round(3)}"
                              for kind, m in (("true", true), ("false", ~true)) if m.any()]
         if args.compare:
-            print(f"| {setting['setting']} | " + " | ".join(cells + ["; ".join(errors)]) + " |", flush=True)
-            continue
-        first, second = setting.values()
-        if args.refine:
             cells.append("; ".join(errors))
-        print(f"| {first if isinstance(first, str) or first is None else f'{first:g}'} | {second:g} | "
-              + " | ".join(cells) + " |", flush=True)
+        print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
     if quantiles:
         print("\nwith every track kept: " + "; ".join(quantiles))
-
 
 if __name__ == "__main__":
     main()
