@@ -323,7 +323,7 @@ class HandDetector:
         return hands
 
     def _track(self, image_bgr, new):
-        """DetNet on every track's crop (the `new` ones refined once): the frame's hands."""
+        """DetNet on every track's crop (the `new` ones re-cut `refine_passes` times): the frame's hands."""
         self.lost_last_frame = False
         if not self.tracks:
             return []
