@@ -573,7 +573,7 @@ def run_container(members: list[dict]) -> int:
         on_exit(m, code)
 
     def in_turn(group: list[dict]) -> None:
-        _name_thread("+".join(m["name"] for m in group))
+        _name_thread(threading.current_thread().name)
         try:
             executor.run_in_turn(group, on_exit)
         finally:

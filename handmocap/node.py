@@ -581,6 +581,15 @@ _OPEN_NODES: "weakref.WeakSet[Node]" = weakref.WeakSet()
 EXPECTED_ERRORS = (FileNotFoundError, ValueError, RuntimeError, OSError)
 
 
+def spin(start) -> None:
+    """A node module's main() where it offers start() -> (node, handler) (see
+    handmocap.executor): set up, call the handler for every received message, close."""
+    node, handler = start()
+    for msg in node:
+        handler(msg)
+    node.close()
+
+
 def run(main) -> None:
     """Entry point wrapper for node modules: one clear error line instead of a traceback wall
     for the expected failures (bad parameter, missing file, device that can't be opened)."""

@@ -25,7 +25,7 @@ import numpy as np
 
 from handmocap.detector import CROP, DETNET_PATH, HandDetector
 from handmocap.frames import frame_bgr
-from handmocap.node import Message, Node, run
+from handmocap.node import Message, Node, run, spin
 
 # HandDetector's settings, with its own defaults (one place for them: the class)
 TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "redetect_every", "reseed_iou",
@@ -80,10 +80,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
 
 
 def main() -> None:
-    node, on_image = start()
-    for msg in node:
-        on_image(msg)
-    node.close()
+    spin(start)   # its own loop; in a container, the executor calls the handler instead
 
 
 if __name__ == "__main__":

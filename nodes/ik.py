@@ -23,7 +23,7 @@ import numpy as np
 from handmocap import camera_info
 from handmocap.hand_model import HandModel
 from handmocap.ik_solver import IKSolver
-from handmocap.node import Message, Node, run
+from handmocap.node import Message, Node, run, spin
 from handmocap.pose import POSE_DEFAULTS, PoseEstimator
 
 PARAMS = {"model": None, "iknet": None, "threads": 1, **POSE_DEFAULTS}
@@ -63,10 +63,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
 
 
 def main() -> None:
-    node, on_message = start()
-    for msg in node:
-        on_message(msg)
-    node.close()
+    spin(start)   # its own loop; in a container, the executor calls the handler instead
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ import time
 from typing import Callable
 
 from handmocap.hand_model import HandModel
-from handmocap.node import Message, Node, run
+from handmocap.node import Message, Node, run, spin
 from handmocap.shape import ShapeEstimator
 
 PARAMS = {"model": None, "forget_after_s": 2.0, "window": 600}
@@ -37,10 +37,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
 
 
 def main() -> None:
-    node, on_keypoints = start()
-    for msg in node:
-        on_keypoints(msg)
-    node.close()
+    spin(start)   # its own loop; in a container, the executor calls the handler instead
 
 
 if __name__ == "__main__":

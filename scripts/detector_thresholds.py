@@ -57,11 +57,9 @@ def clips(shared):
         yield f"howiema 001 {seq}", frames
 
 
-ERRORS = []   # per true output hand: mean 2D joint error / the label's joint-box side (--compare)
-
-
 def score_hands(detector, frames, stills=False):
-    """(presence, confidence, is_true) per output hand, and the labelled hands found.
+    """(presence, confidence, is_true, 2D error) per output hand (the error: mean joint
+    distance / the label's joint-box side; NaN for a false hand), and the labelled hands found.
     stills: every frame on its own (the detector reset before each)."""
     detector.reset()
     rows, found, labelled = [], 0, 0
@@ -75,11 +73,11 @@ def score_hands(detector, frames, stills=False):
             c = h["uv"].mean(0)
             near = [k for k, uv in enumerate(labels)
                     if np.linalg.norm(c - uv.mean(0)) < 0.5 * np.max(uv.max(0) - uv.min(0))]
-            rows.append((h["score"], float(np.mean(h["confidence"])), bool(near)))
+            uv = labels[near[0]] if near else None
+            error = np.nan if uv is None else float(np.mean(np.linalg.norm(h["uv"] - uv, axis=1))
+                                                    / np.max(uv.max(0) - uv.min(0)))
+            rows.append((h["score"], float(np.mean(h["confidence"])), bool(near), error))
             hit.update(near)
-            if near:
-                uv = labels[near[0]]
-                ERRORS.append(float(np.mean(np.linalg.norm(h["uv"] - uv, axis=1)) / np.max(uv.max(0) - uv.min(0))))
         found += len(hit)
     return rows, found, labelled
 
@@ -118,13 +116,13 @@ def main():
         cells, errors = [], []
         for stills in (False, True):
             rows, found, labelled = [], 0, 0
-            ERRORS.clear()
             for name, frames in data:
                 r, f, n = score_hands(detector, frames[::4] if stills else frames, stills)
                 rows += r
                 found, labelled = found + f, labelled + n
-            cells += [f"{found}/{labelled} ({found / labelled:.1%})", str(sum(not t for *_, t in rows))]
-            errors.append(f"{np.median(ERRORS):.4f} (n {len(ERRORS)})")
+            cells += [f"{found}/{labelled} ({found / labelled:.1%})", str(sum(not row[2] for row in rows))]
+            e = [err for *_, err in rows if not np.isnan(err)]
+            errors.append(f"{np.median(e):.4f} (n {len(e)})")
             if not args.compare and setting["birth_confidence"] == setting["min_confidence"] == 0.0 and not stills:
                 r = np.array(rows, float)
                 true = r[:, 2] > 0

@@ -36,9 +36,8 @@ ROT = [(c, b) for c in (0.5, 1.0, 2.0, 4.0) for b in (0.5, 1.5, 5.0)]
 ROOT = [(c, b) for c in (0.25, 0.5, 1.0, 2.0) for b in (0.5, 2.0, 8.0)]
 
 
-def detect(shared: Path):
+def detect(shared: Path, model):
     """Per clip: (fps, K, [(hands, shapes) per frame]) of the detector and shape estimate."""
-    model = HandModel.load()
     out = {}
     for rel in real_data.TRAIN_VIDEOS:
         cap = cv2.VideoCapture(str(shared / rel))
@@ -120,7 +119,7 @@ def main():
     model = HandModel.load()
     solver = IKSolver.load(None, model=model)
     print("detecting:", flush=True)
-    clips = detect(args.shared)
+    clips = detect(args.shared, model)
     raw = poses(clips, solver, model, {"smooth": False})
     rows = []
     for part, grid, keys in ((1, ROT, ("rot_min_cutoff", "rot_beta")), (2, ROOT, ("root_min_cutoff", "root_beta"))):
