@@ -2,12 +2,14 @@
 
 Per frame (`HandDetector.process`):
 1. The hand finder (hand_finder.HandFinder) runs when there is no track, when a track was
-   lost on the previous frame, and every `redetect_every` frames. A found hand that
-   overlaps a track's crop (IoU >= 0.3 or its centre inside it) informs that track's
-   handedness, and re-seeds the track's crop from the found box when it overlaps the
-   track's joints less than `reseed_iou` (a track that slid up the forearm: DetNet's
-   presence head alone does not catch it); the others start new tracks (stable integer
-   ids, never reused).
+   lost on the previous frame (or dropped as a duplicate), and every `redetect_every`
+   frames. Each found box goes to the track whose joint box it overlaps best (IoU >=
+   `match_iou`, one box per track); a box no track matched but inside the crop of a track
+   no box matched (IoU >= 0.3 or its centre inside it) is that track's too. A track's box
+   informs its handedness, and re-seeds the track's crop when it overlaps the track's
+   joints less than `reseed_iou` (a track that slid up the forearm: DetNet's presence
+   head alone does not catch it); the other boxes start new tracks (stable integer ids,
+   never reused).
 2. Every track is cropped the way DetNet was trained (handmocap/synth: square, the hand's
    vertex box x 1.3, i.e. about its 21-joint box x CROP_SCALE, 128 px; `CropTransform`
    records the crop <-> frame mapping). Tracks whose smoothed handedness is left are
@@ -209,7 +211,7 @@ class HandDetector:
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
-                 birth_confidence=0.3, candidates=0, fallback=None, refine_passes=1, duplicate_joints=0.0):
+                 birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1, duplicate_joints=0.0):
         self.detnet, self.finder = detnet, finder
         # a second hand finder, tried on a frame where the first one's boxes gave no track
         self.fallback = fallback
@@ -227,6 +229,8 @@ class HandDetector:
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
         self.reseed_iou = reseed_iou
+        # a found box is a track's own hand when it overlaps the track's joint box this much
+        self.match_iou = match_iou
         # the finder's best `candidates` boxes are considered (0: max_hands); where more
         # than the free track slots are new, DetNet's mean heatmap peak on each one's crop
         # picks which become tracks (the finder's own score ranks desk objects too high)
@@ -268,12 +272,28 @@ class HandDetector:
             found = [(f.box, f.score, f.right_prob) for f in finder.find(
                 image, self.finder_threshold, max(self.max_hands, self.candidates))]
         new, reseeded, fresh = [], [], []
-        for box, score, right_prob in found:
-            covering = [t for t in self.tracks if self._covers(t.crop, box)]
+        # each found box first goes to the track whose joints it overlaps best (one box per
+        # track): a second hand close beside a tracked one lies inside that track's crop, but
+        # it is not that track's hand
+        overlap = {}
+        for k, (box, _, _) in enumerate(found):
+            for t in self.tracks:
+                if t.uv is not None:
+                    overlap[k, t.track_id] = box_iou(square_box(t.uv), box)[0, 0]
+        owner = {}
+        for (k, tid), iou in sorted(overlap.items(), key=lambda kv: -kv[1]):
+            if iou >= self.match_iou and k not in owner and tid not in owner.values():
+                owner[k] = tid
+        for k, (box, score, right_prob) in enumerate(found):
+            if k in owner:
+                covering = [t for t in self.tracks if t.track_id == owner[k]]
+            else:   # a track that no box matched, whose crop holds this box: it may have slid off the hand
+                covering = [t for t in self.tracks if t.track_id not in owner.values() and self._covers(t.crop, box)]
             if covering:
                 t = covering[0]
+                owner[k] = t.track_id
                 t.add_handedness(right_prob, weight=0.5)
-                if t.uv is not None and box_iou(square_box(t.uv), box)[0, 0] < self.reseed_iou:
+                if t.uv is not None and overlap.get((k, t.track_id), 0.0) < self.reseed_iou:
                     # the track's joints no longer match the hand the finder sees in its crop
                     # (a track sliding up the forearm): start the crop again from the finder's box
                     t.crop = crop_for_box(box, not t.is_right, self.crop_scale)
@@ -418,5 +438,9 @@ class HandDetector:
             kept.append(h)
             kept_boxes.append(box)
         ids = {h["track_id"] for h in kept}
+        if len(ids) < len(self.tracks):
+            # two tracks had converged on one hand: the other hand (if any) was lost, so the
+            # finder looks again next frame rather than `redetect_every` frames later
+            self.lost_last_frame = True
         self.tracks = [t for t in self.tracks if t.track_id in ids]
         return kept

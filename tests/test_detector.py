@@ -9,7 +9,7 @@ import pytest
 
 from conftest import ROOT, graph_env
 from handmocap.hand_finder import FoundHand
-from handmocap.detector import CropTransform, HandDetector, crop_for_joints
+from handmocap.detector import CropTransform, HandDetector, Track, crop_for_joints
 from handmocap.rotations import mirror_points
 from handmocap.skeleton import normalize_joints
 
@@ -268,7 +268,6 @@ def test_a_second_track_inside_a_hand_is_a_duplicate_and_crops_change_size_slowl
     hands = [{"track_id": 0, "score": 0.9, "uv": small}, {"track_id": 1, "score": 0.95, "uv": big},
              {"track_id": 2, "score": 0.8, "uv": big + 400}]
     assert [h["track_id"] for h in det._drop_duplicates(hands)] == [1, 2]
-    from handmocap.detector import Track
     track = Track(0, crop_for_joints(big))
     assert det._next_crop(track, small).side == pytest.approx(track.crop.side / 1.33, abs=1)
 
@@ -337,6 +336,50 @@ def test_a_reseeded_track_does_not_take_a_new_hands_place():
     det.frames_since_find = det.redetect_every - 1
     hands = {h["handedness"]: h for h in det.process(frames[3])}
     assert det.stats["reseeds"] == 1 and set(hands) == {"right", "left"}   # re-seeded, and the new hand found
+
+
+class ScriptedFinder:
+    """HandFinder's interface: the given FoundHands, whatever the image."""
+
+    def __init__(self, found):
+        self.found, self.calls = found, 0
+
+    def find(self, image_bgr, threshold=None, max_hands=2):
+        self.calls += 1
+        return self.found[:max_hands]
+
+
+def test_a_second_hand_beside_a_tracked_one_is_a_new_track_not_the_tracks_own():
+    """Clapping: hand B's centre lies inside tracked hand A's crop (1.5x its joint box). The
+    finder's box on A is A's; the box on B starts a new track, and A is not re-seeded."""
+    from handmocap.detector import square_box
+    a = canonical_hand((250, 300), 120)
+    box_a = square_box(a)
+    b = a + (0.65 * (box_a[2] - box_a[0]), 0.0)                # joint boxes' IoU 0.21
+    box_b = square_box(b)
+    finder = ScriptedFinder([FoundHand(box_a, 0.9, 0.9), FoundHand(box_b, 0.8, 0.1)])
+    det = HandDetector(FakeDetNet(), finder)
+    track = Track(0, crop_for_joints(a), uv=a)
+    det.tracks, det.next_id = [track], 1
+    assert det._covers(track.crop, box_b)                      # what used to swallow the second hand
+    new = det._find(np.zeros((H, W, 3), np.uint8))
+    assert [t.track_id for t in new] == [1] and det.stats["reseeds"] == 0
+    np.testing.assert_allclose(new[0].crop.box, crop_for_joints(b, mirrored=True).box, atol=1)
+    assert track.uv is a                                       # A keeps its joints and crop
+
+
+def test_dropping_a_duplicate_track_makes_the_finder_look_again_next_frame():
+    det = detector(redetect_every=10)
+    frames, _ = two_hand_frames(2)
+    det.process(frames[0])
+    det.process(frames[1])
+    assert not det._should_find()
+    hand = next(h for h in det.process(frames[1]) if h["handedness"] == "right")
+    twice = [hand, dict(hand, track_id=99, score=0.5)]
+    det.tracks.append(Track(99, det.tracks[0].crop))
+    det.lost_last_frame = False
+    assert [h["track_id"] for h in det._drop_duplicates(twice)] == [hand["track_id"]]
+    assert det._should_find()
 
 
 def test_with_candidates_detnet_picks_the_new_track_among_the_finders_boxes():
