@@ -81,7 +81,7 @@ class FastBackbone(nn.Module):
     cell sees the whole hand. widths=(24, 48, 96), depth=(1, 3, 2) by default.
     """
 
-    def __init__(self, widths=(24, 48, 96), depth=(1, 3, 2), expand=3):
+    def __init__(self, widths=(24, 48, 96), depth=(1, 3, 2), expand=3, neck=0):
         super().__init__()
         w1, w2, w3 = widths
         d1, d2, d3 = depth
@@ -95,20 +95,29 @@ class FastBackbone(nn.Module):
         self.s8 = nn.Sequential(*stage(w2, w3, d3, 2))
         self.lateral = conv_bn(w2, w3, 1, relu=False)
         self.fuse = nn.Sequential(conv_bn(w3, w3, 3, groups=w3), conv_bn(w3, w3, 1))
+        # `neck` more blocks on the fused 16 px map, where the heads read
+        self.neck = nn.Sequential(*[InvertedResidual(w3, w3, 1, expand) for _ in range(neck)])
         self.channels = w3
 
     def forward(self, x):
         x16 = self.s16(self.s32(self.stem(x)))
         x8 = self.s8(x16)
-        return self.fuse(self.lateral(x16) + F.interpolate(x8, scale_factor=2.0, mode="nearest"))
+        return self.neck(self.fuse(self.lateral(x16) + F.interpolate(x8, scale_factor=2.0, mode="nearest")))
 
 
-def fast_backbone(widths=(24, 48, 96), depth=(1, 3, 2)):
-    net = FastBackbone(widths, depth)
+def fast_backbone(widths=(24, 48, 96), depth=(1, 3, 2), neck=0):
+    net = FastBackbone(widths, depth, neck=neck)
     return net, net.channels, 8
 
 
-BACKBONES = {"paper": paper_backbone, "fast": fast_backbone}
+def fast_deep_backbone():
+    """`fast` with two more blocks at 8 px and two on the fused 16 px map: its blocks keep
+    their names, so a `fast` checkpoint loads into it (`handtrain detnet --init-from`) and
+    the new residual blocks start as the identity (see zero_init_new_blocks)."""
+    return fast_backbone(depth=(1, 3, 4), neck=2)
+
+
+BACKBONES = {"paper": paper_backbone, "fast": fast_backbone, "fast-deep": fast_deep_backbone}
 
 
 # ------------------------------------------------------------------ heads

@@ -5,6 +5,7 @@
     handtrain detnet                          # fast backbone, from scratch (runs/detnet/fast/)
     handtrain detnet --resume --iters 30000   # continue runs/detnet/fast/last.pt
     handtrain detnet --export-only            # write the ONNX file from last.pt
+    handtrain detnet --backbone fast-deep --init-from runs/detnet/fast3/last.pt   # grow a trained net
 
 Each batch (drawn from numpy generator [seed, iteration], so a resumed run sees the
 batches the uninterrupted run would have) mixes:
@@ -55,7 +56,7 @@ REAL_CACHE = "real_v3.npz"          # v2: + arm-only negatives; v3: frame edges 
 
 
 def add_arguments(p):
-    p.add_argument("--backbone", choices=("fast", "paper"), default="fast")
+    p.add_argument("--backbone", choices=("fast", "fast-deep", "paper"), default="fast")
     p.add_argument("--iters", type=int, default=20000, help="total iterations (a resumed run continues to this)")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=2e-3, help="AdamW, cosine decay to lr/50 after 300 warm-up iterations")
@@ -76,6 +77,9 @@ def add_arguments(p):
     p.add_argument("--export", type=Path, default=DEFAULT_MODEL, help="ONNX output (default %(default)s)")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
     p.add_argument("--export-only", action="store_true", help="export RUN_DIR/last.pt and stop")
+    p.add_argument("--init-from", type=Path, default=None,
+                   help="start from this checkpoint's weights (e.g. a `fast` run's last.pt for `fast-deep`: the "
+                        "blocks it lacks start as the identity), at iteration 0 with a fresh schedule and AdamW")
 
 
 # ------------------------------------------------------------------ synthetic data
@@ -525,6 +529,19 @@ def load_matching(net, state):
     return {k.rsplit(".", 2)[0] for k in own if k not in keep}
 
 
+def identity_init_new_blocks(net, state):
+    """Residual blocks of `net` that checkpoint `state` lacks get their last BN scale zeroed:
+    each adds nothing at first, so the grown net computes what the loaded one did and
+    training starts from there. -> their names."""
+    from .detnet import InvertedResidual
+    names = []
+    for name, m in net.named_modules():
+        if isinstance(m, InvertedResidual) and m.residual and f"{name}.body.2.1.weight" not in state:
+            m.body[2][1].weight.data.zero_()
+            names.append(name)
+    return names
+
+
 def main(args):
     import torch
     from tqdm import tqdm
@@ -548,6 +565,12 @@ def main(args):
             opt.load_state_dict(ckpt["optimizer"])
         start, history, refine = ckpt["iteration"], ckpt["history"], ckpt.get("refine", refine)
         print(f"resumed {ckpt_path} at iteration {start}")
+    elif args.init_from:
+        state = torch.load(args.init_from, weights_only=False)["model"]
+        fresh = load_matching(net, state)
+        grown = identity_init_new_blocks(net, state)
+        print(f"initialised from {args.init_from}; new: {', '.join(sorted(fresh)) or 'nothing'} "
+              f"(residual blocks starting as the identity: {', '.join(grown) or 'none'})")
     if args.export_only:
         export_onnx(net, args.export, refine)
         print(f"exported {args.export} (refine {refine})")
