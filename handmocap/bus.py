@@ -114,6 +114,7 @@ class Publisher:
         self.sock.bind(endpoint)
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.subscriptions: Counter[bytes] = Counter()
+        self.joined: Counter[bytes] = Counter()     # subscriptions ever made, per prefix
         self._frames: dict[tuple, tuple] = {}   # (topic, type) -> their wire frames
         self.in_flight = 0   # large payloads sent and not yet released by zmq and every receiver
         self._landed = threading.Condition()
@@ -132,6 +133,7 @@ class Publisher:
                 return
             if ev[:1] == b"\x01":
                 self.subscriptions[ev[1:]] += 1
+                self.joined[ev[1:]] += 1
             elif ev[:1] == b"\x00" and self.subscriptions[ev[1:]] > 0:
                 self.subscriptions[ev[1:]] -= 1
 
@@ -139,6 +141,15 @@ class Publisher:
         self.poll_subscriptions()
         t = topic_frame(topic)
         return sum(n for prefix, n in self.subscriptions.items() if t.startswith(prefix))
+
+    def named_subscribers(self, topic: str) -> tuple[int, int]:
+        """(connected now, joined so far) of the subscribers that asked for `topic` by name; a
+        catch-all subscription (the recorder's, handtopic's) does not count. For a topic that
+        costs work to compute: compute it while somebody asked for it, and send what goes once
+        per connection when the joined count grows."""
+        self.poll_subscriptions()
+        t = topic_frame(topic)
+        return self.subscriptions[t], self.joined[t]
 
     def send(self, topic: str, type_name: str, payload: bytes | memoryview) -> None:
         """One message; a payload over LARGE bytes (bytes or a read-only view such as

@@ -148,6 +148,15 @@ class PoseEstimator:
         return out
 
 
+def mesh_message(model, hands):
+    """The body of a HandMesh message for HandPose hands: per hand its posed vertices (V,3)
+    float32 metres in the camera frame (`hand_mesh`). The faces that go with them are
+    `model.faces`, the right hand's winding: a left hand's vertices are mirrored, so its
+    outward-facing triangles are `faces[:, ::-1]`."""
+    return {"hands": [{"track_id": h["track_id"], "handedness": h["handedness"],
+                       "vertices": hand_mesh(model, h)[0].astype(np.float32)} for h in hands]}
+
+
 def hand_mesh(model, hand):
     """The posed mesh of one HandPose hand in the camera frame: vertices (V,3) metres, faces
     (F,3) int (winding flipped for a left hand, so it faces outward) and its 21 joints (21,3)

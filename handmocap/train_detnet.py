@@ -6,6 +6,7 @@
     handtrain detnet --resume --iters 30000   # continue runs/detnet/fast/last.pt
     handtrain detnet --export-only            # write the ONNX file from last.pt
     handtrain detnet --backbone fast-deep --init-from runs/detnet/fast3/last.pt   # grow a trained net
+    handtrain detnet --backbone fast-deep --init-from models/detnet.onnx        # ... or the shipped one
 
 Each batch (drawn from numpy generator [seed, iteration], so a resumed run sees the
 batches the uninterrupted run would have) mixes:
@@ -79,7 +80,8 @@ def add_arguments(p):
     p.add_argument("--export-only", action="store_true", help="export RUN_DIR/last.pt and stop")
     p.add_argument("--init-from", type=Path, default=None,
                    help="start from this checkpoint's weights (e.g. a `fast` run's last.pt for `fast-deep`: the "
-                        "blocks it lacks start as the identity), at iteration 0 with a fresh schedule and AdamW")
+                        "blocks it lacks start as the identity), or from an exported .onnx (models/detnet.onnx), "
+                        "at iteration 0 with a fresh schedule and AdamW")
 
 
 # ------------------------------------------------------------------ synthetic data
@@ -529,6 +531,70 @@ def load_matching(net, state):
     return {k.rsplit(".", 2)[0] for k in own if k not in keep}
 
 
+def state_from_onnx(path, images):
+    """A trainable `DetNet` state dict recovered from an exported ONNX file (`path`), so the
+    shipped model can seed training on a machine without its checkpoint.
+
+    The export folds each BatchNorm into the convolution before it (W' = W*g/s, b' = b - m*g/s),
+    so the file holds only the folded function. Each conv gets W' back and its BN is set up
+    again around the statistics of W'x on `images` (N,128,128,3) uint8: with m and v the
+    per-channel mean and variance there, BN(m, v, gamma=sqrt(v+eps), beta=b'+m) computes
+    exactly W'x + b' in eval mode, and nearly so with batch statistics in training, so
+    training goes on from the exported function. -> (state dict, backbone name).
+    """
+    import onnx
+    import torch
+    from onnx import numpy_helper
+
+    from .detnet import DetNet
+    model = onnx.load(str(path))
+    backbone = dict(p.split("=", 1) for p in model.doc_string.split() if "=" in p).get("backbone", "fast")
+    params = {t.name: torch.from_numpy(numpy_helper.to_array(t).copy()) for t in model.graph.initializer}
+    net = DetNet(backbone).eval()
+    called = []                                         # convs in the order the forward pass calls them
+    hooks = [m.register_forward_hook(lambda m, i, o: called.append(m))
+             for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    with torch.no_grad():
+        net(torch.zeros(1, 3, 128, 128))
+    for h in hooks:
+        h.remove()
+    convs = [n for n in model.graph.node if n.op_type == "Conv"]          # the graph keeps the call order
+    if len(convs) != len(called):
+        raise ValueError(f"{path}: {len(convs)} convolutions, a {backbone} DetNet has {len(called)}")
+    bn_after = {seq[k]: seq[k + 1] for seq in net.modules() if isinstance(seq, torch.nn.Sequential)
+                for k in range(len(seq) - 1) if isinstance(seq[k + 1], torch.nn.BatchNorm2d)}
+    folded_bias = {}
+    with torch.no_grad():
+        for conv, node in zip(called, convs):
+            w = params[node.input[1]]
+            if w.shape != conv.weight.shape:
+                raise ValueError(f"{path}: conv weight {tuple(w.shape)} where DetNet has {tuple(conv.weight.shape)}")
+            conv.weight.copy_(w)
+            b = params[node.input[2]] if len(node.input) > 2 else torch.zeros(w.shape[0])
+            if conv in bn_after:
+                folded_bias[bn_after[conv]] = b
+                bn = bn_after[conv]
+                bn.weight.fill_(1.0), bn.bias.copy_(b), bn.running_mean.zero_(), bn.running_var.fill_(1.0 - bn.eps)
+            else:
+                conv.bias.copy_(b)
+        for name, p in net.named_parameters():          # the linear heads keep their names
+            if f"net.{name}" in params:
+                p.copy_(params[f"net.{name}"])
+        stats = {}
+        hooks = [bn.register_forward_hook(lambda m, i, o: stats.setdefault(m, []).append(i[0]))
+                 for bn in folded_bias]
+        x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
+        net(x)
+        for h in hooks:
+            h.remove()
+        for bn, b in folded_bias.items():
+            a = torch.cat(stats[bn])
+            mean, var = a.mean((0, 2, 3)), a.var((0, 2, 3), unbiased=False)
+            bn.running_mean.copy_(mean), bn.running_var.copy_(var)
+            bn.weight.copy_(torch.sqrt(var + bn.eps)), bn.bias.copy_(b + mean)
+    return net.state_dict(), backbone
+
+
 def identity_init_new_blocks(net, state):
     """Residual blocks of `net` that checkpoint `state` lacks get their last BN scale zeroed:
     each adds nothing at first, so the grown net computes what the loaded one did and
@@ -565,12 +631,6 @@ def main(args):
             opt.load_state_dict(ckpt["optimizer"])
         start, history, refine = ckpt["iteration"], ckpt["history"], ckpt.get("refine", refine)
         print(f"resumed {ckpt_path} at iteration {start}")
-    elif args.init_from:
-        state = torch.load(args.init_from, weights_only=False)["model"]
-        fresh = load_matching(net, state)
-        grown = identity_init_new_blocks(net, state)
-        print(f"initialised from {args.init_from}; new: {', '.join(sorted(fresh)) or 'nothing'} "
-              f"(residual blocks starting as the identity: {', '.join(grown) or 'none'})")
     if args.export_only:
         export_onnx(net, args.export, refine)
         print(f"exported {args.export} (refine {refine})")
@@ -591,6 +651,16 @@ def main(args):
     if sval is None:
         print(f"note: no held-out synthetic set at {args.val}")
     rval = real_val_set(real)
+    if args.init_from and not args.resume:
+        if args.init_from.suffix == ".onnx":        # an exported model: BN statistics from a batch of training crops
+            state, source = state_from_onnx(args.init_from, maker.make(512, np.random.default_rng([args.seed, 2**31]))["image"])
+            print(f"recovered a trainable {source} DetNet from {args.init_from}")
+        else:
+            state = torch.load(args.init_from, weights_only=False)["model"]
+        fresh = load_matching(net, state)
+        grown = identity_init_new_blocks(net, state)
+        print(f"initialised from {args.init_from}; new: {', '.join(sorted(fresh)) or 'nothing'} "
+              f"(residual blocks starting as the identity: {', '.join(grown) or 'none'})")
     run_dir.mkdir(parents=True, exist_ok=True)
 
     def save(it):

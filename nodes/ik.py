@@ -1,5 +1,7 @@
 """ik: joint rotations, MANO-style pose and camera-frame joints of every hand.
-/hand/keypoints (+ /hand/shape, /camera/info) -> /hand/pose.
+/hand/keypoints (+ /hand/shape, /camera/info) -> /hand/pose, and /hand/mesh while a
+subscriber asks for it by name (the posed mesh costs ~0.4 ms a hand: not computed for
+nobody, nor for catch-all subscribers such as the recorder).
 
 A thin loop over handmocap.pose.PoseEstimator (IKNet per hand, left hands mirrored into the
 right-hand model, FK at the track's shape, Eq. 5 translation, One Euro smoothing per
@@ -24,7 +26,7 @@ from handmocap import camera_info
 from handmocap.hand_model import HandModel
 from handmocap.ik_solver import IKSolver
 from handmocap.node import Message, Node, run, spin
-from handmocap.pose import POSE_DEFAULTS, PoseEstimator
+from handmocap.pose import POSE_DEFAULTS, PoseEstimator, mesh_message
 
 PARAMS = {"model": None, "iknet": None, "threads": 1, **POSE_DEFAULTS}
 
@@ -38,6 +40,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     node.subscribe("/camera/info", "CameraInfo", mode="all")         # same socket: in order with keypoints
     node.subscribe("/hand/shape", "HandShape", mode="latest")
     node.advertise("/hand/pose", "HandPose")
+    node.advertise("/hand/mesh", "HandMesh")
     model = HandModel.load(p["model"])
     solver = IKSolver.load(p["iknet"], threads=int(p["threads"]), model=model)
     try:   # onnxruntime sets up its buffers on a session's first run: not on the first frame
@@ -47,9 +50,10 @@ def start() -> tuple[Node, Callable[[Message], None]]:
                          f"{str(e).splitlines()[0][:200]}") from None
     estimator = PoseEstimator(solver, model, p)
     K = None
+    mesh_joined = 0
 
     def on_message(msg: Message) -> None:
-        nonlocal K
+        nonlocal K, mesh_joined
         if msg.type == "CameraInfo":
             K = np.asarray(msg.data["K"], dtype=np.float64)
         elif msg.type == "HandShape":
@@ -58,7 +62,14 @@ def start() -> tuple[Node, Callable[[Message], None]]:
             data = msg.data
             K_frame = K if K is not None else camera_info.default_K(data["width"], data["height"])
             hands = estimator.update(data["hands"], K_frame, msg.stamp_ns / 1e9)
-            node.publish("/hand/pose", {"hands": hands}, stamp_ns=msg.stamp_ns, frame_id=data["header"]["frame_id"])
+            frame_id = data["header"]["frame_id"]
+            node.publish("/hand/pose", {"hands": hands}, stamp_ns=msg.stamp_ns, frame_id=frame_id)
+            wanted, joined = node.pub.named_subscribers("/hand/mesh")
+            if wanted:
+                body = mesh_message(model, hands)
+                if joined > mesh_joined:        # somebody new: the faces ride along once
+                    body["faces"], mesh_joined = model.faces.astype(np.int32), joined
+                node.publish("/hand/mesh", body, stamp_ns=msg.stamp_ns, frame_id=frame_id)
     return node, on_message
 
 

@@ -50,6 +50,42 @@ def test_a_fast_net_grown_into_fast_deep_computes_the_same_until_trained():
     assert sum(p.numel() for p in big.parameters()) > 2 * sum(p.numel() for p in small.parameters())
 
 
+def test_an_exported_net_becomes_trainable_again(tmp_path):
+    """--init-from model.onnx: the recovered net computes what the file does, in eval mode
+    exactly and with batch statistics (training) on the calibration crops nearly."""
+    torch = _torch()
+    from handmocap.detnet import DetNet, export_onnx
+    from handmocap.train_detnet import state_from_onnx
+    torch.manual_seed(1)
+    trained = DetNet("fast")
+    for m in trained.modules():                 # folded BN must be undone, so give it something to fold
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.3, 0.3), m.running_var.uniform_(0.3, 3.0)
+            m.weight.data.uniform_(0.5, 1.5), m.bias.data.uniform_(-0.2, 0.2)
+    path = tmp_path / "detnet.onnx"
+    export_onnx(trained, path)
+    images = np.random.default_rng(0).integers(0, 256, (32, 128, 128, 3), dtype=np.uint8)
+    state, backbone = state_from_onnx(path, images)
+    assert backbone == "fast"
+    net = DetNet("fast")
+    net.load_state_dict(state)
+    x = torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255.0
+    with torch.no_grad():
+        want, got = trained.eval()(x), net.eval()(x)
+        for k in want:
+            torch.testing.assert_close(got[k], want[k], atol=1e-4, rtol=1e-4)
+        batch_stats = net.train()(x)["heatmap"]
+    torch.testing.assert_close(batch_stats, net.eval()(x)["heatmap"], atol=1e-3, rtol=0)
+    bad = DetNet("fast-deep")
+    export_onnx(bad, tmp_path / "deep.onnx")
+    with pytest.raises(ValueError, match="convolutions"):
+        import onnx
+        m = onnx.load(str(tmp_path / "deep.onnx"))
+        m.doc_string = "DetNet backbone=fast refine=logquad"     # a file that lies about its backbone
+        onnx.save(m, str(tmp_path / "deep.onnx"))
+        state_from_onnx(tmp_path / "deep.onnx", images)
+
+
 def _gaussian_maps(cells, grid):
     """(N,21,2) continuous cells -> (N,21,G,G) sigma-1 Gaussians."""
     g = np.arange(grid)

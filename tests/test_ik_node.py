@@ -109,6 +109,7 @@ nodes:
   source: {{node: graphnodes.keypoints_source, params: {{frames: 20, handedness: left, track_id: 8}}, required: true}}
   ik: {{node: ik, required: true}}
   recorder: {{node: recorder, params: {{output: {out}, topics: [/hand/keypoints, /hand/pose]}}, required: true}}
+  meshes: {{node: recorder, params: {{output: {tmp_path / "mesh.mcap"}, topics: [/hand/mesh]}}, required: true}}
 """)
     r = handlaunch([lf], run_dir)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -124,3 +125,43 @@ nodes:
             assert h[name].shape == shape and h[name].dtype == np.float32, name
         assert h["handedness"] == "left" and h["track_id"] == 8
         assert 0.35 < h["root"][2] < 0.7                                   # the source's hands are 0.5 m away
+    # /hand/mesh, asked for by name: one per pose, the mesh of its hand, the faces once
+    meshes = [codec.decode(payload, t) for _, t, payload, _ in iter_messages(tmp_path / "mesh.mcap")]
+    assert [m["header"]["stamp_ns"] for m in meshes] == [m["header"]["stamp_ns"] for m in poses]
+    assert [("faces" in m) for m in meshes] == [True] + [False] * 19
+    np.testing.assert_array_equal(meshes[0]["faces"], MODEL.faces)
+    for m, p in zip(meshes, poses):
+        (mh,), (ph,) = m["hands"], p["hands"]
+        assert (mh["track_id"], mh["handedness"]) == (8, "left")
+        vertices, _, joints = ik.hand_mesh(MODEL, ph)
+        assert mh["vertices"].shape == vertices.shape and mh["vertices"].dtype == np.float32
+        np.testing.assert_allclose(mh["vertices"], vertices, atol=1e-5)
+        np.testing.assert_allclose(joints, ph["xyz"], atol=1e-5)               # the mesh sits on the pose
+
+
+def test_a_topic_is_wanted_only_by_subscribers_that_name_it():
+    """Publisher.named_subscribers: the ik node computes /hand/mesh only for those."""
+    import time
+
+    import zmq
+    from handmocap.bus import Publisher, Subscriber
+    ctx = zmq.Context()
+    pub = Publisher(ctx, "inproc://named-subscribers")
+    everything, named = Subscriber(ctx), Subscriber(ctx)
+    try:
+        everything.subscribe(None, "all")
+        everything.connect("inproc://named-subscribers", "all")
+
+        def settled(want):
+            deadline = time.monotonic() + 5
+            while pub.named_subscribers("/hand/mesh") != want and time.monotonic() < deadline:
+                time.sleep(0.01)
+            return pub.named_subscribers("/hand/mesh")
+        assert settled((0, 0)) == (0, 0) and pub.subscriber_count("/hand/mesh") == 1   # the catch-all one
+        named.subscribe("/hand/mesh", "latest")
+        named.connect("inproc://named-subscribers", "latest")
+        assert settled((1, 1)) == (1, 1)
+        named.close()
+        assert settled((0, 1)) == (0, 1)              # gone; a later one makes joined 2 (faces again)
+    finally:
+        everything.close(), pub.close(), ctx.term()
