@@ -182,10 +182,10 @@ def test_augmentation_keeps_2d_and_3d_consistent():
         assert np.allclose(rotated[:, 2], xyz[:, 2])
 
 
-@pytest.mark.skipif(not MODEL.exists(), reason="models/detnet.onnx not exported yet")
-def test_committed_model_interface():
+@pytest.mark.parametrize("path", [MODEL, MODEL.with_name("detnet_fast_deep.onnx")], ids=lambda p: p.name)
+def test_committed_model_interface(path):
     ort = pytest.importorskip("onnxruntime")
-    sess = ort.InferenceSession(str(MODEL), providers=["CPUExecutionProvider"])
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     assert [i.name for i in sess.get_inputs()] == ["image"]
     x = np.random.default_rng(0).random((2, 3, 128, 128), dtype=np.float32)
     uv, xyz, conf, presence, right = sess.run(["uv", "xyz", "confidence", "presence", "handedness"], {"image": x})
