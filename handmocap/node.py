@@ -217,6 +217,12 @@ class Node:
         if self._trace is not None:
             self._trace.append(("pub1", topic, None, time.time_ns()))
 
+    def named_subscribers(self, topic: str) -> tuple[int, int]:
+        """(connected now, joined so far) of the subscribers that asked for `topic` (after this
+        node's remaps) by name, catch-all ones not counted: for a topic that costs work to
+        compute only while someone wants it (bus.Publisher.named_subscribers)."""
+        return self.pub.named_subscribers(self.resolve(topic))
+
     def wait_in_flight(self, limit: int, timeout_s: float = 1.0) -> bool:
         """Block until fewer than `limit` of this node's large messages (frames, sent without a
         copy) are still on their way: queued for or held by a subscriber. A source that sends

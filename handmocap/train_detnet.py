@@ -571,25 +571,23 @@ def state_from_onnx(path, images):
                 raise ValueError(f"{path}: conv weight {tuple(w.shape)} where DetNet has {tuple(conv.weight.shape)}")
             conv.weight.copy_(w)
             b = params[node.input[2]] if len(node.input) > 2 else torch.zeros(w.shape[0])
-            if conv in bn_after:
-                folded_bias[bn_after[conv]] = b
+            if conv in bn_after:                        # an identity BN + b' until its statistics are known
                 bn = bn_after[conv]
+                folded_bias[bn] = b
                 bn.weight.fill_(1.0), bn.bias.copy_(b), bn.running_mean.zero_(), bn.running_var.fill_(1.0 - bn.eps)
             else:
                 conv.bias.copy_(b)
         for name, p in net.named_parameters():          # the linear heads keep their names
             if f"net.{name}" in params:
                 p.copy_(params[f"net.{name}"])
-        stats = {}
-        hooks = [bn.register_forward_hook(lambda m, i, o: stats.setdefault(m, []).append(i[0]))
-                 for bn in folded_bias]
+        stats = {}                                      # BN -> its input W'x on `images` (the exported function's)
+        hooks = [bn.register_forward_hook(lambda m, i, o: stats.__setitem__(m, i[0])) for bn in folded_bias]
         x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
         net(x)
         for h in hooks:
             h.remove()
         for bn, b in folded_bias.items():
-            a = torch.cat(stats[bn])
-            mean, var = a.mean((0, 2, 3)), a.var((0, 2, 3), unbiased=False)
+            mean, var = stats[bn].mean((0, 2, 3)), stats[bn].var((0, 2, 3), unbiased=False)
             bn.running_mean.copy_(mean), bn.running_var.copy_(var)
             bn.weight.copy_(torch.sqrt(var + bn.eps)), bn.bias.copy_(b + mean)
     return net.state_dict(), backbone
@@ -653,7 +651,12 @@ def main(args):
     rval = real_val_set(real)
     if args.init_from and not args.resume:
         if args.init_from.suffix == ".onnx":        # an exported model: BN statistics from a batch of training crops
-            state, source = state_from_onnx(args.init_from, maker.make(512, np.random.default_rng([args.seed, 2**31]))["image"])
+            try:
+                state, source = state_from_onnx(args.init_from,
+                                                maker.make(512, np.random.default_rng([args.seed, 2**31]))["image"])
+            except Exception as e:                  # onnx's and protobuf's errors have no common base of their own
+                raise SystemExit(f"--init-from {args.init_from}: not an exported DetNet "
+                                 f"({type(e).__name__}: {str(e)[:200]})") from None
             print(f"recovered a trainable {source} DetNet from {args.init_from}")
         else:
             state = torch.load(args.init_from, weights_only=False)["model"]

@@ -64,7 +64,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
             hands = estimator.update(data["hands"], K_frame, msg.stamp_ns / 1e9)
             frame_id = data["header"]["frame_id"]
             node.publish("/hand/pose", {"hands": hands}, stamp_ns=msg.stamp_ns, frame_id=frame_id)
-            wanted, joined = node.pub.named_subscribers("/hand/mesh")
+            wanted, joined = node.named_subscribers("/hand/mesh")
             if wanted:
                 body = mesh_message(model, hands)
                 if joined > mesh_joined:        # somebody new: the faces ride along once
