@@ -21,7 +21,8 @@ Per frame (`HandDetector.process`):
    from its own first 2D prediction (and flipped the other way if DetNet's handedness
    outweighs the finder's), and the track is only born if its mean heatmap peak there
    reaches `birth_confidence`: DetNet's presence head is sure of almost anything the
-   finder proposes (a mouse on a desk, a face), its heatmap peaks are not.
+   finder proposes (a mouse on a desk, a face), its heatmap peaks are not. After a hand
+   was refused, the finder looks again `unborn_retry` frames later.
 4. The next frame's crop of a track comes from this frame's 2D joints (their box, centre
    moved on by half the last displacement, side changing by at most 1.33x per frame), as
    MediaPipe and the paper's videos do.
@@ -37,6 +38,7 @@ Per frame (`HandDetector.process`):
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,14 +46,22 @@ import cv2
 import numpy as np
 
 from .hand_finder import HandFinder, box_iou, square
-from .onnx_models import open_session
+from .onnx_models import open_session, stale_quantization
 from .rotations import mirror_points
 from .skeleton import normalize_joints
 
 CROP = 128
 CROP_SCALE = 1.5            # crop side / side of the 21-joint box (synth: vertex box ~1.16x joint box, x 1.3)
 MIN_CROP_SIDE = 24.0        # px in the frame
-DETNET_PATH = Path(__file__).resolve().parent.parent / "models" / "detnet.onnx"
+DETNET_FLOAT32 = Path(__file__).resolve().parent.parent / "models" / "detnet.onnx"   # `handtrain detnet` writes it
+DETNET_INT8 = DETNET_FLOAT32.with_name("detnet_int8.onnx")     # `python -m handmocap.quantize_detnet` makes it
+DETNET_PATH = DETNET_INT8                                       # what runs by default
+DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32}  # short names for the detnet param
+
+
+def detnet_path(path=None) -> Path:
+    """DetNet file: None -> DETNET_PATH (int8); "int8" / "float32" -> the bundled files; else a path."""
+    return DETNET_PATH if path is None else DETNET_NAMES.get(str(path), Path(path))
 
 
 @dataclass(frozen=True)
@@ -143,7 +153,8 @@ def crop_for_box(box, mirrored=False, scale=CROP_SCALE):
 
 
 class DetNetRunner:
-    """models/detnet.onnx on onnxruntime: (N,128,128,3) uint8 RGB crops -> dict of arrays
+    """DetNet on onnxruntime (by default models/detnet_int8.onnx, the static int8 copy of
+    models/detnet.onnx): (N,128,128,3) uint8 RGB crops -> dict of arrays
     uv (N,21,2) crop px, xyz (N,21,3), confidence (N,21), presence (N,), handedness (N,)."""
 
     def __init__(self, session):
@@ -152,7 +163,16 @@ class DetNetRunner:
 
     @classmethod
     def load(cls, path=None, threads=1):
-        return cls(open_session(path or DETNET_PATH, "DetNet", "handtrain detnet", threads))
+        """path: None (models/detnet_int8.onnx), "int8", "float32" (models/detnet.onnx) or a
+        file. Warns when an int8 file was made from another float32 network than the one
+        beside it."""
+        path = detnet_path(path)
+        made_by = "python -m handmocap.quantize_detnet" if path == DETNET_INT8 else "handtrain detnet"
+        session = open_session(path, "DetNet", made_by, threads)
+        stale = stale_quantization(session, path, "python -m handmocap.quantize_detnet")
+        if stale:
+            warnings.warn(stale, stacklevel=2)
+        return cls(session)
 
     def __call__(self, crops_rgb):
         x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
@@ -205,13 +225,14 @@ class HandDetector:
     heatmap peak a track is lost too; birth_confidence: a found hand becomes a track only
     if DetNet's mean heatmap peak on its refined crop reaches this (the two thresholds are
     a hysteresis, chosen on training-side held-out clips by scripts/detector_thresholds.py;
-    0.3 is for video, where a hand refused on one frame is found again on the next: for
-    unrelated photos, one chance each, use 0).
+    0.3 is for video, where a hand refused on one frame is proposed again `unborn_retry`
+    frames later: for unrelated photos, one chance each, use 0).
     """
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
-                 birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1, duplicate_joints=0.0):
+                 birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1, duplicate_joints=0.0,
+                 unborn_retry=3):
         self.detnet, self.finder = detnet, finder
         # a second hand finder, tried on a frame where the first one's boxes gave no track
         self.fallback = fallback
@@ -225,6 +246,10 @@ class HandDetector:
         # the presence head stays sure on a crop that slid onto the forearm; the heatmap
         # peaks (mean over joints) do drop there, so they end such a track too
         self.min_confidence, self.birth_confidence = min_confidence, birth_confidence
+        # frames until the finder looks again after a proposed hand was not born: while one
+        # hand is tracked, a second one refused on its first frame would otherwise wait
+        # `redetect_every` frames for its next chance
+        self.unborn_retry = min(unborn_retry, redetect_every)
         # the finder checks the tracks every `redetect_every` frames: a found hand inside a
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
@@ -243,6 +268,11 @@ class HandDetector:
 
     @classmethod
     def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, **kwargs):
+        """Networks from files (None: the bundled ones). threads: onnxruntime intra-op threads
+        per network, and OpenCV's thread count, which is process-wide: the crops and the
+        finder's resize are too small to gain from threads, whose hand-offs cost ~0.6 ms of
+        CPU per frame with OpenCV's default (one per core) here."""
+        cv2.setNumThreads(threads)
         finder = HandFinder.load(finder_path, threads=threads) if finder_path != "none" else None
         fallback = HandFinder.load(fallback_path, threads=threads) if fallback_path else None
         return cls(DetNetRunner.load(detnet_path, threads=threads), finder, fallback=fallback, **kwargs)
@@ -365,6 +395,7 @@ class HandDetector:
             presence, confidence = float(out["presence"][i]), float(np.mean(out["confidence"][i]))
             if t.age == 0 and confidence < self.birth_confidence:   # not a hand after all: no loss to report
                 self.stats["unborn"] += 1
+                self.frames_since_find = max(self.frames_since_find, self.redetect_every - self.unborn_retry)
                 continue
             if presence < self.presence_threshold or confidence < self.min_confidence:
                 self.lost_last_frame = True

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .kinematics import FRAME_BONE, FRAME_PARENTS, PARENTS
+from . import onnx_models
 from .onnx_models import open_session
 from .rotations import matrix_to_quat, quat_left_matrix, quat_normalize, quat_to_matrix
 from .skeleton import NON_TIP_JOINTS, NUM_JOINTS, normalize_joints
@@ -121,17 +122,8 @@ def model_path(path=None):
 
 
 def stale_quantization(session, path):
-    """A line saying that the int8 file `path` was made from another float32 IKNet than the
-    one beside it (retrained without `python -m handmocap.quantize_iknet`), else None."""
-    meta = session.get_modelmeta().custom_metadata_map
-    source = Path(path).parent / meta.get("source_name", "")
-    if "source_sha256" not in meta or not source.is_file() or source == Path(path):
-        return None
-    from .quantize_iknet import file_sha256
-    if file_sha256(source) == meta["source_sha256"]:
-        return None
-    return (f"{path} was quantized from another {source.name} than the one beside it: make it again with "
-            f"`python -m handmocap.quantize_iknet` (or load \"float32\")")
+    """onnx_models.stale_quantization for an int8 IKNet file."""
+    return onnx_models.stale_quantization(session, path, "python -m handmocap.quantize_iknet")
 
 
 class IKSolver:

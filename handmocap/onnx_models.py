@@ -1,4 +1,5 @@
 """The one way the project opens its ONNX models (CPU, onnxruntime; no torch at run time)."""
+import hashlib
 import re
 from pathlib import Path
 
@@ -24,3 +25,26 @@ def open_session(path: Path, what: str, made_by: str, threads: int = 1):
         reason = re.sub(r"^\[ONNXRuntimeError\] : \d+ : ", "", str(e).strip().splitlines()[0] if str(e).strip() else "")
         raise ValueError(f"{what} model {path} cannot be loaded (corrupt, cut short, or not an ONNX model): "
                          f"{reason[:200] or type(e).__name__}; make it again with `{made_by}`") from None
+
+
+def file_sha256(path) -> str:
+    """Hex SHA-256 of a file (the float model a quantized one was made from)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def stale_quantization(session, path, made_by: str):
+    """A line saying that the int8 file `path` (its metadata `source_name`, `source_sha256`)
+    was made from another float32 file than the one beside it (retrained, not quantized
+    again with `made_by`), else None."""
+    meta = session.get_modelmeta().custom_metadata_map
+    source = Path(path).parent / meta.get("source_name", "")
+    if "source_sha256" not in meta or not source.is_file() or source == Path(path):
+        return None
+    if file_sha256(source) == meta["source_sha256"]:
+        return None
+    return (f"{path} was quantized from another {source.name} than the one beside it: make it again with "
+            f"`{made_by}` (or load \"float32\")")

@@ -26,25 +26,16 @@ The result carries the source file's SHA-256 (metadata `source_sha256`) so that
 IKSolver.load can warn when iknet.onnx was retrained and this file not made again.
 """
 import argparse
-import hashlib
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .ik_solver import FLOAT32_MODEL, INT8_MODEL, NUM_INPUTS
+from .onnx_models import file_sha256
 
 CALIB_SEED = 31_415_926          # own seed: not training ([seed, it]), validation or evaluation
 CALIB_BATCH = 256
-
-
-def file_sha256(path):
-    """Hex SHA-256 of a file (the float model a quantized one was made from)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def calibration_features(n, model=None, data_root=None, seed=CALIB_SEED):

@@ -465,7 +465,11 @@ def real_val_set(real):
 
 def predict(net, images, refines=("logquad",), batch=128):
     """Torch DetNet (eval) on uint8 crops (N,128,128,3), one pass -> {refine: (uv, xyz, conf)},
-    presence (N,), right (N,) probabilities (numpy)."""
+    presence (N,), right (N,) probabilities (numpy). `net` may also be an exported file
+    (quantize_detnet.OnnxNet): its one read-out then stands for every refine asked."""
+    if hasattr(net, "predict"):
+        read, pres, right = net.predict(images, batch)
+        return {r: read for r in refines}, pres, right
     import torch
 
     from .detnet import read_out

@@ -7,11 +7,13 @@ Takes the freshest image only (latest-only: a live camera never builds a backlog
 every_frame:=true every image in order (offline processing of a recording); publishes one
 HandKeypoints per processed image with its stamp; `hands` may be empty.
 
-Params: detnet (ONNX path, default models/detnet.onnx), finder (ONNX path, default
+Params: detnet (ONNX path, or "int8" (default, models/detnet_int8.onnx) / "float32"
+(models/detnet.onnx)), finder (ONNX path, default
 models/finder.onnx; "none": try the centre square of the frame), threads (onnxruntime
 intra-op threads per network), max_hands, presence_threshold (a track ends below it),
 min_confidence (a track ends below this mean heatmap peak; 0 = off), birth_confidence (a found
 hand becomes a track only from this mean heatmap peak on; see models/README.md),
+unborn_retry (frames until the finder looks again after a hand was refused),
 redetect_every (frames between finder runs, which also check the tracks), reseed_iou (a track
 whose joints overlap the hand the finder sees in its crop less than this restarts from the
 finder's box; 0 = never), crop_scale (crop side / joint-box side), every_frame.
@@ -23,13 +25,13 @@ from typing import Callable
 
 import numpy as np
 
-from handmocap.detector import CROP, DETNET_PATH, HandDetector
+from handmocap.detector import CROP, HandDetector, detnet_path
 from handmocap.frames import frame_bgr
 from handmocap.node import Message, Node, run, spin
 
 # HandDetector's settings, with its own defaults (one place for them: the class)
-TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "redetect_every", "reseed_iou",
-           "crop_scale")
+TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "redetect_every",
+           "reseed_iou", "crop_scale")
 _DEFAULTS = inspect.signature(HandDetector).parameters
 PARAMS = {"detnet": None, "finder": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
           "every_frame": False}
@@ -43,7 +45,7 @@ def warm_up(detector: HandDetector, params: dict) -> None:
     try:
         detector.detnet(np.zeros((1, CROP, CROP, 3), np.uint8))
     except Exception as e:   # onnxruntime's errors (wrong input name or shape) are no ValueError
-        raise ValueError(f"DetNet model {params['detnet'] or DETNET_PATH} does not take (N,128,128,3) crops: "
+        raise ValueError(f"DetNet model {detnet_path(params['detnet'])} does not take (N,128,128,3) crops: "
                          f"{str(e).splitlines()[0][:200]}") from None
     if detector.finder is not None:
         try:

@@ -181,7 +181,7 @@ def test_augmentation_keeps_2d_and_3d_consistent():
         assert np.allclose(rotated[:, 2], xyz[:, 2])
 
 
-@pytest.mark.parametrize("path", [MODEL, MODEL.with_name("detnet_fast_deep.onnx")], ids=lambda p: p.name)
+@pytest.mark.parametrize("path", [MODEL, MODEL.with_name("detnet_int8.onnx")], ids=lambda p: p.name)
 def test_committed_model_interface(path):
     ort = pytest.importorskip("onnxruntime")
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
@@ -213,3 +213,54 @@ def cv_inverse(M):
     """(2,3) affine -> its inverse (2,3)."""
     A = np.linalg.inv(M[:, :2])
     return np.hstack([A, -A @ M[:, 2:]])
+
+
+def _demo_crops(n=24):
+    """(n,128,128,3) uint8 RGB crops of the project's own demo clip, cut where the float32
+    DetNet tracks the hand (so both models see a real hand crop, not noise)."""
+    from handmocap.detector import HandDetector
+    from handmocap.frames import read_video
+    det = HandDetector.load("float32", max_hands=1)
+    crops = []
+    for frame in read_video(Path(__file__).resolve().parent.parent / "data" / "demo" / "hand_clip.mp4"):
+        for t in det.tracks[:1]:
+            crops.append(t.crop.cut(frame)[..., ::-1])
+        det.process(frame)
+        if len(crops) == n:
+            break
+    return np.ascontiguousarray(np.stack(crops))
+
+
+def test_int8_detnet_is_close_to_float32_and_made_from_the_shipped_float32():
+    from handmocap.detector import DETNET_INT8, DetNetRunner
+    from handmocap.onnx_models import stale_quantization
+    int8, f32 = DetNetRunner.load("int8"), DetNetRunner.load("float32")
+    crops = _demo_crops()
+    a, b = int8(crops), f32(crops)
+    err = np.linalg.norm(a["uv"] - b["uv"], axis=-1)            # crop px of 128
+    assert np.median(err) < 1.0 and np.percentile(err, 95) < 4.0, (np.median(err), np.percentile(err, 95))
+    assert np.abs(a["xyz"] - b["xyz"]).mean() < 0.02             # location maps stay float32
+    assert np.abs(a["confidence"] - b["confidence"]).max() < 0.1
+    assert stale_quantization(int8.session, DETNET_INT8, "") is None, "run python -m handmocap.quantize_detnet"
+
+
+def test_quantize_makes_an_int8_copy_that_agrees_and_knows_its_source(tmp_path):
+    torch = _torch()
+    pytest.importorskip("onnx")
+    from handmocap.detector import DetNetRunner
+    from handmocap.detnet import DetNet, export_onnx
+    from handmocap.onnx_models import stale_quantization
+    from handmocap.quantize_detnet import quantize
+    import onnx
+    torch.manual_seed(2)
+    src, out = tmp_path / "detnet.onnx", tmp_path / "detnet_int8.onnx"
+    export_onnx(DetNet("fast"), src)
+    crops = _demo_crops(16)
+    quantize(src, out, crops)
+    ops = {n.op_type for n in onnx.load(str(out)).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear"} <= ops
+    int8, f32 = DetNetRunner.load(out), DetNetRunner.load(src)
+    assert np.abs(int8(crops)["xyz"] - f32(crops)["xyz"]).mean() < 0.05
+    assert stale_quantization(int8.session, out, "") is None
+    export_onnx(DetNet("fast"), src)                          # retrained: the int8 copy is now stale
+    assert "quantized from another detnet.onnx" in stale_quantization(int8.session, out, "make")
