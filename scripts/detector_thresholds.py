@@ -1,6 +1,6 @@
 """Choose the detector's track-keeping thresholds on training-side held-out real data.
 
-    python scripts/detector_thresholds.py [--detnet models/detnet.onnx] [--finder models/finder.onnx]
+    python scripts/detector_thresholds.py [--detnet int8|float32|F.onnx] [--finder models/finder.onnx]
                                           [--compare KEY=VALUE[,KEY=VALUE] ...]
 
 Runs the detector (finder + DetNet tracking, every frame in order) over real clips kept out

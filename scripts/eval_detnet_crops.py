@@ -1,7 +1,7 @@
 """DetNet alone on crops cut around the labelled hand, per prepared evaluation split
 (`handeval splits --work W`): what the 2D error would be with a perfect finder and tracker.
 
-    python scripts/eval_detnet_crops.py --work /tmp/handeval [--detnet models/detnet.onnx]
+    python scripts/eval_detnet_crops.py --work /tmp/handeval [--detnet int8|float32|F.onnx]
 
 Each labelled hand is cut the way the detector cuts a tracked hand (`crop_for_joints`: the
 square around its 21-joint box x CROP_SCALE, left hands mirrored by the label's handedness
