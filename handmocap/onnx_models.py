@@ -48,3 +48,46 @@ def stale_quantization(session, path, made_by: str):
         return None
     return (f"{path} was quantized from another {source.name} than the one beside it: make it again with "
             f"`{made_by}` (or load \"float32\")")
+
+
+def quantize_static_int8(src, out, input_name: str, inputs, batch: int, op_types, keep_float=lambda node: False,
+                         extra_options=None, note: str = ""):
+    """Write the static int8 copy of the float32 ONNX file `src` to `out` and return it (an
+    onnx ModelProto): onnxruntime's quantize_static, QDQ format (fused into int8 kernels at
+    load), weights int8 symmetric per output channel, activations uint8 with MinMax ranges
+    from `inputs` (M, ...) float32 fed to `input_name` `batch` rows at a time. Nodes of
+    `op_types` are quantized unless keep_float(node); the file records its source
+    (metadata source_name, source_sha256: see stale_quantization) and `note`."""
+    import tempfile
+
+    import numpy as np
+    import onnx
+    from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
+                                          quantize_static)
+    src, out = Path(src), Path(out)
+    model = onnx.load(str(src))
+    for i, node in enumerate(model.graph.node):          # exporters leave names empty; the quantizer needs them
+        node.name = node.name or f"{node.op_type}_{i}"
+    inputs = np.asarray(inputs, np.float32)
+
+    class Reader(CalibrationDataReader):
+        def __init__(self):
+            self.batches = iter(inputs[i:i + batch] for i in range(0, len(inputs), batch))
+
+        def get_next(self):
+            rows = next(self.batches, None)
+            return None if rows is None else {input_name: rows}
+
+    with tempfile.TemporaryDirectory() as tmp:
+        named = Path(tmp) / "named.onnx"
+        onnx.save(model, str(named))
+        quantize_static(str(named), str(out), Reader(), quant_format=QuantFormat.QDQ, op_types_to_quantize=list(op_types),
+                        nodes_to_exclude=[n.name for n in model.graph.node if keep_float(n)], per_channel=True,
+                        weight_type=QuantType.QInt8, activation_type=QuantType.QUInt8,
+                        calibrate_method=CalibrationMethod.MinMax, extra_options=extra_options or {})
+    quantized = onnx.load(str(out))
+    quantized.producer_name, quantized.doc_string = model.producer_name, (model.doc_string + " (static int8)").strip()
+    onnx.helper.set_model_props(quantized, {"source_sha256": file_sha256(src), "source_name": src.name,
+                                            "quantization": note})
+    onnx.save(quantized, str(out))
+    return quantized

@@ -24,13 +24,12 @@ quantized file is judged on the same numbers as the float one it came from.
 import argparse
 import glob
 import json
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .detector import DETNET_FLOAT32, DETNET_INT8, DetNetRunner
-from .onnx_models import file_sha256
+from .onnx_models import quantize_static_int8
 
 CALIB_SEED = 27_182_818          # own seed: not training ([seed, it]), validation or evaluation
 QUANTIZED_OPS = ["Conv", "Add", "Relu"]
@@ -54,41 +53,16 @@ def calibration_crops(n, data="runs/detnet_data/synth_train_*", shared=None, see
 def quantize(src, out, crops, keep_float=KEEP_FLOAT):
     """Write the static int8 copy of the float DetNet `src` to `out`, calibrated on `crops`
     (M,128,128,3) uint8 RGB; nodes whose name contains one of `keep_float` stay float32."""
-    import onnx
-    from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
-                                          quantize_static)
-    src, out = Path(src), Path(out)
-    model = onnx.load(str(src))
-    for i, node in enumerate(model.graph.node):          # the quantizer needs unique node names
-        node.name = node.name or f"{node.op_type}_{i}"
     images = np.ascontiguousarray(crops.transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
-
-    class Reader(CalibrationDataReader):
-        def __init__(self):
-            self.batches = iter(images[i:i + 32] for i in range(0, len(images), 32))
-
-        def get_next(self):
-            batch = next(self.batches, None)
-            return None if batch is None else {"image": batch}
-
-    with tempfile.TemporaryDirectory() as tmp:
-        named = Path(tmp) / "detnet_named.onnx"
-        onnx.save(model, str(named))
-        quantize_static(str(named), str(out), Reader(), quant_format=QuantFormat.QDQ,
-                        op_types_to_quantize=QUANTIZED_OPS, per_channel=True,
-                        nodes_to_exclude=[n.name for n in model.graph.node if any(k in n.name for k in keep_float)], weight_type=QuantType.QInt8,
-                        activation_type=QuantType.QUInt8, calibrate_method=CalibrationMethod.MinMax)
-    quantized = onnx.load(str(out))
-    quantized.producer_name, quantized.doc_string = model.producer_name, model.doc_string + " (static int8)"
-    onnx.helper.set_model_props(quantized, {"source_sha256": file_sha256(src), "source_name": src.name,
-                                            "quantization": f"static int8 QDQ ({', '.join(QUANTIZED_OPS)}), "
-                                                            f"{len(crops)} calibration crops (seed {CALIB_SEED})"})
-    onnx.save(quantized, str(out))
+    quantize_static_int8(src, out, "image", images, 32, QUANTIZED_OPS,
+                         keep_float=lambda node: any(k in node.name for k in keep_float),
+                         note=f"static int8 QDQ ({', '.join(QUANTIZED_OPS)}; {', '.join(keep_float) or 'nothing'} "
+                              f"float32), {len(crops)} calibration crops (seed {CALIB_SEED})")
 
 
 class OnnxNet:
     """An exported DetNet file in the shape train_detnet.validate expects of a network
-    (`predict_onnx`), read out as exported (one refine)."""
+    (`predict`), read out as exported (one refine)."""
 
     def __init__(self, path, threads=1):
         self.runner = DetNetRunner.load(path, threads)

@@ -26,13 +26,12 @@ The result carries the source file's SHA-256 (metadata `source_sha256`) so that
 IKSolver.load can warn when iknet.onnx was retrained and this file not made again.
 """
 import argparse
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .ik_solver import FLOAT32_MODEL, INT8_MODEL, NUM_INPUTS
-from .onnx_models import file_sha256
+from .onnx_models import quantize_static_int8
 
 CALIB_SEED = 31_415_926          # own seed: not training ([seed, it]), validation or evaluation
 CALIB_BATCH = 256
@@ -52,52 +51,23 @@ def calibration_features(n, model=None, data_root=None, seed=CALIB_SEED):
     return np.concatenate(batches)[:n]
 
 
-def _name_nodes(onnx_model):
-    """The exporter leaves node names empty; the quantizer needs them to be unique."""
-    for i, node in enumerate(onnx_model.graph.node):
-        node.name = node.name or f"{node.op_type}_{i}"
-
-
 def quantize(src=FLOAT32_MODEL, out=INT8_MODEL, n=16384, data_root=None, features=None, pin_ranges=False):
     """Write the static int8 copy of `src` to `out`; returns the calibrated ranges {tensor:
     (lo, hi)} of the quantized activations. features: (M, 252) calibration inputs instead
     of calibration_features(n); pin_ranges: [0, 1] for every sigmoid output instead."""
     import onnx
-    from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
-                                          quantize_static)
     src, out = Path(src), Path(out)
     features = calibration_features(n, data_root=data_root) if features is None else np.asarray(features, np.float32)
     if features.shape[1:] != (NUM_INPUTS,):
         raise ValueError(f"calibration features must be (M, {NUM_INPUTS}), got {features.shape}")
-    onnx_model = onnx.load(str(src))
-    _name_nodes(onnx_model)
-    gemms = [node for node in onnx_model.graph.node if node.op_type == "Gemm"]
-    first = next(node for node in gemms if node.input[0] == "features")
-    hidden = [node.output[0] for node in onnx_model.graph.node if node.op_type == "Sigmoid"]
+    graph = onnx.load(str(src)).graph
+    first = next(node.output[0] for node in graph.node if node.op_type == "Gemm" and node.input[0] == "features")
+    hidden = [node.output[0] for node in graph.node if node.op_type == "Sigmoid"]
     overrides = {h: [{"rmin": np.float32(0.0), "rmax": np.float32(1.0)}] for h in hidden} if pin_ranges else {}
-
-    class Reader(CalibrationDataReader):
-        def __init__(self):
-            self.batches = iter(features[i:i + CALIB_BATCH] for i in range(0, len(features), CALIB_BATCH))
-
-        def get_next(self):
-            batch = next(self.batches, None)
-            return None if batch is None else {"features": batch}
-
-    with tempfile.TemporaryDirectory() as tmp:
-        named = Path(tmp) / "iknet_named.onnx"
-        onnx.save(onnx_model, str(named))
-        quantize_static(str(named), str(out), Reader(), quant_format=QuantFormat.QDQ,
-                        op_types_to_quantize=["Gemm"], nodes_to_exclude=[first.name], per_channel=True,
-                        weight_type=QuantType.QInt8, activation_type=QuantType.QUInt8,
-                        calibrate_method=CalibrationMethod.MinMax,
-                        extra_options={"OpTypesToExcludeOutputQuantization": ["Gemm"],
-                                       "TensorQuantOverrides": overrides})
-    quantized = onnx.load(str(out))
-    onnx.helper.set_model_props(quantized, {"source_sha256": file_sha256(src), "source_name": src.name,
-                                            "quantization": f"static int8 QDQ, first layer float32, {len(features)} "
-                                                            f"calibration inputs (seed {CALIB_SEED})"})
-    onnx.save(quantized, str(out))
+    quantized = quantize_static_int8(
+        src, out, "features", features, CALIB_BATCH, ["Gemm"], keep_float=lambda node: node.output[0] == first,
+        extra_options={"OpTypesToExcludeOutputQuantization": ["Gemm"], "TensorQuantOverrides": overrides},
+        note=f"static int8 QDQ, first layer float32, {len(features)} calibration inputs (seed {CALIB_SEED})")
     return activation_ranges(quantized, hidden)
 
 
