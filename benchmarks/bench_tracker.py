@@ -113,7 +113,8 @@ def main():
     p.add_argument("--video", default=str(ROOT / "data" / "demo" / "hand_clip.mp4"))
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads per network")
-    p.add_argument("--detnet", help="DetNet: int8 (default, models/detnet_int8.onnx), float32 (models/detnet.onnx) or an ONNX path")
+    p.add_argument("--detnet", help="DetNet: int8 (default, models/detnet_int8.onnx), float32 "
+                                     "(models/detnet.onnx) or an ONNX path")
     p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx)")
     p.add_argument("--iknet", help="IKNet: int8 (default, models/iknet_int8.onnx), float32 or an ONNX path")
     p.add_argument("--max-hands", type=int, default=2, help="HandTracker/HandDetector max_hands (1: exactly one track)")

@@ -231,8 +231,8 @@ class HandDetector:
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
-                 birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1, duplicate_joints=0.0,
-                 unborn_retry=3):
+                 birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
+                 duplicate_joints=0.0, unborn_retry=3):
         self.detnet, self.finder = detnet, finder
         # a second hand finder, tried on a frame where the first one's boxes gave no track
         self.fallback = fallback

@@ -457,7 +457,8 @@ def model_paths(args):
 
 
 def add_model_arguments(p):
-    p.add_argument("--detnet", help="DetNet: int8 (default, models/detnet_int8.onnx), float32 (models/detnet.onnx) or an ONNX path")
+    p.add_argument("--detnet", help="DetNet: int8 (default, models/detnet_int8.onnx), float32 "
+                                     "(models/detnet.onnx) or an ONNX path")
     p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx; 'none': centre square)")
     p.add_argument("--iknet", help="IKNet ONNX (default models/iknet.onnx)")
 

@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .kinematics import FRAME_BONE, FRAME_PARENTS, PARENTS
 from . import onnx_models
+from .kinematics import FRAME_BONE, FRAME_PARENTS, PARENTS
 from .onnx_models import open_session
 from .rotations import matrix_to_quat, quat_left_matrix, quat_normalize, quat_to_matrix
 from .skeleton import NON_TIP_JOINTS, NUM_JOINTS, normalize_joints

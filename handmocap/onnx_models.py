@@ -78,11 +78,12 @@ def quantize_static_int8(src, out, input_name: str, inputs, batch: int, op_types
             rows = next(self.batches, None)
             return None if rows is None else {input_name: rows}
 
+    excluded = [node.name for node in model.graph.node if keep_float(node)]
     with tempfile.TemporaryDirectory() as tmp:
         named = Path(tmp) / "named.onnx"
         onnx.save(model, str(named))
-        quantize_static(str(named), str(out), Reader(), quant_format=QuantFormat.QDQ, op_types_to_quantize=list(op_types),
-                        nodes_to_exclude=[n.name for n in model.graph.node if keep_float(n)], per_channel=True,
+        quantize_static(str(named), str(out), Reader(), quant_format=QuantFormat.QDQ,
+                        op_types_to_quantize=list(op_types), nodes_to_exclude=excluded, per_channel=True,
                         weight_type=QuantType.QInt8, activation_type=QuantType.QUInt8,
                         calibrate_method=CalibrationMethod.MinMax, extra_options=extra_options or {})
     quantized = onnx.load(str(out))
