@@ -1,6 +1,6 @@
 """DetNet throughput in onnxruntime on this CPU: crops/s for batch 1 and 2, 1 and 2 threads.
 
-    python benchmarks/bench_detnet.py [--model models/detnet_int8.onnx] [--seconds 3]   # the default; models/detnet.onnx: float32
+    python benchmarks/bench_detnet.py [--model int8|float32|F.onnx] [--seconds 3]
 
 Prints a table (median latency per call, crops/s from it, and the 10th percentile, which
 is what the model does when the shared machine leaves it alone) and `uptime`, since the
@@ -9,11 +9,10 @@ figures depend on what else runs on the 2 cores.
 import argparse
 import subprocess
 import time
-from pathlib import Path
 
 import numpy as np
 
-DEFAULT = Path(__file__).resolve().parent.parent / "models" / "detnet_int8.onnx"   # what the detector runs
+from handmocap.detector import detnet_path
 
 
 def bench(path, batch, threads, seconds):
@@ -35,9 +34,10 @@ def bench(path, batch, threads, seconds):
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", type=Path, default=DEFAULT)
+    p.add_argument("--model", default=None, help="int8 (default: what the detector runs), float32 or an ONNX path")
     p.add_argument("--seconds", type=float, default=3.0)
     args = p.parse_args()
+    args.model = detnet_path(args.model)
     print(f"{args.model} ({args.model.stat().st_size / 1e6:.2f} MB)")
     print(f"{'batch':>5} {'threads':>7} {'median ms':>10} {'crops/s':>8} {'p10 ms':>8} {'crops/s@p10':>11} {'calls':>6}")
     for batch in (1, 2):

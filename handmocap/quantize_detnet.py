@@ -77,13 +77,18 @@ class OnnxNet:
         return (cat["uv"], cat["xyz"], cat["confidence"]), cat["presence"], cat["handedness"]
 
 
-def heldout_metrics(path, shared=None, val="runs/detnet_data/synth_val"):
-    """train_detnet.validate's held-out metrics of an exported DetNet file."""
+def heldout_sets(shared=None, val="runs/detnet_data/synth_val"):
+    """The training run's held-out synthetic and real sets (train_detnet.validate's inputs)."""
     from .pose_data import SHARED_DATA
-    from .train_detnet import load_real, real_val_set, synth_val_set, validate
+    from .train_detnet import load_real, real_val_set, synth_val_set
     sval = synth_val_set(val) if (Path(val) / "meta.json").exists() else None
-    rval = real_val_set(load_real(SHARED_DATA if shared is None else shared))
-    return validate(OnnxNet(path), sval, rval)
+    return sval, real_val_set(load_real(SHARED_DATA if shared is None else shared))
+
+
+def heldout_metrics(path, sets=None):
+    """train_detnet.validate's held-out metrics of an exported DetNet file; sets: heldout_sets()."""
+    from .train_detnet import validate
+    return validate(OnnxNet(path), *(sets or heldout_sets()))
 
 
 def main(argv=None):
@@ -96,8 +101,9 @@ def main(argv=None):
                    help="print the held-out metrics of these files instead of quantizing")
     args = p.parse_args(argv)
     if args.compare:
+        sets = heldout_sets()
         for path in args.compare:
-            metrics = heldout_metrics(path)
+            metrics = heldout_metrics(path, sets)
             print(json.dumps({"model": str(path), **{k: round(v, 4) for k, v in metrics.items()}}))
         return
     quantize(args.src, args.out, calibration_crops(args.n, args.data))

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from detector_thresholds import clips  # noqa: E402
+from detector_thresholds import clips, labels_near  # noqa: E402
 
 from handmocap.detector import HandDetector  # noqa: E402
 from handmocap.pose_data import SHARED_DATA  # noqa: E402
@@ -68,8 +68,7 @@ def main():
                 det.births = []
                 det.process(np.ascontiguousarray(image))
                 for b in det.births:
-                    c = b.pop("uv").mean(0)
-                    true = any(np.linalg.norm(c - uv.mean(0)) < 0.5 * np.max(uv.max(0) - uv.min(0)) for uv in labels)
+                    true = bool(labels_near(b.pop("uv").mean(0), labels))
                     rows.append({"clip": name, "stills": stills, "true": true, **b})
     if args.out:
         args.out.write_text(json.dumps(rows))

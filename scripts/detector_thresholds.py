@@ -57,6 +57,13 @@ def clips(shared):
         yield f"howiema 001 {seq}", frames
 
 
+def labels_near(centre, labels):
+    """Indices of the labelled hands (each (21,2) px) whose joint centre lies within half
+    their joint-box side of `centre` (2,): the hands an output centred there counts as."""
+    return [k for k, uv in enumerate(labels)
+            if np.linalg.norm(centre - uv.mean(0)) < 0.5 * np.max(uv.max(0) - uv.min(0))]
+
+
 def score_hands(detector, frames, stills=False):
     """(presence, confidence, is_true, 2D error) per output hand (the error: mean joint
     distance / the label's joint-box side; NaN for a false hand), and the labelled hands found.
@@ -70,9 +77,7 @@ def score_hands(detector, frames, stills=False):
         labelled += len(labels)
         hit = set()
         for h in hands:
-            c = h["uv"].mean(0)
-            near = [k for k, uv in enumerate(labels)
-                    if np.linalg.norm(c - uv.mean(0)) < 0.5 * np.max(uv.max(0) - uv.min(0))]
+            near = labels_near(h["uv"].mean(0), labels)
             uv = labels[near[0]] if near else None
             error = np.nan if uv is None else float(np.mean(np.linalg.norm(h["uv"] - uv, axis=1))
                                                     / np.max(uv.max(0) - uv.min(0)))
