@@ -9,7 +9,10 @@ Per frame (`HandDetector.process`):
    informs its handedness, and re-seeds the track's crop when it overlaps the track's
    joints less than `reseed_iou` (a track that slid up the forearm: DetNet's presence
    head alone does not catch it); the other boxes start new tracks (stable integer ids,
-   never reused).
+   never reused). With every slot taken, the finder returns one box more, and a box no
+   track covers replaces the track with the lowest running mean heatmap peak when DetNet's
+   peak on the box's crop is `evict_margin` higher (a desk object or a forearm that holds a
+   slot must not keep a hand out for good).
 2. Every track is cropped the way DetNet was trained (handmocap/synth: square, the hand's
    vertex box x 1.3, i.e. about its 21-joint box x CROP_SCALE, 128 px; `CropTransform`
    records the crop <-> frame mapping). Tracks whose smoothed handedness is left are
@@ -57,6 +60,10 @@ DETNET_FLOAT32 = Path(__file__).resolve().parent.parent / "models" / "detnet.onn
 DETNET_INT8 = DETNET_FLOAT32.with_name("detnet_int8.onnx")     # `python -m handmocap.quantize_detnet` makes it
 DETNET_PATH = DETNET_INT8                                       # what runs by default
 DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32}  # short names for the detnet param
+CENTRE = "centre"           # the fallback that tries the centre square of the frame
+# HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
+# so no birth threshold; a close-up the finder misses is tried on the centre square
+PHOTO_SETTINGS = {"birth_confidence": 0.0, "fallback_path": CENTRE}
 
 
 def detnet_path(path=None) -> Path:
@@ -203,6 +210,8 @@ class Track:
     uv: np.ndarray | None = None
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
     age: int = 0
+    confidence: float = 0.0           # running mean heatmap peak: how much DetNet believes it is a hand
+    birth_confidence: float | None = None   # its own birth threshold (None: the detector's)
 
     @property
     def is_right(self) -> bool:
@@ -232,10 +241,17 @@ class HandDetector:
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
                  birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
-                 duplicate_joints=0.0, unborn_retry=3):
+                 duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3):
         self.detnet, self.finder = detnet, finder
-        # a second hand finder, tried on a frame where the first one's boxes gave no track
+        # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
+        # CENTRE (the centre square of the frame, as the paper's release did: a close-up
+        # photo whose hand fills the frame, which the finder, trained on hands in scenes,
+        # can miss)
         self.fallback = fallback
+        # a track tried on the centre square is born only from this mean heatmap peak on,
+        # even where birth_confidence is lower (photos): the centre of a hand-free photo is
+        # not a hand
+        self.centre_confidence = centre_confidence
         # DetNet passes on a new track's crop re-cut around its own last prediction
         self.refine_passes = refine_passes
         # two overlapping tracks are one hand only if their joints agree this well (0: always)
@@ -250,6 +266,11 @@ class HandDetector:
         # hand is tracked, a second one refused on its first frame would otherwise wait
         # `redetect_every` frames for its next chance
         self.unborn_retry = min(unborn_retry, redetect_every)
+        # with every track slot taken, a found hand that no track covers replaces the track
+        # DetNet believes least (running mean heatmap peak) when its own peak is this much
+        # higher (None: never): otherwise a desk object or a forearm that outlived its hand
+        # keeps the slot and the real hand is never tracked
+        self.evict_margin = evict_margin
         # the finder checks the tracks every `redetect_every` frames: a found hand inside a
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
@@ -264,7 +285,8 @@ class HandDetector:
         self.next_id = 0
         self.frames_since_find = 0
         self.lost_last_frame = False
-        self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0}
+        self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
+                      "evictions": 0}
 
     @classmethod
     def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, **kwargs):
@@ -274,7 +296,8 @@ class HandDetector:
         CPU per frame with OpenCV's default (one per core) here."""
         cv2.setNumThreads(threads)
         finder = HandFinder.load(finder_path, threads=threads) if finder_path != "none" else None
-        fallback = HandFinder.load(fallback_path, threads=threads) if fallback_path else None
+        fallback = HandFinder.load(fallback_path, threads=threads) if fallback_path not in (None, CENTRE) \
+            else fallback_path
         return cls(DetNetRunner.load(detnet_path, threads=threads), finder, fallback=fallback, **kwargs)
 
     def reset(self):
@@ -295,12 +318,15 @@ class HandDetector:
         self.frames_since_find = 0
         h, w = image.shape[:2]
         finder = finder or self.finder
-        if finder is None:
+        centre = finder is None or finder == CENTRE
+        if centre:
             half = min(h, w) / 2 / self.crop_scale      # the joint box whose crop is the centre square
             found = [(np.array([w / 2 - half, h / 2 - half, w / 2 + half, h / 2 + half]), 0.5, 0.5)]
         else:
+            # with every slot taken, one box more than the tracks: a hand they do not hold may evict one
+            full = self.evict_margin is not None and len(self.tracks) >= self.max_hands
             found = [(f.box, f.score, f.right_prob) for f in finder.find(
-                image, self.finder_threshold, max(self.max_hands, self.candidates))]
+                image, self.finder_threshold, max(self.max_hands + full, self.candidates))]
         new, reseeded, fresh = [], [], []
         # each found box first goes to the track whose joints it overlaps best (one box per
         # track): a second hand close beside a tracked one lies inside that track's crop, but
@@ -338,12 +364,38 @@ class HandDetector:
             peak = self._run(image, crops)["confidence"].mean(axis=1)
             fresh = [fresh[i] for i in np.argsort(-peak, kind="stable")]
         for box, right_prob in fresh[:max(free, 0)]:
-            track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale))
-            track.add_handedness(right_prob)
-            self.next_id += 1
-            new.append(track)
+            new.append(self._new_track(box, right_prob))
+            if centre:
+                new[-1].birth_confidence = max(self.birth_confidence, self.centre_confidence)
         self.tracks.extend(new)
+        if free <= 0 and fresh and self.evict_margin is not None:
+            new += self._evict(image, fresh, reseeded)
         return new + reseeded
+
+    def _new_track(self, box, right_prob):
+        track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale))
+        track.add_handedness(right_prob)
+        self.next_id += 1
+        return track
+
+    def _evict(self, image, fresh, keep):
+        """New tracks for found boxes `fresh` ((box, right_prob) list) that DetNet believes
+        more than the tracks they replace (mean heatmap peak on the box's crop above the
+        weakest track's running peak by `evict_margin`); tracks in `keep` stay."""
+        new = [self._new_track(box, right_prob) for box, right_prob in fresh]
+        peak = self._run(image, [t.crop for t in new])["confidence"].mean(axis=1)
+        born = []
+        for i in np.argsort(-peak, kind="stable"):
+            held = [t for t in self.tracks if t not in keep and t not in born]
+            if not held:
+                break
+            weakest = min(held, key=lambda t: t.confidence)
+            if peak[i] < weakest.confidence + self.evict_margin:
+                break
+            self.tracks[self.tracks.index(weakest)] = new[i]
+            born.append(new[i])
+            self.stats["evictions"] += 1
+        return born
 
     @staticmethod
     def _covers(crop, box):
@@ -393,7 +445,8 @@ class HandDetector:
         hands, keep = [], []
         for i, t in enumerate(self.tracks):
             presence, confidence = float(out["presence"][i]), float(np.mean(out["confidence"][i]))
-            if t.age == 0 and confidence < self.birth_confidence:   # not a hand after all: no loss to report
+            birth = self.birth_confidence if t.birth_confidence is None else t.birth_confidence
+            if t.age == 0 and confidence < birth:   # not a hand after all: no loss to report
                 self.stats["unborn"] += 1
                 self.frames_since_find = max(self.frames_since_find, self.redetect_every - self.unborn_retry)
                 continue
@@ -418,6 +471,8 @@ class HandDetector:
             if t.uv is not None:
                 t.velocity = np.median(uv - t.uv, axis=0)
             t.uv, t.age = uv, t.age + 1
+            # a few frames of memory: one blurred frame must not let a desk object evict the hand
+            t.confidence = confidence if t.age == 1 else t.confidence + 0.3 * (confidence - t.confidence)
             hands.append({"track_id": t.track_id, "handedness": "right" if t.is_right else "left",
                           "score": presence, "bbox": t.crop.box.astype(np.float32),
                           "uv": uv.astype(np.float32), "confidence": np.asarray(out["confidence"][i], np.float32),

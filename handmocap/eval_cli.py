@@ -93,6 +93,7 @@ def predict(source, K=None, out=None, sequence=None, tracker=None, models=None, 
     """Run HandTracker on a folder of images or a video; returns the PRED dict (and writes
     it to `out` when given). K: None, or (N,3,3) per frame (see parse_K); models: dict of
     HandTracker path keywords (detnet, finder, iknet)."""
+    from .detector import PHOTO_SETTINGS
     from .tracker import HandTracker
     frames = open_frames(source)
     is_video = not Path(source).is_dir()
@@ -100,8 +101,7 @@ def predict(source, K=None, out=None, sequence=None, tracker=None, models=None, 
         frames.skip_unreadable = True   # reported and left "not found"; the other photos go on
     sequence = is_video if sequence is None else sequence
     n = frames.frame_count
-    # a photo has one chance: no later frame confirms a doubtful hand, so no birth threshold
-    stills = {} if sequence else {"birth_confidence": 0.0}
+    stills = {} if sequence else PHOTO_SETTINGS
     tracker = tracker or HandTracker(smooth=sequence, max_hands=MAX_HANDS, **stills, **(models or {}))
     tracker.poses.p["smooth"] = sequence
     pred = empty_prediction(n)

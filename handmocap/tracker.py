@@ -35,9 +35,11 @@ class HandTracker:
     detnet/finder. smooth: One Euro smoothing of rotations and
     translation per track (off for single images). vertices: add each hand's mesh
     vertices (V,3) m camera frame. Other keywords go to HandDetector (max_hands,
-    presence_threshold, min_confidence, birth_confidence, redetect_every, crop_scale). For
-    unrelated photos: reset() before each and birth_confidence=0 (the default 0.3 is for
-    video, where a doubtful hand gets another chance next frame), as `handeval predict` does."""
+    presence_threshold, min_confidence, birth_confidence, redetect_every, crop_scale,
+    fallback_path, ...). For unrelated photos: reset() before each, and
+    `HandTracker(**detector.PHOTO_SETTINGS)`: birth_confidence 0 (the default 0.3 is for video,
+    where a doubtful hand gets another chance next frame) and the centre square tried where
+    the finder found nothing (a close-up), as `handeval predict` does."""
 
     def __init__(self, detnet=None, finder=None, iknet=None, model=None, threads=1, smooth=True,
                  vertices=False, fps=30.0, clamp_to_limits=True, detector=None, **detector_kwargs):

@@ -44,13 +44,13 @@ import cv2
 import numpy as np
 
 from . import real_data
+from .detector import DETNET_FLOAT32
 from .pose_data import SHARED_DATA
 from .skeleton import ROOT
 from .training import warmup_cosine_lr
 
 RUN_DIR = Path("runs/detnet")
 DATA_DIR = Path("runs/detnet_data")
-DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "models" / "detnet.onnx"
 CTX = 176                    # real hand context crops: px, covering CTX_SCALE x the keypoint box
 CTX_SCALE = 2.4
 REAL_CACHE = "real_v3.npz"          # v2: + arm-only negatives; v3: frame edges repeated as the detector repeats them
@@ -75,7 +75,7 @@ def add_arguments(p):
     p.add_argument("--val-every", type=int, default=250)
     p.add_argument("--ckpt-every", type=int, default=50)
     p.add_argument("--run-dir", type=Path, default=None, help="default runs/detnet/<backbone>")
-    p.add_argument("--export", type=Path, default=DEFAULT_MODEL, help="ONNX output (default %(default)s)")
+    p.add_argument("--export", type=Path, default=DETNET_FLOAT32, help="ONNX output (default %(default)s)")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
     p.add_argument("--export-only", action="store_true", help="export RUN_DIR/last.pt and stop")
     p.add_argument("--init-from", type=Path, default=None,

@@ -9,7 +9,7 @@ import pytest
 
 from conftest import ROOT, graph_env
 from handmocap.hand_finder import FoundHand
-from handmocap.detector import CropTransform, HandDetector, Track, crop_for_joints
+from handmocap.detector import CENTRE, CropTransform, HandDetector, Track, crop_for_joints
 from handmocap.rotations import mirror_points
 from handmocap.skeleton import normalize_joints
 
@@ -399,6 +399,28 @@ def test_with_candidates_detnet_picks_the_new_track_among_the_finders_boxes():
     assert np.abs(picked[0]["uv"] - hand).max() < 3 * DOT_TOL
 
 
+def test_a_found_hand_evicts_the_track_detnet_believes_less_when_every_slot_is_taken():
+    """max_hands 1: a track born on a partial hand (3 joints missing: mean heatmap peak
+    0.86) holds the only slot when the whole hand (peak 1.0) appears. At the finder's next
+    check the hand takes the slot when its peak beats the track's by evict_margin, never
+    when eviction is off or the margin is larger than the difference."""
+    decoy, hand = canonical_hand((150, 330), 160), canonical_hand((500, 330), 120)
+    frames = [draw(np.zeros((480, 640, 3), np.uint8), decoy[:18]) for _ in range(3)]
+    frames += [draw(draw(np.zeros((480, 640, 3), np.uint8), decoy[:18]), hand) for _ in range(6)]
+
+    def last_hands(**kwargs):
+        det = HandDetector(FakeDetNet(), FakeFinder(), max_hands=1, birth_confidence=0.0, redetect_every=5, **kwargs)
+        hands = [det.process(f) for f in frames][-1]
+        assert len(hands) == 1
+        return det, hands[0]
+
+    det, evicted = last_hands(evict_margin=0.1)
+    assert det.stats["evictions"] == 1 and evicted["track_id"] == 1
+    assert np.abs(evicted["uv"] - hand).max() < 3 * DOT_TOL
+    for kept in (last_hands(evict_margin=None)[1], last_hands(evict_margin=0.2)[1]):
+        assert kept["track_id"] == 0 and np.linalg.norm(kept["uv"].mean(0) - decoy[:18].mean(0)) < 40
+
+
 def test_a_fallback_finder_is_tried_only_where_the_first_gave_no_track():
     frames, truth = two_hand_frames(3)
 
@@ -411,6 +433,26 @@ def test_a_fallback_finder_is_tried_only_where_the_first_gave_no_track():
     assert [len(detector.process(f)) for f in frames] == [2, 2, 2]
     assert blind.calls == fallback.calls == detector.stats["fallback_runs"] == 1   # then tracked
     assert len(HandDetector(FakeDetNet(), Blind()).process(frames[0])) == 0
+
+
+def test_the_centre_fallback_finds_a_close_up_hand_the_finder_misses_if_detnet_believes_it():
+    """A photo whose hand fills the frame, which the finder misses: the centre square is
+    tried; a track from it is born only from centre_confidence on, even with
+    birth_confidence 0 (a photo's setting)."""
+    frame = draw(np.zeros((256, 256, 3), np.uint8), canonical_hand((152, 188), 120))
+
+    class Blind(FakeFinder):
+        def find(self, image_bgr, threshold=None, max_hands=2):
+            return []
+
+    def hands(detnet, **kwargs):
+        return HandDetector(detnet, Blind(), birth_confidence=0.0, **kwargs).process(frame)
+
+    assert len(hands(FakeDetNet())) == 0
+    found = hands(FakeDetNet(), fallback=CENTRE)
+    assert len(found) == 1 and np.abs(found[0]["uv"] - canonical_hand((152, 188), 120)).max() < 3 * DOT_TOL
+    assert len(hands(DimDetNet([0.25]), fallback=CENTRE)) == 0                      # below centre_confidence 0.3
+    assert len(hands(DimDetNet([0.25]), fallback=CENTRE, centre_confidence=0.2)) == 1
 
 
 def test_refine_passes_recut_a_new_tracks_crop_that_many_times():
