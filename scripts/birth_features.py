@@ -62,7 +62,7 @@ def main():
     for name, frames in clips(args.shared):
         for stills in (False, True):
             det.reset()
-            for image, labels in (frames[::4] if stills else frames):
+            for image, labels, _ in (frames[::4] if stills else frames):
                 if stills:
                     det.reset()
                 det.births = []

@@ -20,7 +20,8 @@ clips in order (tracking), and on every 4th frame of them as a still image (the 
 reset before each, as `handeval predict` treats a folder of photos: one birth per hand).
 --compare K=V[,K=V] ...: the same table for any HandDetector settings against the defaults
 (HandDetector.load's keywords: candidates=4,finder_threshold=0.15; fallback_path=F.onnx;
-refine_passes=2; duplicate_joints=0.3), with the found hands' median 2D error / hand size.
+refine_passes=2; duplicate_joints=0.3), with the found hands' median 2D error / hand size
+and the share of output hands on a labelled hand whose handedness is the label's.
 """
 import argparse
 from pathlib import Path
@@ -35,10 +36,16 @@ from handmocap.train_finder import VAL_VIDEOS
 HELD_OUT_VIDEO = f"video/{VAL_VIDEOS[0]}.mp4"
 
 
+def _sides(lab, i):
+    """Handedness ("right" / "left", as the hand appears) of frame i's found pseudo-labels."""
+    return ["right" if h == 0 else "left" for h in lab["handedness"][i][lab["found"][i]]]
+
+
 def clips(shared):
-    """(name, frames) of held-out clips; frames is a list of (BGR image, labelled uv list)."""
+    """(name, frames) of held-out clips; frames is a list of (BGR image, labelled uv list,
+    their handedness list)."""
     lab = real_data.load_pseudo_labels(shared / HELD_OUT_VIDEO)
-    yield "held-out video", [(img[..., ::-1], list(lab["uv"][i][lab["found"][i]]))
+    yield "held-out video", [(img[..., ::-1], list(lab["uv"][i][lab["found"][i]]), _sides(lab, i))
                              for i, img in real_data.read_video(shared / HELD_OUT_VIDEO)]
     for rel in real_data.TRAIN_VIDEOS:
         if rel == HELD_OUT_VIDEO:
@@ -46,13 +53,13 @@ def clips(shared):
         lab = real_data.load_pseudo_labels(shared / rel)
         _, tail = real_data.video_split(len(lab["found"]))
         keep = set(np.flatnonzero(tail))
-        yield f"tail {rel.split('/')[-1]}", [(img[..., ::-1], list(lab["uv"][i][lab["found"][i]]))
+        yield f"tail {rel.split('/')[-1]}", [(img[..., ::-1], list(lab["uv"][i][lab["found"][i]]), _sides(lab, i))
                                               for i, img in real_data.read_video(shared / rel, keep)]
     seqs = {}
     for s in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, shared):
         seq = s["name"].split("/")[1]
         if seq in real_data.HOWIEMA_HELD_OUT:
-            seqs.setdefault(seq, []).append((s["image"][..., ::-1].copy(), [s["uv"]]))
+            seqs.setdefault(seq, []).append((s["image"][..., ::-1].copy(), [s["uv"]], [s["handedness"]]))
     for seq, frames in seqs.items():
         yield f"howiema 001 {seq}", frames
 
@@ -65,12 +72,13 @@ def labels_near(centre, labels):
 
 
 def score_hands(detector, frames, stills=False):
-    """(presence, confidence, is_true, 2D error) per output hand (the error: mean joint
-    distance / the label's joint-box side; NaN for a false hand), and the labelled hands found.
+    """(presence, confidence, is_true, 2D error, handedness right) per output hand (the
+    error: mean joint distance / the label's joint-box side; right: 1 or 0 against the
+    label's handedness; both NaN for a false hand), and the labelled hands found.
     stills: every frame on its own (the detector reset before each)."""
     detector.reset()
     rows, found, labelled = [], 0, 0
-    for image, labels in frames:
+    for image, labels, sides in frames:
         if stills:
             detector.reset()
         hands = detector.process(np.ascontiguousarray(image))
@@ -81,7 +89,8 @@ def score_hands(detector, frames, stills=False):
             uv = labels[near[0]] if near else None
             error = np.nan if uv is None else float(np.mean(np.linalg.norm(h["uv"] - uv, axis=1))
                                                     / np.max(uv.max(0) - uv.min(0)))
-            rows.append((h["score"], float(np.mean(h["confidence"])), bool(near), error))
+            right = np.nan if uv is None else float(h["handedness"] == sides[near[0]])
+            rows.append((h["score"], float(np.mean(h["confidence"])), bool(near), error, right))
             hit.update(near)
         found += len(hit)
     return rows, found, labelled
@@ -109,8 +118,8 @@ def main():
     if args.compare:
         settings = [("defaults", {})] + [(c, parse_setting(c)) for c in args.compare]
         print("| setting | clips: labelled hands found | false hands | stills: labelled hands found "
-              "| false hands | 2D error / hand size, median (clips; stills) |")
-        print("|---|---|---|---|---|---|")
+              "| false hands | 2D error / hand size, median (clips; stills) | handedness right (clips; stills) |")
+        print("|---|---|---|---|---|---|---|")
     else:
         settings = [(f"{b:.2f} | {k:.2f}", dict(birth_confidence=b, min_confidence=k)) for b, k in SETTINGS]
         print("| birth_confidence | min_confidence | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
@@ -118,7 +127,7 @@ def main():
     quantiles = []
     for label, setting in settings:
         detector = HandDetector.load(args.detnet, args.finder, **setting)
-        cells, errors = [], []
+        cells, errors, sides = [], [], []
         for stills in (False, True):
             rows, found, labelled = [], 0, 0
             for name, frames in data:
@@ -126,8 +135,10 @@ def main():
                 rows += r
                 found, labelled = found + f, labelled + n
             cells += [f"{found}/{labelled} ({found / labelled:.1%})", str(sum(not row[2] for row in rows))]
-            e = [err for *_, err in rows if not np.isnan(err)]
+            e = [row[3] for row in rows if not np.isnan(row[3])]
             errors.append(f"{np.median(e):.4f} (n {len(e)})")
+            right = [row[4] for row in rows if not np.isnan(row[4])]
+            sides.append(f"{np.mean(right):.1%}")
             if not args.compare and setting["birth_confidence"] == setting["min_confidence"] == 0.0 and not stills:
                 r = np.array(rows, float)
                 true = r[:, 2] > 0
@@ -135,7 +146,7 @@ def main():
                              f"confidence q01/10/50/90 {np.quantile(r[m, 1], [.01, .1, .5, .9]).round(3)}"
                              for kind, m in (("true", true), ("false", ~true)) if m.any()]
         if args.compare:
-            cells.append("; ".join(errors))
+            cells += ["; ".join(errors), "; ".join(sides)]
         print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
     if quantiles:
         print("\nwith every track kept: " + "; ".join(quantiles))
