@@ -382,8 +382,8 @@ class HandDetector:
         """New tracks for found boxes `fresh` ((box, right_prob) list) that DetNet believes
         more than the tracks they replace (mean heatmap peak on the box's crop above the
         weakest track's running peak by `evict_margin`); tracks in `keep` stay."""
-        new = [self._new_track(box, right_prob) for box, right_prob in fresh]
-        peak = self._run(image, [t.crop for t in new])["confidence"].mean(axis=1)
+        crops = [crop_for_box(box, right_prob < 0.5, self.crop_scale) for box, right_prob in fresh]
+        peak = self._run(image, crops)["confidence"].mean(axis=1)
         born = []
         for i in np.argsort(-peak, kind="stable"):
             held = [t for t in self.tracks if t not in keep and t not in born]
@@ -392,8 +392,8 @@ class HandDetector:
             weakest = min(held, key=lambda t: t.confidence)
             if peak[i] < weakest.confidence + self.evict_margin:
                 break
-            self.tracks[self.tracks.index(weakest)] = new[i]
-            born.append(new[i])
+            born.append(self._new_track(*fresh[i]))
+            self.tracks[self.tracks.index(weakest)] = born[-1]
             self.stats["evictions"] += 1
         return born
 
