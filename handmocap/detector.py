@@ -30,7 +30,9 @@ Per frame (`HandDetector.process`):
    moved on by half the last displacement, side changing by at most 1.33x per frame), as
    MediaPipe and the paper's videos do.
 5. Handedness per track: a running mean in logit space of DetNet's handedness head
-   (mapped back through the flip) and, at detection, the finder's.
+   (mapped back through the flip) and, at detection, the finder's. Two tracks that DetNet
+   believes are hands (running mean heatmap peak >= `opposite_hands`) and that read as the
+   same hand are one person's left and right: the one with the weaker evidence turns.
 6. Two tracks on one hand (joint-box IoU >= 0.5, or the smaller box 70% inside the other):
    the lower-scoring one is dropped.
 
@@ -42,7 +44,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -241,7 +243,8 @@ class HandDetector:
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
                  birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
-                 duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3):
+                 duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
+                 opposite_hands=0.4):
         self.detnet, self.finder = detnet, finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
@@ -271,6 +274,10 @@ class HandDetector:
         # higher (None: never): otherwise a desk object or a forearm that outlived its hand
         # keeps the slot and the real hand is never tracked
         self.evict_margin = evict_margin
+        # two tracks both at least this sure to be hands (running mean heatmap peak) are one
+        # person's left and right hand (None: handedness per track only); false tracks
+        # (desk objects, a forearm) stay below it, so they cannot turn a real hand
+        self.opposite_hands = opposite_hands
         # the finder checks the tracks every `redetect_every` frames: a found hand inside a
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
@@ -286,7 +293,7 @@ class HandDetector:
         self.frames_since_find = 0
         self.lost_last_frame = False
         self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
-                      "evictions": 0}
+                      "evictions": 0, "handedness_turns": 0}
 
     @classmethod
     def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, **kwargs):
@@ -481,7 +488,22 @@ class HandDetector:
             keep.append(t)
         self.tracks = keep
         hands = self._drop_duplicates(hands)
+        if self.opposite_hands is not None:
+            self._one_left_one_right()
         return sorted(hands, key=lambda h: h["track_id"])
+
+    def _one_left_one_right(self):
+        """Two tracks DetNet believes are hands (running mean heatmap peak >= opposite_hands)
+        that both read as the same hand: one person's two hands are a left and a right, so the
+        one with the weaker handedness evidence turns, from the next frame's crop on (this
+        frame's 3D was read as the hand it was cropped as)."""
+        sure = [t for t in self.tracks if t.confidence >= self.opposite_hands]
+        if len(sure) != 2 or sure[0].is_right != sure[1].is_right:
+            return
+        weaker = min(sure, key=lambda t: abs(t.right_logit))
+        weaker.right_logit = -weaker.right_logit if weaker.right_logit else -1e-3
+        weaker.crop = replace(weaker.crop, mirrored=not weaker.is_right)
+        self.stats["handedness_turns"] += 1
 
     def _next_crop(self, track, uv, max_change=1.33):
         """Next frame's crop from this frame's joints: moved on by half the last

@@ -15,7 +15,8 @@ min_confidence (a track ends below this mean heatmap peak; 0 = off), birth_confi
 hand becomes a track only from this mean heatmap peak on; see models/README.md),
 unborn_retry (frames until the finder looks again after a hand was refused), evict_margin
 (with every track slot taken, a found hand replaces the track with the lowest running heatmap
-peak when its own peak is this much higher; null = never),
+peak when its own peak is this much higher; null = never), opposite_hands (two tracks at
+least this sure to be hands that read as the same hand: the less sure one turns; null = off),
 redetect_every (frames between finder runs, which also check the tracks), reseed_iou (a track
 whose joints overlap the hand the finder sees in its crop less than this restarts from the
 finder's box; 0 = never), crop_scale (crop side / joint-box side), every_frame.
@@ -33,7 +34,7 @@ from handmocap.node import Message, Node, run, spin
 
 # HandDetector's settings, with its own defaults (one place for them: the class)
 TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "evict_margin",
-           "redetect_every", "reseed_iou", "crop_scale")
+           "opposite_hands", "redetect_every", "reseed_iou", "crop_scale")
 _DEFAULTS = inspect.signature(HandDetector).parameters
 PARAMS = {"detnet": None, "finder": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
           "every_frame": False}

@@ -349,6 +349,38 @@ class ScriptedFinder:
         return self.found[:max_hands]
 
 
+def test_two_sure_hands_that_both_read_right_become_a_left_and_a_right():
+    """DetNet's handedness head unsure (0.55 for every crop) and the finder only weakly
+    wrong about the left hand (0.6 right): both tracks read right. The one with the weaker
+    evidence (the left hand) turns from the next frame on, unless opposite_hands is off or
+    above DetNet's belief in the hands (their heatmap peaks are 1.0 here)."""
+    frames, truth = two_hand_frames(4)
+
+    class UnsureDetNet(FakeDetNet):
+        def __call__(self, crops_rgb):
+            out = super().__call__(crops_rgb)
+            out["handedness"][:] = 0.55
+            return out
+
+    class WeakFinder(FakeFinder):
+        def find(self, image_bgr, threshold=None, max_hands=2):
+            return [FoundHand(f.box, f.score, 1.0 if f.right_prob > 0.5 else 0.6)
+                    for f in super().find(image_bgr, threshold, max_hands)]
+
+    def sides(**kwargs):
+        det = HandDetector(UnsureDetNet(), WeakFinder(), **kwargs)
+        out = [{h["handedness"]: h for h in det.process(f)} for f in frames]
+        return det, out
+
+    det, out = sides()
+    assert set(out[0]) == {"right"} and set(out[-1]) == {"left", "right"}
+    assert det.stats["handedness_turns"] == 1
+    np.testing.assert_allclose(out[-1]["left"]["uv"], truth[-1][1], atol=DOT_TOL)   # the true left hand
+    for kwargs in ({"opposite_hands": None}, {"opposite_hands": 1.1}):
+        det, out = sides(**kwargs)
+        assert set(out[-1]) == {"right"} and len(det.tracks) == 2 and det.stats["handedness_turns"] == 0
+
+
 def test_a_second_hand_beside_a_tracked_one_is_a_new_track_not_the_tracks_own():
     """Clapping: hand B's centre lies inside tracked hand A's crop (1.5x its joint box). The
     finder's box on A is A's; the box on B starts a new track, and A is not re-seeded."""
