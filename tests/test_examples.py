@@ -1,5 +1,6 @@
-"""The teleop examples: examples/subscribe_pose.py against a real running graph, and the
-dex-retargeting input conversion on known poses."""
+"""The examples: examples/subscribe_pose.py against a real running graph, the dex-retargeting
+input conversion on known poses, and examples/in_process.py (HandTracker on a video and a
+photo); the README shows the first and the last as they are."""
 import importlib.util
 import json
 import re
@@ -92,6 +93,25 @@ def test_readme_shows_the_subscriber_example_as_it_is():
     section = readme[readme.index("## Using /hand/pose (teleop)"):]
     block = re.search(r"```python\n(.*?)```", section, re.S)[1]
     assert block == (EXAMPLES / "subscribe_pose.py").read_text()
+
+
+def test_readme_shows_the_in_process_example_as_it_is_and_it_runs(tmp_path):
+    import cv2
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("### In-process, without a graph"):]
+    block = re.search(r"```python\n(.*?)```", section, re.S)[1]
+    assert block == (EXAMPLES / "in_process.py").read_text()
+    clip = ROOT / "data" / "demo" / "hand_clip.mp4"
+    cap = cv2.VideoCapture(str(clip))
+    cap.set(cv2.CAP_PROP_POS_FRAMES, 45)
+    photo = tmp_path / "frame45.jpg"                # one of the clip's frames, as a photo
+    cv2.imwrite(str(photo), cap.read()[1])
+    out = subprocess.run([sys.executable, str(EXAMPLES / "in_process.py"), str(clip), str(photo)],
+                         capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert sum(line.startswith("video 0 right") for line in lines) >= 80      # the 90-frame clip's right hand
+    assert [line.split()[2] for line in lines if line.startswith(f"photo {photo}")] == ["right"]
 
 
 # -- dex-retargeting input ---------------------------------------------------------------------

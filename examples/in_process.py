@@ -1,0 +1,25 @@
+"""HandTracker in one process, no graph: a video's hands, then photos' hands.
+
+    python examples/in_process.py [VIDEO] [PHOTO ...]
+"""
+import sys
+
+import cv2
+
+from handmocap import HandTracker
+from handmocap.detector import PHOTO_SETTINGS
+
+video_path = sys.argv[1] if len(sys.argv) > 1 else "data/demo/hand_clip.mp4"
+video = HandTracker()                        # a video or camera stream: tracks and smooths
+cap = cv2.VideoCapture(video_path)
+ok, frame = cap.read()
+while ok:
+    for hand in video.process(frame, K=None):    # K (3,3) px; None: a 60° horizontal field of view
+        print("video", hand["track_id"], hand["handedness"], "root_m", hand["root"].round(3))
+    ok, frame = cap.read()
+
+photos = HandTracker(smooth=False, **PHOTO_SETTINGS)  # unrelated photos: one chance each,
+for path in sys.argv[2:]:                             # close-ups tried on the centre square
+    photos.reset()
+    for hand in photos.process(cv2.imread(path)):
+        print("photo", path, hand["handedness"], "uv_px", hand["uv"][0].round(1))
