@@ -237,7 +237,8 @@ class HandDetector:
     if DetNet's mean heatmap peak on its refined crop reaches this (the two thresholds are
     a hysteresis, chosen on training-side held-out clips by scripts/detector_thresholds.py;
     0.3 is for video, where a hand refused on one frame is proposed again `unborn_retry`
-    frames later: for unrelated photos, one chance each, use 0).
+    frames later: for unrelated photos, one chance each, use 0, or PHOTO_SETTINGS with
+    HandDetector.load). The other settings are explained where __init__ stores them.
     """
 
     def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
