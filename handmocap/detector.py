@@ -368,9 +368,7 @@ class HandDetector:
             fresh.append((box, right_prob))
         free = self.max_hands - len(self.tracks)
         if self.candidates and len(fresh) > free > 0:   # DetNet says which of them look most like a hand
-            crops = [crop_for_box(box, right_prob < 0.5, self.crop_scale) for box, right_prob in fresh]
-            peak = self._run(image, crops)["confidence"].mean(axis=1)
-            fresh = [fresh[i] for i in np.argsort(-peak, kind="stable")]
+            fresh = [fresh[i] for i in np.argsort(-self._found_peaks(image, fresh), kind="stable")]
         for box, right_prob in fresh[:max(free, 0)]:
             new.append(self._new_track(box, right_prob))
             if centre:
@@ -379,6 +377,11 @@ class HandDetector:
         if free <= 0 and fresh and self.evict_margin is not None:
             new += self._evict(image, fresh, reseeded)
         return new + reseeded
+
+    def _found_peaks(self, image, found):
+        """(M,) DetNet's mean heatmap peak on the crop of each found (box, right_prob)."""
+        crops = [crop_for_box(box, right_prob < 0.5, self.crop_scale) for box, right_prob in found]
+        return self._run(image, crops)["confidence"].mean(axis=1)
 
     def _new_track(self, box, right_prob):
         track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale))
@@ -390,8 +393,7 @@ class HandDetector:
         """New tracks for found boxes `fresh` ((box, right_prob) list) that DetNet believes
         more than the tracks they replace (mean heatmap peak on the box's crop above the
         weakest track's running peak by `evict_margin`); tracks in `keep` stay."""
-        crops = [crop_for_box(box, right_prob < 0.5, self.crop_scale) for box, right_prob in fresh]
-        peak = self._run(image, crops)["confidence"].mean(axis=1)
+        peak = self._found_peaks(image, fresh)
         born = []
         for i in np.argsort(-peak, kind="stable"):
             held = [t for t in self.tracks if t not in keep and t not in born]
