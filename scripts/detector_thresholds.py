@@ -22,6 +22,8 @@ reset before each, as `handeval predict` treats a folder of photos: one birth pe
 (HandDetector.load's keywords: candidates=4,finder_threshold=0.15; fallback_path=F.onnx;
 refine_passes=2; duplicate_joints=0.3), with the found hands' median 2D error / hand size
 and the share of output hands on a labelled hand whose handedness is the label's.
+--per-clip: then the same per clip (tracked), with DetNet crops per frame, evictions and
+handedness turns (HandDetector.stats).
 """
 import argparse
 from pathlib import Path
@@ -113,6 +115,9 @@ def main():
     ap.add_argument("--compare", nargs="+", metavar="KEY=VALUE[,KEY=VALUE]",
                     help="instead of the threshold table: these HandDetector settings (e.g. duplicate_joints=0.3, "
                          "fallback_path=F.onnx) against the defaults, with the found hands' 2D error")
+    ap.add_argument("--per-clip", action="store_true",
+                    help="then, per setting, each clip (tracked in order): hands found, false hands, handedness "
+                         "right, DetNet crops per frame, evictions and handedness turns")
     args = ap.parse_args()
     data = list(clips(args.shared))
     if args.compare:
@@ -124,16 +129,31 @@ def main():
         settings = [(f"{b:.2f} | {k:.2f}", dict(birth_confidence=b, min_confidence=k)) for b, k in SETTINGS]
         print("| birth_confidence | min_confidence | clips: labelled hands found | false hands | stills: labelled hands found | false hands |")
         print("|---|---|---|---|---|---|")
-    quantiles = []
+    quantiles, clip_rows = [], []
     for label, setting in settings:
         detector = HandDetector.load(args.detnet, args.finder, **setting)
         cells, errors, sides = [], [], []
         for stills in (False, True):
             rows, found, labelled = [], 0, 0
+            start = dict(detector.stats)
             for name, frames in data:
+                before = dict(detector.stats)
                 r, f, n = score_hands(detector, frames[::4] if stills else frames, stills)
                 rows += r
                 found, labelled = found + f, labelled + n
+                if not stills:
+                    spent = {k: detector.stats[k] - before[k] for k in ("crops", "evictions", "handedness_turns")}
+                    right = [row[4] for row in r if not np.isnan(row[4])]
+                    clip_rows.append(f"| {label} | {name} | {f}/{n} | {sum(not row[2] for row in r)} | "
+                                     f"{f'{np.mean(right):.1%}' if right else '–'} | "
+                                     f"{spent['crops'] / len(frames):.3f} | {spent['evictions']} | "
+                                     f"{spent['handedness_turns']} |")
+            if not stills:
+                spent = {k: detector.stats[k] - start[k] for k in ("crops", "evictions", "handedness_turns")}
+                clip_rows.append(f"| {label} | all clips | {found}/{labelled} | {sum(not row[2] for row in rows)} | "
+                                 f"{np.nanmean([row[4] for row in rows]):.1%} | "
+                                 f"{spent['crops'] / sum(len(frames) for _, frames in data):.3f} | "
+                                 f"{spent['evictions']} | {spent['handedness_turns']} |")
             cells += [f"{found}/{labelled} ({found / labelled:.1%})", str(sum(not row[2] for row in rows))]
             e = [row[3] for row in rows if not np.isnan(row[3])]
             errors.append(f"{np.median(e):.4f} (n {len(e)})")
@@ -150,6 +170,10 @@ def main():
         print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
     if quantiles:
         print("\nwith every track kept: " + "; ".join(quantiles))
+    if args.per_clip:
+        print("\n| setting | clip (tracked) | labelled hands found | false hands | handedness right "
+              "| DetNet crops / frame | evictions | handedness turns |\n|---|---|---|---|---|---|---|---|")
+        print("\n".join(clip_rows))
 
 if __name__ == "__main__":
     main()
