@@ -32,9 +32,11 @@ dex = load_example("dex_retargeting_input")
 
 
 def lines_of(path, n, proc, deadline):
-    """The first n lines a subprocess wrote to `path`, waiting for them until `deadline`."""
+    """The first n whole lines a subprocess wrote to `path`, waiting for them until `deadline`.
+    A line still being written (no newline yet) is not counted: print() may reach the file in
+    more than one write, and the test reads between them."""
     while True:
-        lines = path.read_text().splitlines() if path.exists() else []
+        lines = path.read_text().split("\n")[:-1] if path.exists() else []
         if len(lines) >= n:
             return lines
         assert proc.poll() is None, path.read_text()
