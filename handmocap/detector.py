@@ -75,49 +75,72 @@ def detnet_path(path=None) -> Path:
 
 @dataclass(frozen=True)
 class CropTransform:
-    """A square crop of the frame resized to `size` px, optionally flipped left-right.
+    """A square crop of the frame, turned by `angle`, resized to `size` px, optionally
+    flipped left-right.
 
-    The crop covers frame pixels x0 .. x0+side-1 (and y0 ..), integers; pixel centres are
-    at integer coordinates in both images (cv2.resize's convention):
-        u_crop = (u - x0 + 0.5) * size / side - 0.5, then u_crop -> size - 1 - u_crop if mirrored.
+    The square has `side` frame px and its centre at c = (x0, y0) + (side - 1) / 2 (integers
+    x0, y0: at angle 0 it covers frame pixels x0 .. x0+side-1). `angle` (radians) is the
+    direction, clockwise from the frame's up, that becomes up in the crop: a hand leaning by
+    `angle` appears upright. Pixel centres are at integer coordinates in both images
+    (cv2.resize's convention):
+        u_crop = (size - 1) / 2 + (size / side) R (u - c),  R = [[cos a, sin a], [-sin a, cos a]],
+    then u_crop -> size - 1 - u_crop if mirrored. At angle 0 that is
+        u_crop = (u - x0 + 0.5) * size / side - 0.5.
     """
     x0: int
     y0: int
     side: int
     size: int = CROP
     mirrored: bool = False
+    angle: float = 0.0
 
     @classmethod
-    def around(cls, centre, side, size=CROP, mirrored=False):
+    def around(cls, centre, side, size=CROP, mirrored=False, angle=0.0):
         """The crop of about `side` px (at least MIN_CROP_SIDE) centred on `centre` (2,) px."""
         side = int(round(max(float(side), MIN_CROP_SIDE)))
         x0 = int(math.floor(centre[0] - (side - 1) / 2 + 0.5))
         y0 = int(math.floor(centre[1] - (side - 1) / 2 + 0.5))
-        return cls(x0, y0, side, size, bool(mirrored))
+        return cls(x0, y0, side, size, bool(mirrored), float(angle))
+
+    @property
+    def centre(self):
+        """(2,) frame px of the crop's centre."""
+        return np.array([self.x0 + (self.side - 1) / 2, self.y0 + (self.side - 1) / 2])
+
+    @property
+    def rotation(self):
+        """(2,2) R: crop axes = R @ frame axes (the identity at angle 0)."""
+        c, s = math.cos(self.angle), math.sin(self.angle)
+        return np.array([[c, s], [-s, c]])
 
     @property
     def box(self):
-        """(4,) x0, y0, x1, y1 frame px of the crop's outer edges."""
-        return np.array([self.x0 - 0.5, self.y0 - 0.5, self.x0 + self.side - 0.5, self.y0 + self.side - 0.5])
+        """(4,) x0, y0, x1, y1 frame px of the crop's outer edges (turned: the box around them)."""
+        half = self.side / 2 * (abs(math.cos(self.angle)) + abs(math.sin(self.angle)))
+        c = self.centre
+        return np.array([c[0] - half, c[1] - half, c[0] + half, c[1] + half])
 
     def to_crop(self, uv):
         """(..., 2) frame px -> crop px."""
         uv = np.asarray(uv, dtype=np.float64)
-        s = self.size / self.side
-        u = (uv[..., 0] - self.x0 + 0.5) * s - 0.5
-        v = (uv[..., 1] - self.y0 + 0.5) * s - 0.5
+        out = (uv - self.centre) @ (self.rotation.T * (self.size / self.side)) + (self.size - 1) / 2
         if self.mirrored:
-            u = self.size - 1 - u
-        return np.stack([u, v], axis=-1)
+            out[..., 0] = self.size - 1 - out[..., 0]
+        return out
 
     def to_frame(self, uv_crop):
         """(..., 2) crop px -> frame px."""
-        uv_crop = np.asarray(uv_crop, dtype=np.float64)
-        u = uv_crop[..., 0]
+        uv_crop = np.array(uv_crop, dtype=np.float64)
         if self.mirrored:
-            u = self.size - 1 - u
-        s = self.side / self.size
-        return np.stack([(u + 0.5) * s - 0.5 + self.x0, (uv_crop[..., 1] + 0.5) * s - 0.5 + self.y0], axis=-1)
+            uv_crop[..., 0] = self.size - 1 - uv_crop[..., 0]
+        return (uv_crop - (self.size - 1) / 2) @ (self.rotation * (self.side / self.size)) + self.centre
+
+    def to_frame_axes(self, xyz):
+        """(..., 3) vectors in the crop's camera axes (unmirrored) -> the frame camera's:
+        the turn about the optical axis undone."""
+        xyz = np.array(xyz, dtype=np.float64)
+        xyz[..., :2] = xyz[..., :2] @ self.rotation
+        return xyz
 
     def cut(self, image):
         """(size,size,C) uint8 crop of `image` (H,W,C); outside the frame the border pixels
@@ -129,24 +152,48 @@ class CropTransform:
         k = max(1, int(1.0 / s))
         src, ox, oy = image, 0, 0
         if k >= 2:                                      # the in-frame part (+ margin), whole k-blocks
-            ox, oy = max(self.x0 - k, 0) // k * k, max(self.y0 - k, 0) // k * k
-            x1, y1 = min(self.x0 + self.side + k, w), min(self.y0 + self.side + k, h)
+            lo = self.box[:2] + 0.5                     # (x0, y0) at angle 0
+            span = self.box[2] - self.box[0]
+            ox, oy = max(int(math.floor(lo[0])) - k, 0) // k * k, max(int(math.floor(lo[1])) - k, 0) // k * k
+            x1 = min(int(math.ceil(lo[0] + span)) + k, w)
+            y1 = min(int(math.ceil(lo[1] + span)) + k, h)
             nx, ny = (x1 - ox) // k, (y1 - oy) // k
             if nx < 1 or ny < 1:                        # wholly outside: nearest frame pixels only
                 k, ox, oy = 1, 0, 0
             else:
                 src = cv2.resize(image[oy:oy + ny * k, ox:ox + nx * k], (nx, ny), interpolation=cv2.INTER_AREA)
-        # u_crop = (k (u_src + 0.5) - 0.5 + ox - x0 + 0.5) s - 0.5
-        M = np.array([[k * s, 0.0, (0.5 * k + ox - self.x0) * s - 0.5],
-                      [0.0, k * s, (0.5 * k + oy - self.y0) * s - 0.5]])
+        # frame u = k (u_src + 0.5) - 0.5 + o, then the crop mapping of the class doc
+        A = self.rotation * s
+        t = A @ (np.array([0.5 * k - 0.5 + ox, 0.5 * k - 0.5 + oy]) - self.centre) + (self.size - 1) / 2
+        M = np.hstack([A * k, t[:, None]])
         crop = cv2.warpAffine(src, M, (self.size, self.size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return np.ascontiguousarray(crop[:, ::-1]) if self.mirrored else crop
 
 
-def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE):
-    """The DetNet crop of a hand whose 2D joints are uv (21,2) frame px."""
-    lo, hi = np.nanmin(uv, axis=0), np.nanmax(uv, axis=0)
-    return CropTransform.around((lo + hi) / 2, float(np.max(hi - lo)) * scale, mirrored=mirrored)
+def hand_angle(uv):
+    """Direction (radians, clockwise from the frame's up) from the wrist (0) to the middle
+    finger's base (9) of joints uv (..., 21, 2) px: the turn that shows the hand upright."""
+    v = np.asarray(uv, dtype=np.float64)[..., 9, :] - np.asarray(uv, dtype=np.float64)[..., 0, :]
+    return np.arctan2(v[..., 0], -v[..., 1])
+
+
+def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE, upright_step=None):
+    """The DetNet crop of a hand whose 2D joints are uv (21,2) frame px: the square around
+    their box times `scale`. upright_step (degrees): the crop turned by hand_angle rounded to
+    whole steps of it (90: quarter turns; 0: any angle), the box taken in the turned axes (as
+    MediaPipe cuts its landmark crops); None: never turned."""
+    angle = 0.0
+    if upright_step is not None and np.all(np.isfinite(uv[[0, 9]])):
+        angle = float(hand_angle(uv))
+        if upright_step:
+            step = math.radians(float(upright_step))
+            angle = round(angle / step) * step
+    c, s = math.cos(angle), math.sin(angle)
+    R = np.array([[c, s], [-s, c]])
+    turned = uv @ R.T
+    lo, hi = np.nanmin(turned, axis=0), np.nanmax(turned, axis=0)
+    return CropTransform.around(R.T @ ((lo + hi) / 2), float(np.max(hi - lo)) * scale, mirrored=mirrored,
+                                angle=angle)
 
 
 def square_box(uv):
@@ -245,7 +292,7 @@ class HandDetector:
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
                  birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
-                 opposite_hands=0.4):
+                 opposite_hands=0.4, upright_step=90.0):
         self.detnet, self.finder = detnet, finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
@@ -279,6 +326,12 @@ class HandDetector:
         # person's left and right hand (None: handedness per track only); false tracks
         # (desk objects, a forearm) stay below it, so they cannot turn a real hand
         self.opposite_hands = opposite_hands
+        # a track's crop turns (in whole steps of this many degrees; 0: any angle; None:
+        # never) so that its hand appears upright, wrist below the middle finger's base, from
+        # its last 2D joints; a new track tries all four quarter turns. DetNet saw real hands
+        # turned at most 90 degrees in training: a hand hanging down (a camera above a desk)
+        # read 2-4x worse than an upright one
+        self.upright_step = upright_step
         # the finder checks the tracks every `redetect_every` frames: a found hand inside a
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
@@ -441,13 +494,16 @@ class HandDetector:
             return []
         out = self._run(image_bgr, [t.crop for t in self.tracks])
         idx = [i for i, t in enumerate(self.tracks) if t in new]
+        if self.upright_step is not None and idx:
+            self._turn_new_tracks(image_bgr, idx, out)
         for _ in range(self.refine_passes if new else 0):   # a new track's crop from its own prediction
             for i in idx:
                 t = self.tracks[i]
                 if out["presence"][i] >= self.presence_threshold:
                     right_seen = float(out["handedness"][i])
                     t.add_handedness(1.0 - right_seen if t.crop.mirrored else right_seen)
-                    t.crop = crop_for_joints(t.crop.to_frame(out["uv"][i]), not t.is_right, self.crop_scale)
+                    t.crop = crop_for_joints(t.crop.to_frame(out["uv"][i]), not t.is_right, self.crop_scale,
+                                             self.upright_step)
             again = self._run(image_bgr, [self.tracks[i].crop for i in idx])
             for k, i in enumerate(idx):
                 for key in out:
@@ -477,6 +533,8 @@ class HandDetector:
             if t.crop.mirrored:
                 xyz = mirror_points(xyz)
                 right_seen = 1.0 - right_seen
+            if t.crop.angle:
+                xyz = t.crop.to_frame_axes(xyz)
             t.add_handedness(right_seen)
             if t.uv is not None:
                 t.velocity = np.median(uv - t.uv, axis=0)
@@ -494,6 +552,22 @@ class HandDetector:
         if self.opposite_hands is not None:
             self._one_left_one_right()
         return sorted(hands, key=lambda h: h["track_id"])
+
+    def _turn_new_tracks(self, image_bgr, idx, out):
+        """New tracks (indices `idx` into self.tracks, `out` DetNet's outputs on their crops)
+        take the quarter turn of their crop on which DetNet's mean heatmap peak is highest:
+        the finder's box says nothing of which way the hand points, and the first prediction
+        on an upside-down hand is too poor to turn it upright from."""
+        turns = [replace(self.tracks[i].crop, angle=self.tracks[i].crop.angle + k * math.pi / 2)
+                 for i in idx for k in (1, 2, 3)]
+        more = self._run(image_bgr, turns)
+        peak = more["confidence"].mean(axis=1).reshape(len(idx), 3)
+        for n, i in enumerate(idx):
+            k = int(np.argmax(peak[n]))
+            if peak[n, k] > out["confidence"][i].mean():
+                self.tracks[i].crop = turns[3 * n + k]
+                for key in out:
+                    out[key][i] = more[key][3 * n + k]
 
     def _one_left_one_right(self):
         """Two tracks DetNet believes are hands (running mean heatmap peak >= opposite_hands)
@@ -513,10 +587,9 @@ class HandDetector:
         displacement; its side changes by at most a factor `max_change` per frame (a hand
         does not change size that fast: a collapsing or exploding prediction must not take
         the crop with it)."""
-        crop = crop_for_joints(uv + 0.5 * track.velocity, not track.is_right, self.crop_scale)
+        crop = crop_for_joints(uv + 0.5 * track.velocity, not track.is_right, self.crop_scale, self.upright_step)
         side = float(np.clip(crop.side, track.crop.side / max_change, track.crop.side * max_change))
-        centre = (crop.box[:2] + crop.box[2:]) / 2
-        return CropTransform.around(centre, side, mirrored=crop.mirrored)
+        return CropTransform.around(crop.centre, side, mirrored=crop.mirrored, angle=crop.angle)
 
     @staticmethod
     def _plausible(uv, shape):

@@ -54,6 +54,8 @@ def add_arguments(p):
     p.add_argument("--real-zoom", type=float, nargs=2, default=(0.5, 1.0),
                    help="window side / frame side of real frames: < 1 zooms in, > 1 shrinks the hand onto a grey "
                         "border (default %(default)s)")
+    p.add_argument("--rot90", type=float, default=0.0,
+                   help="share of training frames turned by a quarter, half or three-quarter turn (default %(default)s)")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=3e-3, help="AdamW, cosine decay to lr/50")
     p.add_argument("--threads", type=int, default=2)
@@ -68,6 +70,7 @@ def add_arguments(p):
     p.add_argument("--resume", action="store_true")
     p.add_argument("--export-only", action="store_true")
     p.add_argument("--val-only", action="store_true", help="validate RUN_DIR/last.pt on the held-out sets and stop")
+    p.add_argument("--onnx", type=Path, help="with --val-only: validate this exported finder instead")
 
 
 # ----------------------------------------------------------------------------- data
@@ -159,8 +162,20 @@ def load_synth(root, shards):
     return np.concatenate(images), np.concatenate(boxes), np.concatenate(right)
 
 
-def augment(rng, image, boxes, right, zoom=(0.55, 1.0)):
-    """Random zoom window of a square image into INPUT_SIZE, flip, photometric jitter.
+def rotate90(image, boxes, k):
+    """A square image (S,S,...) turned k quarter turns counter-clockwise (np.rot90) and its
+    boxes (M,4) x0 y0 x1 y1 px with it: a point (x, y) goes to (y, S-1-x) per turn, so a box
+    stays an exact box. Handedness does not change (a turn is no mirror)."""
+    s = image.shape[0]
+    for _ in range(k % 4):
+        boxes = np.stack([boxes[:, 1], s - 1 - boxes[:, 2], boxes[:, 3], s - 1 - boxes[:, 0]], 1)
+    return np.ascontiguousarray(np.rot90(image, k)), boxes
+
+
+def augment(rng, image, boxes, right, zoom=(0.55, 1.0), rot90=0.0):
+    """Random zoom window of a square image into INPUT_SIZE, flip, a quarter, half or
+    three-quarter turn with probability `rot90` (the real videos show upright hands; a camera
+    above a desk, or a hand hanging down, shows them turned), photometric jitter.
     boxes (2,4) in image px (NaN rows: none). Returns image, boxes, right in input px."""
     s = image.shape[0]
     side = s * rng.uniform(*zoom)
@@ -175,6 +190,8 @@ def augment(rng, image, boxes, right, zoom=(0.55, 1.0)):
         out = out[:, ::-1]
         b = np.stack([INPUT_SIZE - 1 - b[:, 2], b[:, 1], INPUT_SIZE - 1 - b[:, 0], b[:, 3]], 1)
         right = ~right
+    if rng.random() < rot90:
+        out, b = rotate90(out, b, int(rng.integers(1, 4)))
     gain, bias = rng.uniform(0.6, 1.4), rng.uniform(-30, 30)
     out = np.clip(out.astype(np.float32) * gain + bias, 0, 255).astype(np.uint8)
     return out, b, right
@@ -206,9 +223,10 @@ def targets(boxes, right):
 class Batches:
     """Training batches from real frames, synthetic frames and background crops."""
 
-    def __init__(self, real, synth, negatives, real_zoom=(0.5, 1.0)):
+    def __init__(self, real, synth, negatives, real_zoom=(0.5, 1.0), rot90=0.0):
         self.real, self.synth, self.negatives = real, synth, negatives
         self.real_zoom = tuple(real_zoom)
+        self.rot90 = rot90
 
     def make(self, rng, n):
         images, heats, regs, masks = [], [], [], []
@@ -223,7 +241,7 @@ class Batches:
                 img, b, r = augment(rng, self.negatives[i], *none, zoom=(0.6, 1.0))
             else:
                 zoom = self.real_zoom if source is self.real else (0.8, 1.0)
-                img, b, r = augment(rng, source[0][i], source[1][i], source[2][i], zoom)
+                img, b, r = augment(rng, source[0][i], source[1][i], source[2][i], zoom, self.rot90)
             h, g, m = targets(b, r)
             images.append(img)
             heats.append(h)
@@ -280,32 +298,48 @@ def losses(out, heat, reg, mask):
                                                      "size": l_size.item(), "hand": l_hand.item()}
 
 
-def evaluate(model, images, boxes, right, threshold=0.3):
+def torch_maps(model):
+    """The finder's maps function of a torch model: (N,3,S,S) float32 -> (N,5,G,G) numpy."""
+    import torch
+
+    def maps(x):
+        model.eval()
+        with torch.no_grad():
+            out = model(torch.from_numpy(x)).numpy()
+        model.train()
+        return out
+    return maps
+
+
+def onnx_maps(path):
+    """The same for an exported finder file (`--val-only --onnx`)."""
+    from .onnx_models import open_session
+    session = open_session(path, "hand finder", "handtrain finder", threads=2)
+    return lambda x: session.run(None, {"image": x})[0]
+
+
+def evaluate(maps_of, images, boxes, right, threshold=0.3):
     """Recall (IoU >= 0.3 with the square joint box: what the finder predicts), false
     peaks per frame and handedness accuracy of found hands on letterboxed INPUT_SIZE
-    images with joint boxes (N,2,4) input px."""
-    import torch
-    model.eval()
+    images with joint boxes (N,2,4) input px. maps_of: torch_maps or onnx_maps."""
     hits = total = false = hand_ok = 0
-    with torch.no_grad():
-        for s in range(0, len(images), 64):
-            maps = model(torch.from_numpy(images[s:s + 64].transpose(0, 3, 1, 2).astype(np.float32) / 255)).numpy()
-            for m, b, r in zip(maps, boxes[s:s + 64], right[s:s + 64]):
-                found = decode(m, threshold)
-                valid = np.all(np.isfinite(b), 1) & (np.max(b[:, 2:] - b[:, :2], 1) >= MIN_SIDE_PX)
-                b = square(b)
-                total += valid.sum()
-                used = set()
-                for box, _, pr in found:
-                    iou = box_iou(box, b[valid])[0] if valid.any() else np.zeros(0)
-                    j = int(np.argmax(iou)) if iou.size else -1
-                    if j >= 0 and iou[j] >= 0.3 and j not in used:
-                        used.add(j)
-                        hits += 1
-                        hand_ok += (pr > 0.5) == r[valid][j]
-                    else:
-                        false += 1
-    model.train()
+    for s in range(0, len(images), 64):
+        maps = maps_of(np.ascontiguousarray(images[s:s + 64].transpose(0, 3, 1, 2), dtype=np.float32) / 255)
+        for m, b, r in zip(maps, boxes[s:s + 64], right[s:s + 64]):
+            found = decode(m, threshold)
+            valid = np.all(np.isfinite(b), 1) & (np.max(b[:, 2:] - b[:, :2], 1) >= MIN_SIDE_PX)
+            b = square(b)
+            total += valid.sum()
+            used = set()
+            for box, _, pr in found:
+                iou = box_iou(box, b[valid])[0] if valid.any() else np.zeros(0)
+                j = int(np.argmax(iou)) if iou.size else -1
+                if j >= 0 and iou[j] >= 0.3 and j not in used:
+                    used.add(j)
+                    hits += 1
+                    hand_ok += (pr > 0.5) == r[valid][j]
+                else:
+                    false += 1
     return {"recall": hits / max(total, 1), "false_per_frame": false / max(len(images), 1),
             "handedness_acc": hand_ok / max(hits, 1), "hands": int(total), "frames": len(images)}
 
@@ -339,9 +373,17 @@ def main(args):
         if args.real_part == "train":
             val_sets["tails"] = load_real_frames(args.data, TRAIN_VIDEOS, stride=1, size=INPUT_SIZE, part="tail")
         val_sets["howiema"] = load_howiema_frames(args.data, held_out=True, size=INPUT_SIZE)
+        # the same hands turned (a quarter turn each way and a half): upright hands only tell
+        # half the story for a camera above a desk or a hand that hangs down
+        for name in [k for k in ("real", "tails", "howiema") if k in val_sets]:
+            val_sets[f"{name}_turned"] = turned(*val_sets[name])
     if args.val_only:
-        model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
-        print(json.dumps({name: evaluate(model, *v) for name, v in val_sets.items()}, indent=1))
+        if args.onnx:
+            maps_of = onnx_maps(args.onnx)
+        else:
+            model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
+            maps_of = torch_maps(model)
+        print(json.dumps({name: evaluate(maps_of, *v) for name, v in val_sets.items()}, indent=1))
         return
     synth = concat(load_synth(args.synth[0], range(n_shards - 1)),
                    *(load_synth(d, range(shard_count(d))) for d in args.synth[1:]))
@@ -353,7 +395,7 @@ def main(args):
     negatives = background_crops(Path(__file__).resolve().parent.parent)
     print(f"synthetic {len(synth[0])} (+{len(val_sets['synth'][0])} val), real {len(real[0])}, "
           f"negatives {len(negatives)}")
-    batches = Batches(real, synth, negatives, args.real_zoom)
+    batches = Batches(real, synth, negatives, args.real_zoom, args.rot90)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     start = 0
     if args.resume and ckpt.is_file():
@@ -378,7 +420,7 @@ def main(args):
         if (it + 1) % args.ckpt_every == 0 or it + 1 == args.iters:
             torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "iter": it + 1}, ckpt)
         if (it + 1) % args.val_every == 0 or it + 1 == args.iters:
-            results = {name: evaluate(model, *v) for name, v in val_sets.items()}
+            results = {name: evaluate(torch_maps(model), *v) for name, v in val_sets.items()}
             print(f"val {it + 1}: " + ", ".join(f"{k} recall {r['recall']:.3f} false {r['false_per_frame']:.2f}"
                                                  for k, r in results.items()), flush=True)
             with open(args.run_dir / "val_history.jsonl", "a") as f:
@@ -386,6 +428,13 @@ def main(args):
     print(json.dumps(results, indent=1))
     (args.run_dir / "val.json").write_text(json.dumps(results, indent=1))
     export(model, args.export)
+
+
+def turned(images, boxes, right):
+    """(images, boxes, right) with frame i turned (i % 3) + 1 quarter turns: each frame once,
+    in one of the three non-upright orientations."""
+    out = [rotate90(img, b, i % 3 + 1) for i, (img, b) in enumerate(zip(images, boxes))]
+    return np.stack([o[0] for o in out]), np.stack([o[1] for o in out]), right
 
 
 def concat(*sets):

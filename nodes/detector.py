@@ -17,6 +17,8 @@ unborn_retry (frames until the finder looks again after a hand was refused), evi
 (with every track slot taken, a found hand replaces the track with the lowest running heatmap
 peak when its own peak is this much higher; null = never), opposite_hands (two tracks at
 least this sure to be hands that read as the same hand: the less sure one turns; null = off),
+upright_step (a track's crop turns in steps of this many degrees so that its hand appears
+upright, from its last 2D joints: 90 quarter turns, 0 any angle, null never),
 redetect_every (frames between finder runs, which also check the tracks), reseed_iou (a track
 whose joints overlap the hand the finder sees in its crop less than this restarts from the
 finder's box; 0 = never), crop_scale (crop side / joint-box side), every_frame.
@@ -34,10 +36,23 @@ from handmocap.node import Message, Node, run, spin
 
 # HandDetector's settings, with its own defaults (one place for them: the class)
 TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "evict_margin",
-           "opposite_hands", "redetect_every", "reseed_iou", "crop_scale")
+           "opposite_hands", "upright_step", "redetect_every", "reseed_iou", "crop_scale")
 _DEFAULTS = inspect.signature(HandDetector).parameters
 PARAMS = {"detnet": None, "finder": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
           "every_frame": False}
+
+
+def setting(name: str, value):
+    """A TUNABLE param as HandDetector takes it: null stays None (off, where the class allows
+    it), a number the default's type (int or float)."""
+    if value is None:
+        return None
+    try:
+        if isinstance(value, (bool, str)):
+            raise TypeError
+        return type(PARAMS[name])(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"detector param {name}: expected a number or null, got {value!r}") from None
 
 
 def warm_up(detector: HandDetector, params: dict) -> None:
@@ -67,7 +82,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     node.subscribe("/camera/image", "Image", mode="all" if p["every_frame"] else "latest")
     node.advertise("/hand/keypoints", "HandKeypoints")
     detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]),
-                                 **{k: type(PARAMS[k])(p[k]) for k in TUNABLE})   # int or float, as the default
+                                 **{k: setting(k, p[k]) for k in TUNABLE})
     warm_up(detector, p)
     node.at_close(lambda: node.log.info("%d frames, %d finder runs, %d crops", detector.stats["frames"],
                                         detector.stats["finder_runs"], detector.stats["crops"]))

@@ -24,6 +24,8 @@ refine_passes=2; duplicate_joints=0.3), with the found hands' median 2D error / 
 and the share of output hands on a labelled hand whose handedness is the label's.
 --per-clip: then the same per clip (tracked), with DetNet crops per frame, evictions and
 handedness turns (HandDetector.stats).
+--turn K: every frame (and its labels) turned K quarter turns counter-clockwise first: the
+same hands seen from a camera above a desk (K=2: hanging down) or held sideways.
 """
 import argparse
 from pathlib import Path
@@ -64,6 +66,19 @@ def clips(shared):
             seqs.setdefault(seq, []).append((s["image"][..., ::-1].copy(), [s["uv"]], [s["handedness"]]))
     for seq, frames in seqs.items():
         yield f"howiema 001 {seq}", frames
+
+
+def turned(frames, k):
+    """Frames turned k quarter turns counter-clockwise (np.rot90), their labels with them:
+    per turn a point (x, y) of a frame W px wide goes to (y, W - 1 - x)."""
+    out = []
+    for image, labels, sides in frames:
+        for _ in range(k % 4):
+            w = image.shape[1]
+            labels = [np.stack([uv[:, 1], w - 1 - uv[:, 0]], 1) for uv in labels]
+            image = np.rot90(image)
+        out.append((np.ascontiguousarray(image), labels, sides))
+    return out
 
 
 def labels_near(centre, labels):
@@ -118,8 +133,10 @@ def main():
     ap.add_argument("--per-clip", action="store_true",
                     help="then, per setting, each clip (tracked in order): hands found, false hands, handedness "
                          "right, DetNet crops per frame, evictions and handedness turns")
+    ap.add_argument("--turn", type=int, default=0, metavar="K",
+                    help="turn every frame and its labels K quarter turns counter-clockwise first")
     args = ap.parse_args()
-    data = list(clips(args.shared))
+    data = [(name, turned(frames, args.turn)) for name, frames in clips(args.shared)]
     if args.compare:
         settings = [("defaults", {})] + [(c, parse_setting(c)) for c in args.compare]
         print("| setting | clips: labelled hands found | false hands | stills: labelled hands found "

@@ -70,8 +70,9 @@ class FakeDetNet:
     handedness. xyz: the 2D joints lifted to z = 0, normalized (or `xyz_right`, a fixed
     right hand, when given)."""
 
-    def __init__(self, xyz_right=None):
+    def __init__(self, xyz_right=None, prefers_upright=False):
         self.xyz_right = xyz_right
+        self.prefers_upright = prefers_upright     # heatmap peaks fall as the hand turns from upright
         self.calls = 0
 
     def __call__(self, crops_rgb):
@@ -86,7 +87,11 @@ class FakeDetNet:
                 else self.xyz_right
             out["uv"].append(uv)
             out["xyz"].append(xyz)
-            out["confidence"].append(seen.astype(np.float32))
+            upright = 1.0
+            if self.prefers_upright and ok:
+                wrist_to_base = uv[9] - uv[0]
+                upright = max(0.2, -wrist_to_base[1] / (np.linalg.norm(wrist_to_base) + 1e-9))
+            out["confidence"].append(seen.astype(np.float32) * upright)
             out["presence"].append(1.0 if ok else 0.0)
             out["handedness"].append(appears_right(uv) if ok else 0.5)
         return {k: np.asarray(v, np.float32) for k, v in out.items()}
@@ -116,17 +121,17 @@ class FakeFinder:
         return found
 
 
-@pytest.mark.parametrize("mirrored", [False, True])
-def test_crop_round_trip_and_pixels_land_where_the_transform_says(mirrored):
+@pytest.mark.parametrize("mirrored,angle", [(False, 0.0), (True, 0.0), (False, 2.5), (True, -0.7)])
+def test_crop_round_trip_and_pixels_land_where_the_transform_says(mirrored, angle):
     rng = np.random.default_rng(0)
     for _ in range(20):
-        crop = CropTransform.around(rng.uniform(-50, 700, 2), rng.uniform(30, 600), mirrored=mirrored)
+        crop = CropTransform.around(rng.uniform(-50, 700, 2), rng.uniform(30, 600), mirrored=mirrored, angle=angle)
         uv = rng.uniform(-100, 700, (21, 2))
         np.testing.assert_allclose(crop.to_frame(crop.to_crop(uv)), uv, atol=1e-9)
     frame = np.zeros((H, W, 3), np.uint8)
     # inside (shrunk by 2 first), past two edges, small, large and past an edge (shrunk by 4)
     for centre, side in (((300, 200), 257), ((20, 460), 200), ((600, 30), 90), ((330, 260), 600)):
-        crop = CropTransform.around(centre, side, mirrored=mirrored)
+        crop = CropTransform.around(centre, side, mirrored=mirrored, angle=angle)
         dot = np.array(centre) + (17, -11)
         frame[:] = 0
         cv2.circle(frame, tuple(int(v) for v in dot), 6, (255, 255, 255), -1)
@@ -134,6 +139,63 @@ def test_crop_round_trip_and_pixels_land_where_the_transform_says(mirrored):
         ys, xs = np.mgrid[:128, :128]
         seen = np.array([(img * xs).sum(), (img * ys).sum()]) / img.sum()
         np.testing.assert_allclose(seen, crop.to_crop(dot), atol=0.3)
+
+
+def test_the_crop_of_a_hand_at_angle_zero_is_the_axis_aligned_one_exactly():
+    frame = np.random.default_rng(1).integers(0, 255, (H, W, 3), np.uint8)
+    for centre, side in (((300, 200), 257), ((20, 460), 200), ((600, 30), 90)):
+        crop = CropTransform.around(centre, side)
+        assert crop.angle == 0.0
+        np.testing.assert_array_equal(crop.box, [crop.x0 - 0.5, crop.y0 - 0.5, crop.x0 + crop.side - 0.5,
+                                                 crop.y0 + crop.side - 0.5])
+        uv = np.array([[crop.x0, crop.y0], [crop.x0 + crop.side - 1, crop.y0 + 3]], float)
+        np.testing.assert_allclose(crop.to_crop(uv), (uv - [crop.x0, crop.y0] + 0.5) * 128 / crop.side - 0.5,
+                                   atol=1e-9)
+
+
+def turned_hand(centre, size, angle, right=True):
+    """canonical_hand turned by `angle` radians clockwise (in the image) about its centre."""
+    uv = canonical_hand(centre, size, right) - np.asarray(centre, float)
+    c, s = np.cos(angle), np.sin(angle)
+    return uv @ np.array([[c, s], [-s, c]]) + np.asarray(centre, float)   # x' = c x - s y, y' = s x + c y
+
+
+@pytest.mark.parametrize("angle", [np.pi, np.pi / 2, -2.2])
+def test_an_upright_crop_shows_a_turned_hand_upright_and_its_joints_come_back_in_frame_axes(angle):
+    uv_true = turned_hand((320, 240), 150, angle)
+    from handmocap.detector import hand_angle
+    assert abs(np.angle(np.exp(1j * (hand_angle(uv_true) - angle)))) < 1e-9
+    crop = crop_for_joints(uv_true, upright_step=0)
+    in_crop = crop.to_crop(uv_true)
+    assert in_crop[0, 1] > in_crop[9, 1] and abs(in_crop[0, 0] - in_crop[9, 0]) < 1e-6   # wrist straight below
+    frame = draw(np.zeros((H, W, 3), np.uint8), uv_true)
+    turned, plain = detector(upright_step=0), detector(upright_step=None)
+    for _ in range(3):
+        out_t, out_p = turned.process(frame), plain.process(frame)
+    assert abs(turned.tracks[0].crop.angle - angle) < 0.05 or abs(abs(turned.tracks[0].crop.angle - angle)
+                                                                 - 2 * np.pi) < 0.05
+    assert plain.tracks[0].crop.angle == 0.0
+    for out in (out_t, out_p):
+        np.testing.assert_allclose(out[0]["uv"], np.round(uv_true), atol=DOT_TOL)
+        # the fake DetNet lifts the crop's 2D to 3D: back in frame axes it is the frame's 2D lifted
+        lifted = normalize_joints(np.concatenate([out[0]["uv"], np.zeros((21, 1))], 1))
+        np.testing.assert_allclose(out[0]["xyz_rel"], lifted, atol=0.03)
+
+
+def test_a_new_track_takes_the_quarter_turn_detnet_believes_most():
+    """An upside-down hand, found by a finder that knows nothing of which way it points: with
+    upright crops the new track tries the three other quarter turns and keeps the one whose
+    heatmap peaks are highest (the fake DetNet's peaks fall as a hand turns from upright)."""
+    uv_true = turned_hand((320, 240), 150, np.pi - 0.3)
+    frame = draw(np.zeros((H, W, 3), np.uint8), uv_true)
+    for step, angle in ((90, np.pi), (0, np.pi - 0.3), (None, 0.0)):
+        det = HandDetector(FakeDetNet(prefers_upright=True), FakeFinder(), upright_step=step, birth_confidence=0.5)
+        out = det.process(frame)
+        assert len(out) == (0 if step is None else 1)        # upside down, its peaks stay below birth
+        if step is not None:
+            assert abs(abs(det.tracks[0].crop.angle) - abs(angle)) < 0.05, det.tracks[0].crop.angle
+            assert det.stats["crops"] == 1 + 3 + 1         # first look, three more turns, the refinement
+            np.testing.assert_allclose(out[0]["uv"], np.round(uv_true), atol=DOT_TOL)
 
 
 def test_crop_for_joints_is_the_square_around_the_joint_box_times_the_scale():
@@ -211,11 +273,12 @@ def test_tracked_hands_do_not_run_the_finder_unless_it_checks_the_tracks():
     frames, _ = two_hand_frames(30)
     for f in frames:
         det.process(f)
-    assert det.finder.calls == 1 and det.stats["crops"] == 2 * 30 + 2    # + the refinement of each new track
+    # + three more quarter turns and the refinement of each new track
+    assert det.finder.calls == 1 and det.stats["crops"] == 2 * 30 + 2 * 3 + 2
     det = detector(redetect_every=5)          # default: the finder checks the tracks every 5 frames
     for f in frames:
         det.process(f)
-    assert det.finder.calls == 1 + 29 // 5 and det.stats["reseeds"] == 0 and det.stats["crops"] == 2 * 30 + 2
+    assert det.finder.calls == 1 + 29 // 5 and det.stats["reseeds"] == 0 and det.stats["crops"] == 2 * 30 + 2 * 3 + 2
 
 
 def test_a_track_whose_joints_left_the_found_hand_is_reseeded_from_the_finder():
@@ -251,12 +314,13 @@ class DimDetNet(FakeDetNet):
 
 def test_a_found_hand_needs_birth_confidence_and_a_track_lives_down_to_min_confidence():
     frames, _ = two_hand_frames(6)
-    # calls: the first frame's crops, then its refined crops, then one call per frame
+    # calls: the first frame's crops, its three other quarter turns (dim_at_birth), its refined
+    # crops, then one call per frame
     dim_at_birth = HandDetector(DimDetNet([0.2, 0.2, 0.2]), FakeFinder(), birth_confidence=0.3, min_confidence=0.15)
     assert [len(dim_at_birth.process(f)) for f in frames[:3]] == [0, 0, 0]
     assert dim_at_birth.stats["unborn"] == 6 and dim_at_birth.stats["finder_runs"] == 3   # tries again each frame
     dims_later = HandDetector(DimDetNet([0.5, 0.5, 0.2, 0.2, 0.1]), FakeFinder(), birth_confidence=0.3,
-                              min_confidence=0.15)
+                              min_confidence=0.15, upright_step=None)   # no quarter-turn call at birth
     assert [len(dims_later.process(f)) for f in frames[:4]] == [2, 2, 2, 0]    # kept at 0.2, lost at 0.1
     assert dims_later.stats["unborn"] == 0
 
@@ -492,7 +556,7 @@ def test_refine_passes_recut_a_new_tracks_crop_that_many_times():
     for passes in (0, 1, 3):
         net = FakeDetNet()
         HandDetector(net, FakeFinder(), refine_passes=passes).process(frames[0])
-        assert net.calls == 1 + passes
+        assert net.calls == 1 + 1 + passes         # the crops, their three other quarter turns, the passes
 
 
 def test_with_duplicate_joints_two_overlapping_hands_are_kept_and_one_hand_twice_is_not():
@@ -508,3 +572,15 @@ def test_with_duplicate_joints_two_overlapping_hands_are_kept_and_one_hand_twice
         assert [h["track_id"] for h in d._drop_duplicates([hand(0, right, 0.9), hand(1, left, 0.8)])] == kept
         # the same hand twice (joints a few px apart) stays one track either way
         assert [h["track_id"] for h in d._drop_duplicates([hand(0, right, 0.9), hand(2, right + 3.0, 0.8)])] == [0]
+
+
+def test_detector_node_params_take_null_and_booleans_as_the_class_does():
+    from handmocap.nodes.detector import PARAMS, TUNABLE, setting
+    assert "upright_step" in TUNABLE and "evict_margin" in TUNABLE
+    assert setting("evict_margin", None) is None                # null: never evict
+    assert setting("evict_margin", 1) == 1.0 and isinstance(setting("evict_margin", 1), float)
+    assert setting("max_hands", 1.0) == 1 and isinstance(setting("max_hands", 1.0), int)
+    assert setting("upright_step", 0) == 0.0 and setting("upright_step", None) is None
+    assert isinstance(PARAMS["upright_step"], float)
+    with pytest.raises(ValueError, match="max_hands"):
+        setting("max_hands", "two")

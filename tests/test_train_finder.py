@@ -1,0 +1,38 @@
+"""The hand finder's training data: turned frames keep their boxes on the hand."""
+import numpy as np
+
+from handmocap.hand_finder import INPUT_SIZE
+from handmocap.train_finder import augment, rotate90, targets
+
+
+def drawn_box(image):
+    ys, xs = np.nonzero(image[..., 0] > 64)
+    return np.array([xs.min(), ys.min(), xs.max(), ys.max()], float)
+
+
+def test_a_turned_frame_keeps_its_box_on_the_drawn_hand():
+    image = np.zeros((160, 160, 3), np.uint8)
+    image[30:71, 100:141] = 255                       # rows 30..70, columns 100..140
+    boxes = np.array([[100.0, 30.0, 140.0, 70.0], [np.nan] * 4])
+    for k in range(4):
+        turned, b = rotate90(image, boxes, k)
+        np.testing.assert_array_equal(b[0], drawn_box(turned))
+        assert np.isnan(b[1]).all()
+    assert not np.array_equal(rotate90(image, boxes, 1)[1][0], boxes[0])   # a turn moves it
+
+
+def test_augment_with_turns_keeps_boxes_on_the_hand_and_turns_some_frames():
+    image = np.zeros((224, 224, 3), np.uint8)
+    image[20:80, 140:180] = 255                        # a tall box in the upper right
+    boxes = np.array([[140.0, 20.0, 179.0, 79.0], [np.nan] * 4])
+    rng = np.random.default_rng(0)
+    tall = wide = 0
+    for _ in range(40):
+        out, b, right = augment(rng, image, boxes, np.array([True, False]), zoom=(0.9, 1.0), rot90=0.5)
+        assert out.shape == (INPUT_SIZE, INPUT_SIZE, 3)
+        np.testing.assert_allclose(b[0], drawn_box(out), atol=2.0)
+        w, h = b[0, 2] - b[0, 0], b[0, 3] - b[0, 1]
+        tall, wide = tall + (h > w), wide + (w > h)
+        heat, reg, mask = targets(b, right)
+        assert mask.sum() == 1
+    assert tall > 5 and wide > 5                       # upright and quarter-turned frames both came
