@@ -15,13 +15,17 @@ Per frame (`HandDetector.process`):
    slot must not keep a hand out for good).
 2. Every track is cropped the way DetNet was trained (handmocap/synth: square, the hand's
    vertex box x 1.3, i.e. about its 21-joint box x CROP_SCALE, 128 px; `CropTransform`
-   records the crop <-> frame mapping). Tracks whose smoothed handedness is left are
-   flipped horizontally, so DetNet always sees a right hand; its 2D is un-flipped and its
-   3D mirrored back (x -> -x): HandKeypoints' xyz_rel is the hand as seen.
+   records the crop <-> frame mapping), turned in quarter turns (`upright_step`) so that the
+   hand appears upright, wrist below the middle finger's base, as MediaPipe turns its
+   crops: unturned, a hand hanging down read several times worse. Tracks whose smoothed
+   handedness is left are flipped horizontally, so DetNet always sees a right hand; its 2D
+   is un-flipped and its 3D mirrored back (x -> -x) and turned back: HandKeypoints'
+   xyz_rel is the hand as seen, in the camera's axes.
 3. One batched DetNet call for all crops; presence below `presence_threshold` or a mean
    heatmap peak below `min_confidence` ends the track, and so do joints centred outside
    the frame or spread over more than twice its size; a new track's crop is refined once
-   from its own first 2D prediction (and flipped the other way if DetNet's handedness
+   from its own first 2D prediction (first turned the quarter turn on which DetNet's
+   heatmap peaks are highest, and flipped the other way if DetNet's handedness
    outweighs the finder's), and the track is only born if its mean heatmap peak there
    reaches `birth_confidence`: DetNet's presence head is sure of almost anything the
    finder proposes (a mouse on a desk, a face), its heatmap peaks are not. After a hand
@@ -292,7 +296,7 @@ class HandDetector:
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
                  birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
-                 opposite_hands=0.4, upright_step=90.0):
+                 opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3):
         self.detnet, self.finder = detnet, finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
@@ -332,6 +336,8 @@ class HandDetector:
         # turned at most 90 degrees in training: a hand hanging down (a camera above a desk)
         # read 2-4x worse than an upright one
         self.upright_step = upright_step
+        # weight of the finder's handedness against one DetNet reading (0: DetNet's alone)
+        self.finder_handedness = finder_handedness
         # the finder checks the tracks every `redetect_every` frames: a found hand inside a
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
@@ -409,7 +415,8 @@ class HandDetector:
             if covering:
                 t = covering[0]
                 owner[k] = t.track_id
-                t.add_handedness(right_prob, weight=0.5)
+                if self.finder_handedness:
+                    t.add_handedness(right_prob, weight=0.5 * self.finder_handedness)
                 if t.uv is not None and overlap.get((k, t.track_id), 0.0) < self.reseed_iou:
                     # the track's joints no longer match the hand the finder sees in its crop
                     # (a track sliding up the forearm): start the crop again from the finder's box
@@ -438,7 +445,8 @@ class HandDetector:
 
     def _new_track(self, box, right_prob):
         track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale))
-        track.add_handedness(right_prob)
+        if self.finder_handedness:
+            track.add_handedness(right_prob, weight=self.finder_handedness)
         self.next_id += 1
         return track
 

@@ -127,7 +127,7 @@ def main():
     ap.add_argument("--detnet", default=None)
     ap.add_argument("--finder", default=None)
     ap.add_argument("--shared", type=Path, default=SHARED_DATA)
-    ap.add_argument("--compare", nargs="+", metavar="KEY=VALUE[,KEY=VALUE]",
+    ap.add_argument("--compare", nargs="*", metavar="KEY=VALUE[,KEY=VALUE]",
                     help="instead of the threshold table: these HandDetector settings (e.g. duplicate_joints=0.3, "
                          "fallback_path=F.onnx) against the defaults, with the found hands' 2D error")
     ap.add_argument("--per-clip", action="store_true",
@@ -137,7 +137,7 @@ def main():
                     help="turn every frame and its labels K quarter turns counter-clockwise first")
     args = ap.parse_args()
     data = [(name, turned(frames, args.turn)) for name, frames in clips(args.shared)]
-    if args.compare:
+    if args.compare is not None:    # `--compare` alone: the defaults' row only
         settings = [("defaults", {})] + [(c, parse_setting(c)) for c in args.compare]
         print("| setting | clips: labelled hands found | false hands | stills: labelled hands found "
               "| false hands | 2D error / hand size, median (clips; stills) | handedness right (clips; stills) |")
@@ -176,13 +176,13 @@ def main():
             errors.append(f"{np.median(e):.4f} (n {len(e)})")
             right = [row[4] for row in rows if not np.isnan(row[4])]
             sides.append(f"{np.mean(right):.1%}")
-            if not args.compare and setting["birth_confidence"] == setting["min_confidence"] == 0.0 and not stills:
+            if args.compare is None and setting["birth_confidence"] == setting["min_confidence"] == 0.0 and not stills:
                 r = np.array(rows, float)
                 true = r[:, 2] > 0
                 quantiles = [f"{kind} hands ({m.sum()}): presence q10/50/90 {np.quantile(r[m, 0], [.1, .5, .9]).round(3)}, "
                              f"confidence q01/10/50/90 {np.quantile(r[m, 1], [.01, .1, .5, .9]).round(3)}"
                              for kind, m in (("true", true), ("false", ~true)) if m.any()]
-        if args.compare:
+        if args.compare is not None:
             cells += ["; ".join(errors), "; ".join(sides)]
         print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
     if quantiles:

@@ -1,25 +1,29 @@
 """DetNet alone on crops cut around the labelled hand, per prepared evaluation split
 (`handeval splits --work W`): what the 2D error would be with a perfect finder and tracker.
 
-    python scripts/eval_detnet_crops.py --work /tmp/handeval [--detnet int8|float32|F.onnx]
+    python scripts/eval_detnet_crops.py --work /tmp/handeval [--detnet int8|float32|F.onnx] [--upright-step 90|0|none]
 
 Each labelled hand is cut the way the detector cuts a tracked hand (`crop_for_joints`: the
-square around its 21-joint box x CROP_SCALE, left hands mirrored by the label's handedness
+square around its 21-joint box x CROP_SCALE, turned upright by the detector's
+`upright_step` (default: HandDetector's), left hands mirrored by the label's handedness
 where the split has one), DetNet runs once, and its 2D joints are mapped back to the frame.
 Prints the mean px error in frame px and relative to the hand's joint-box side, to set
 beside `handeval splits`' whole-frame figures.
 """
 import argparse
 import glob
+import inspect
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from handmocap.detector import DetNetRunner, crop_for_joints
+from handmocap.detector import DetNetRunner, HandDetector, crop_for_joints
+
+UPRIGHT_STEP = inspect.signature(HandDetector).parameters["upright_step"].default
 
 
-def evaluate(detnet, split_dir):
+def evaluate(detnet, split_dir, upright_step=UPRIGHT_STEP):
     gt = np.load(split_dir / "gt.npz")
     files = sorted(glob.glob(str(split_dir / "images" / "*")))
     err, rel = [], []
@@ -28,7 +32,7 @@ def evaluate(detnet, split_dir):
         if not np.all(np.isfinite(uv)):
             continue
         left = "handedness" in gt.files and gt["handedness"][i] == "left"
-        crop = crop_for_joints(uv, mirrored=left)
+        crop = crop_for_joints(uv, mirrored=left, upright_step=upright_step)
         out = detnet(crop.cut(cv2.imread(f))[None, ..., ::-1])
         e = np.linalg.norm(crop.to_frame(out["uv"][0]) - uv, axis=1).mean()
         err.append(e)
@@ -41,12 +45,14 @@ def main():
     p.add_argument("--work", type=Path, default=Path("/tmp/handeval"))
     p.add_argument("--detnet", type=Path, default=None)
     p.add_argument("--splits", nargs="+", default=["temugeb_cam0", "temugeb_cam1", "howiema_040", "cmu_sample"])
+    p.add_argument("--upright-step", default=UPRIGHT_STEP, type=lambda v: None if v == "none" else float(v),
+                   help="degrees; 0: any angle; none: never turned (default: the detector's, %(default)s)")
     args = p.parse_args()
     detnet = DetNetRunner.load(args.detnet)
     print("| split | hands | DetNet on labelled crops: mean px | median error / joint-box side |")
     print("|---|---|---|---|")
     for s in args.splits:
-        n, e, r = evaluate(detnet, args.work / s)
+        n, e, r = evaluate(detnet, args.work / s, args.upright_step)
         print(f"| {s} | {n} | {e:.1f} | {r:.3f} |")
 
 
