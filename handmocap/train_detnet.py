@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 
 from . import real_data
-from .detector import DETNET_FLOAT32
+from .detector import DETNET_FLOAT32, hand_angle
 from .pose_data import SHARED_DATA
 from .skeleton import ROOT
 from .training import warmup_cosine_lr
@@ -69,6 +69,10 @@ def add_arguments(p):
     p.add_argument("--share-real", type=float, default=0.25, help="share of real hand crops per batch")
     p.add_argument("--share-neg", type=float, default=0.12, help="share of no-hand crops per batch")
     p.add_argument("--share-left", type=float, default=0.3, help="share of hand crops presented as left hands")
+    p.add_argument("--upright", type=float, default=None, metavar="DEG",
+                   help="turn each hand crop upright (wrist below the middle finger's base, from its 2D labels) "
+                        "and then by +-DEG, as the detector's quarter-turned crops show hands (default: no "
+                        "turning, +-90 deg about the crop as rendered or filmed)"),
     p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
@@ -254,9 +258,10 @@ class BatchMaker:
     """Numpy batches: image (B,128,128,3) uint8, uv (B,21,2), xyz (B,21,3), w2d, w3d,
     presence, right, w_hand (B,) float32."""
 
-    def __init__(self, synth, real, share_real, share_neg, share_left):
+    def __init__(self, synth, real, share_real, share_neg, share_left, upright=None):
         self.synth, self.real = synth, real
         self.share_left = share_left
+        self.upright = upright
         self.real_train = np.flatnonzero(~real["held"]) if real is not None else np.zeros(0, int)
         self.neg_train = np.flatnonzero(~real["neg_held"]) if real is not None else np.zeros(0, int)
         self.share_real = share_real if len(self.real_train) else 0.0
@@ -279,6 +284,13 @@ class BatchMaker:
             parts.append(self._negatives(n_neg, rng))
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
+    def _angles(self, uv, rng):
+        """(n,) crop_affine angles, degrees, for hands with 2D joints uv (n,21,2): +-90 about
+        the crop as it is, or with `upright` +-upright about the hand turned upright."""
+        if self.upright is None:
+            return rng.uniform(-90, 90, len(uv))
+        return np.degrees(hand_angle(uv)) + rng.uniform(-self.upright, self.upright, len(uv))
+
     def _present(self, n, appears_right, rng):
         """Which crops to show as left hands; mirror flag that makes the rest right hands."""
         show_left = rng.random(n) < self.share_left
@@ -289,7 +301,7 @@ class BatchMaker:
         s = self.synth
         idx = rng.integers(0, len(s["image"]), n)
         show_left, mirror = self._present(n, s["handedness"][idx] == 0, rng)
-        angle = rng.uniform(-90, 90, n)
+        angle = self._angles(s["uv"][idx], rng)
         scale = rng.uniform(0.95, 1.05, n)
         shift = rng.uniform(-0.05, 0.05, (n, 2)) * 128
         images, uv = np.empty((n, 128, 128, 3), np.uint8), np.empty((n, 21, 2), np.float32)
@@ -313,7 +325,7 @@ class BatchMaker:
         for i in range(n):
             side = side0 * rng.uniform(0.9, 1.1)
             cx, cy = (CTX - 1) / 2 + rng.uniform(-0.1, 0.1, 2) * side
-            M = real_data.crop_affine(cx, cy, side, 128, rng.uniform(-90, 90), mirror[i])
+            M = real_data.crop_affine(cx, cy, side, 128, self._angles(r["uv"][idx[i]][None], rng)[0], mirror[i])
             images[i] = real_data.warp(r["image"][idx[i]], M)
             uv[i] = real_data.apply_affine(M, r["uv"][idx[i]])
         weight = r["weight"][idx].astype(np.float32)
@@ -648,7 +660,7 @@ def main(args):
     if real is not None:
         print(f"real: {int((~real['held']).sum())} training hand crops, {int(real['held'].sum())} held out; "
               f"{int((~real['neg_held']).sum())} negatives ({int(real['neg_held'].sum())} held out)")
-    maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left)
+    maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright)
     sval = synth_val_set(args.val) if (Path(args.val) / "meta.json").exists() else None
     if sval is None:
         print(f"note: no held-out synthetic set at {args.val}")

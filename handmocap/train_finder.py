@@ -5,6 +5,8 @@
     handtrain finder --synth /tmp/finder/synth --resume   # continue runs/finder/last.pt
     handtrain finder --export-only
     handtrain finder --val-only --run-dir runs/finder_v2   # a run's last.pt on the held-out sets
+    handtrain finder --val-only --onnx models/finder.onnx  # an exported finder on them
+(the shipped finder's full command is in models/README.md)
 
 Data (each batch half real, half synthetic):
 * real frames of shared/data/video (webcam, dex_retargeting, tfjs_asl_hand; every n-th
@@ -17,11 +19,12 @@ Data (each batch half real, half synthetic):
   both hands' joint boxes; the first folder's last shard is held out;
 * 10% hand-free real background crops (the synth engine's cache, held-out videos excluded).
 Augmentation: random zoom/shift of the letterboxed frame, horizontal flip (handedness
-flips with it), brightness/contrast. Losses (CenterNet): focal loss on the centre heatmap,
+flips with it), a quarter, half or three-quarter turn for half the frames (`--rot90`; the
+real videos show upright hands only), brightness/contrast. Losses (CenterNet): focal loss on the centre heatmap,
 L1 on offset and log size, BCE on handedness at the centre cells.
 Validation: recall of hands (a peak whose box has IoU >= 0.3 with the true box) and false
 peaks per frame at the default threshold, every --val-every iterations, on each held-out
-set (val_history.jsonl in the run folder).
+set and on the real ones turned (`*_turned`; val_history.jsonl in the run folder).
 """
 import json
 import time
@@ -54,7 +57,7 @@ def add_arguments(p):
     p.add_argument("--real-zoom", type=float, nargs=2, default=(0.5, 1.0),
                    help="window side / frame side of real frames: < 1 zooms in, > 1 shrinks the hand onto a grey "
                         "border (default %(default)s)")
-    p.add_argument("--rot90", type=float, default=0.0,
+    p.add_argument("--rot90", type=float, default=0.5,
                    help="share of training frames turned by a quarter, half or three-quarter turn (default %(default)s)")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=3e-3, help="AdamW, cosine decay to lr/50")

@@ -181,6 +181,26 @@ def test_augmentation_keeps_2d_and_3d_consistent():
         assert np.allclose(rotated[:, 2], xyz[:, 2])
 
 
+def test_upright_batches_show_every_hand_upright_within_the_spread():
+    """--upright D: each synthetic crop is turned so its hand's wrist is below its middle
+    finger's base, then by at most D degrees (mirrored crops too)."""
+    from handmocap.detector import hand_angle
+    from handmocap.train_detnet import BatchMaker
+    rng = np.random.default_rng(2)
+    n = 16
+    uv = np.tile(rng.uniform(30, 98, (1, 21, 2)), (n, 1, 1))
+    uv[:, 0], uv[:, 9] = (64, 90), (64, 40)                    # upright as drawn ...
+    c, s = np.cos(rng.uniform(-np.pi, np.pi, n)), np.sin(rng.uniform(-np.pi, np.pi, n))
+    turn = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    uv = np.einsum("nij,nkj->nki", turn, uv - 64) + 64          # ... then turned any way
+    synth = {"image": np.zeros((n, 128, 128, 3), np.uint8), "uv": uv, "xyz_rel": np.zeros((n, 21, 3)),
+             "handedness": np.zeros(n, np.int8)}
+    for spread in (0.0, 20.0):
+        batch = BatchMaker(synth, None, 0.0, 0.0, 0.5, upright=spread)._synth(n, rng)
+        angles = np.degrees(hand_angle(batch["uv"]))
+        assert np.all(np.abs(angles) <= spread + 1e-6), angles
+
+
 @pytest.mark.parametrize("path", [MODEL, MODEL.with_name("detnet_int8.onnx")], ids=lambda p: p.name)
 def test_committed_model_interface(path):
     ort = pytest.importorskip("onnxruntime")
