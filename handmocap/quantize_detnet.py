@@ -77,12 +77,41 @@ class OnnxNet:
         return (cat["uv"], cat["xyz"], cat["confidence"]), cat["presence"], cat["handedness"]
 
 
-def heldout_sets(shared=None, val="runs/detnet_data/synth_val"):
-    """The training run's held-out synthetic and real sets (train_detnet.validate's inputs)."""
+def heldout_sets(shared=None, val="runs/detnet_data/synth_val", upright=False):
+    """The training run's held-out synthetic and real sets (train_detnet.validate's inputs);
+    upright: each crop turned by the quarter turn the detector would give it (quarter_turned)."""
     from .pose_data import SHARED_DATA
     from .train_detnet import load_real, real_val_set, synth_val_set
     sval = synth_val_set(val) if (Path(val) / "meta.json").exists() else None
-    return sval, real_val_set(load_real(SHARED_DATA if shared is None else shared))
+    rval = real_val_set(load_real(SHARED_DATA if shared is None else shared))
+    if upright:
+        sval, rval = (quarter_turned(v) if v is not None else None for v in (sval, rval))
+    return sval, rval
+
+
+def quarter_turned(crops):
+    """A held-out set (image (N,S,S,3) with uv (N,21,2), optionally xyz (N,21,3) and the
+    unmirrored `raw` images) with each crop turned as the detector's `upright_step` 90 turns
+    it: by the quarter turns nearest to its hand's angle (detector.hand_angle), so the hand
+    is within 45 degrees of upright. A turn counter-clockwise takes a point (x, y) to
+    (y, S-1-x) and a 3D offset (x, y, z) to (y, -x, z); `raw` turns the mirror way."""
+    from .detector import hand_angle
+    out = dict(crops)
+    size = crops["image"].shape[1]
+    k = np.round(hand_angle(crops["uv"]) / (np.pi / 2)).astype(int) % 4
+    for key in ("image", "raw", "uv", "xyz"):
+        if key in crops:
+            out[key] = crops[key].copy()
+    for i in np.flatnonzero(k):
+        out["image"][i] = np.rot90(crops["image"][i], k[i])
+        if "raw" in crops:    # the unmirrored crop of a mirrored (left) hand turns the other way
+            left = "right" in crops and crops["right"][i] < 0.5
+            out["raw"][i] = np.rot90(crops["raw"][i], -k[i] if left else k[i])
+        for _ in range(k[i]):
+            out["uv"][i] = np.stack([out["uv"][i][:, 1], size - 1 - out["uv"][i][:, 0]], -1)
+            if "xyz" in crops:
+                out["xyz"][i] = np.stack([out["xyz"][i][:, 1], -out["xyz"][i][:, 0], out["xyz"][i][:, 2]], -1)
+    return out
 
 
 def heldout_metrics(path, sets=None):
@@ -99,9 +128,11 @@ def main(argv=None):
     p.add_argument("--data", default="runs/detnet_data/synth_train_*", help="synthetic training shards (glob)")
     p.add_argument("--compare", nargs="+", type=Path, metavar="ONNX",
                    help="print the held-out metrics of these files instead of quantizing")
+    p.add_argument("--upright", action="store_true",
+                   help="with --compare: each held-out crop turned by quarter turns as the detector turns it")
     args = p.parse_args(argv)
     if args.compare:
-        sets = heldout_sets()
+        sets = heldout_sets(upright=args.upright)
         for path in args.compare:
             metrics = heldout_metrics(path, sets)
             print(json.dumps({"model": str(path), **{k: round(v, 4) for k, v in metrics.items()}}))

@@ -284,3 +284,24 @@ def test_quantize_makes_an_int8_copy_that_agrees_and_knows_its_source(tmp_path):
     assert stale_quantization(int8.session, out, "") is None
     export_onnx(DetNet("fast"), src)                          # retrained: the int8 copy is now stale
     assert "quantized from another detnet.onnx" in stale_quantization(int8.session, out, "make")
+
+
+def test_quarter_turned_held_out_crops_keep_labels_on_their_pixels_and_hands_upright():
+    from handmocap.detector import hand_angle
+    from handmocap.quantize_detnet import quarter_turned
+    rng = np.random.default_rng(5)
+    n = 12
+    uv = rng.uniform(20, 108, (n, 21, 2))
+    image = np.zeros((n, 128, 128, 3), np.uint8)
+    for i in range(n):
+        x, y = np.round(uv[i, 4]).astype(int)
+        image[i, y, x] = 255                                     # a marked joint
+    xyz = np.concatenate([uv - 64, rng.normal(size=(n, 21, 1))], -1) / 50   # 3D offsets along the 2D ones
+    out = quarter_turned({"image": image, "uv": uv, "xyz": xyz})
+    assert np.all(np.abs(np.degrees(hand_angle(out["uv"]))) <= 45 + 1e-6)
+    assert (np.round(np.degrees(hand_angle(uv))) != np.round(np.degrees(hand_angle(out["uv"])))).any()
+    for i in range(n):
+        ys, xs = np.nonzero(out["image"][i, ..., 0])
+        np.testing.assert_allclose([xs[0], ys[0]], np.round(out["uv"][i, 4]), atol=0.5)
+    np.testing.assert_allclose(out["xyz"][..., :2] * 50, out["uv"] - 63.5, atol=0.5 + 1e-6)  # turned like the 2D
+    np.testing.assert_allclose(out["xyz"][..., 2], xyz[..., 2])
