@@ -201,6 +201,36 @@ def test_upright_batches_show_every_hand_upright_within_the_spread():
         assert np.all(np.abs(angles) <= spread + 1e-6), angles
 
 
+def test_real_3d_labels_turn_and_mirror_with_their_crops():
+    """--real-3d: a real crop's 3D label (MediaPipe's world landmarks, normalized) is turned
+    and mirrored as its 2D is; it trains the 3D heads only on crops shown as right hands,
+    weighted by W x the label's score, and not at all without W or without a 3D label."""
+    from handmocap.skeleton import normalize_joints
+    from handmocap.train_detnet import CTX, BatchMaker
+    rng = np.random.default_rng(3)
+    n = 64
+    world = rng.normal(size=(n, 21, 3))
+    uv = (CTX - 1) / 2 + 15 * (world[..., :2] - world[:, 9:10, :2])      # orthographic views of the 3D hands
+    real = {"image": np.zeros((n, CTX, CTX, 3), np.uint8), "uv": uv.astype(np.float32),
+            "right": rng.random(n) < 0.5, "weight": rng.uniform(0.5, 1.0, n).astype(np.float32),
+            "held": np.zeros(n, bool), "xyz": normalize_joints(world).astype(np.float32),
+            "has_3d": np.arange(n) % 4 != 0, "neg": np.zeros((0, 128, 128, 3), np.uint8), "neg_held": np.zeros(0, bool)}
+    for w in (0.0, 0.5):
+        batch = BatchMaker(None, real, 1.0, 0.0, 0.3, upright=40.0, real_3d=w)._real(256, rng)
+        shown_right = batch["right"] > 0.5
+        assert np.all(batch["w3d"][~shown_right] == 0)
+        if not w:
+            assert np.all(batch["w3d"] == 0)
+            continue
+        trained = batch["w3d"] > 0
+        assert trained.sum() > 50 and np.allclose(batch["w3d"][trained], w * batch["w_hand"][trained])
+        for i in np.flatnonzero(trained):       # 2D offsets and the 3D label's image-plane part agree in direction
+            d2 = batch["uv"][i] - batch["uv"][i][9]
+            d3 = batch["xyz"][i][:, :2]
+            assert np.sum(d2 * d3) / (np.linalg.norm(d2) * np.linalg.norm(d3)) > 0.999
+        assert np.allclose(np.linalg.norm(batch["xyz"][trained][:, 0], axis=-1), 1, atol=1e-5)
+
+
 @pytest.mark.parametrize("path", [MODEL, MODEL.with_name("detnet_int8.onnx")], ids=lambda p: p.name)
 def test_committed_model_interface(path):
     ort = pytest.importorskip("onnxruntime")

@@ -108,7 +108,9 @@ def build_real_cache(shared=None, path=None, per_video=120, seed=0, log=print):
     if not all_crops:
         return None
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npy")
+    # a name of this process's own: handsynth's workers may each build the cache at once,
+    # and whichever renames last leaves the same array in place
+    tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
     np.save(tmp, np.concatenate(all_crops))
     tmp.replace(path)
     path.with_suffix(".json").write_text(json.dumps({"version": CACHE_VERSION, "sources": sources}, indent=1))
