@@ -8,7 +8,10 @@ square around its 21-joint box x CROP_SCALE, turned upright by the detector's
 `upright_step` (default: HandDetector's), left hands mirrored by the label's handedness
 where the split has one), DetNet runs once, and its 2D joints are mapped back to the frame.
 Prints the mean px error in frame px and relative to the hand's joint-box side, to set
-beside `handeval splits`' whole-frame figures.
+beside `handeval splits`' whole-frame figures. Where the split knows each hand's side, also
+DetNet's handedness head on the unmirrored labelled crop (how often it says the label's
+side) and the 2D error when the crop is mirrored the wrong way (what a wrong handedness
+costs the keypoints, since they are read as a right hand).
 """
 import argparse
 import glob
@@ -26,18 +29,26 @@ UPRIGHT_STEP = inspect.signature(HandDetector).parameters["upright_step"].defaul
 def evaluate(detnet, split_dir, upright_step=UPRIGHT_STEP):
     gt = np.load(split_dir / "gt.npz")
     files = sorted(glob.glob(str(split_dir / "images" / "*")))
-    err, rel = [], []
+    sided = "handedness" in gt.files
+    err, rel, head_right, wrong_err = [], [], [], []
     for i, f in enumerate(files):
         uv = gt["uv"][i]
         if not np.all(np.isfinite(uv)):
             continue
-        left = "handedness" in gt.files and gt["handedness"][i] == "left"
-        crop = crop_for_joints(uv, mirrored=left, upright_step=upright_step)
-        out = detnet(crop.cut(cv2.imread(f))[None, ..., ::-1])
-        e = np.linalg.norm(crop.to_frame(out["uv"][0]) - uv, axis=1).mean()
-        err.append(e)
-        rel.append(e / np.max(uv.max(0) - uv.min(0)))
-    return len(err), float(np.mean(err)), float(np.median(rel))
+        left = sided and gt["handedness"][i] == "left"
+        crops = [crop_for_joints(uv, mirrored=m, upright_step=upright_step) for m in (left, not left)]
+        image = cv2.imread(f)
+        out = detnet(np.stack([c.cut(image)[..., ::-1] for c in crops]))
+        e = [np.linalg.norm(c.to_frame(out["uv"][k]) - uv, axis=1).mean() for k, c in enumerate(crops)]
+        err.append(e[0])
+        rel.append(e[0] / np.max(uv.max(0) - uv.min(0)))
+        if sided and gt["handedness"][i] in ("left", "right"):
+            unmirrored = 1 if left else 0       # the head is asked on the crop as filmed
+            head_right.append((out["handedness"][unmirrored] > 0.5) == (not left))
+            wrong_err.append(e[1])
+    nan = float("nan")
+    return (len(err), float(np.mean(err)), float(np.median(rel)),
+            float(np.mean(head_right)) if head_right else nan, float(np.mean(wrong_err)) if wrong_err else nan)
 
 
 def main():
@@ -49,11 +60,12 @@ def main():
                    help="degrees; 0: any angle; none: never turned (default: the detector's, %(default)s)")
     args = p.parse_args()
     detnet = DetNetRunner.load(args.detnet)
-    print("| split | hands | DetNet on labelled crops: mean px | median error / joint-box side |")
-    print("|---|---|---|---|")
+    print("| split | hands | DetNet on labelled crops: mean px | median error / joint-box side "
+          "| handedness head right | mean px, crop mirrored the wrong way |")
+    print("|---|---|---|---|---|---|")
     for s in args.splits:
-        n, e, r = evaluate(detnet, args.work / s, args.upright_step)
-        print(f"| {s} | {n} | {e:.1f} | {r:.3f} |")
+        n, e, r, hand, wrong = evaluate(detnet, args.work / s, args.upright_step)
+        print(f"| {s} | {n} | {e:.1f} | {r:.3f} | {hand:.1%} | {wrong:.1f} |".replace("nan%", "–").replace("nan", "–"))
 
 
 if __name__ == "__main__":
