@@ -149,10 +149,11 @@ def build_real_cache(shared, path, seed=0, log=print):
         M = real_data.crop_affine(cx, cy, side, CTX)
         hands["image"].append(real_data.warp(image, M, CTX, replicate=True))
         hands["uv"].append(real_data.apply_affine(M, uv).astype(np.float32))
-        xyz = np.zeros((21, 3), np.float32) if world is None else normalize_joints(world).astype(np.float32)
-        has_3d = world is not None and bool(np.all(np.isfinite(xyz)))
+        xyz = None if world is None else normalize_joints(world)
+        has_3d = xyz is not None and bool(np.all(np.isfinite(xyz)))
         for k, v in (("right", right), ("weight", weight), ("held", held), ("source", source),
-                     ("xyz", xyz if has_3d else np.zeros((21, 3), np.float32)), ("has_3d", has_3d)):
+                     ("xyz", xyz.astype(np.float32) if has_3d else np.zeros((21, 3), np.float32)),
+                     ("has_3d", has_3d)):
             hands[k].append(v)
 
     for seq in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, shared):

@@ -36,13 +36,15 @@ def evaluate(detnet, split_dir, upright_step=UPRIGHT_STEP):
         if not np.all(np.isfinite(uv)):
             continue
         left = sided and gt["handedness"][i] == "left"
-        crops = [crop_for_joints(uv, mirrored=m, upright_step=upright_step) for m in (left, not left)]
+        known = sided and gt["handedness"][i] in ("left", "right")
+        # the crop as DetNet should see it and, where the side is known, mirrored the wrong way
+        crops = [crop_for_joints(uv, mirrored=m, upright_step=upright_step) for m in (left, not left)[:1 + known]]
         image = cv2.imread(f)
         out = detnet(np.stack([c.cut(image)[..., ::-1] for c in crops]))
         e = [np.linalg.norm(c.to_frame(out["uv"][k]) - uv, axis=1).mean() for k, c in enumerate(crops)]
         err.append(e[0])
         rel.append(e[0] / np.max(uv.max(0) - uv.min(0)))
-        if sided and gt["handedness"][i] in ("left", "right"):
+        if known:
             unmirrored = 1 if left else 0       # the head is asked on the crop as filmed
             head_right.append((out["handedness"][unmirrored] > 0.5) == (not left))
             wrong_err.append(e[1])

@@ -224,6 +224,7 @@ def test_real_3d_labels_turn_and_mirror_with_their_crops():
             continue
         trained = batch["w3d"] > 0
         assert trained.sum() > 50 and np.allclose(batch["w3d"][trained], w * batch["w_hand"][trained])
+        assert trained.sum() < shown_right.sum()        # a quarter of the hands have no 3D label
         for i in np.flatnonzero(trained):       # 2D offsets and the 3D label's image-plane part agree in direction
             d2 = batch["uv"][i] - batch["uv"][i][9]
             d3 = batch["xyz"][i][:, :2]
