@@ -34,7 +34,10 @@ Per frame (`HandDetector.process`):
    moved on by half the last displacement, side changing by at most 1.33x per frame), as
    MediaPipe and the paper's videos do.
 5. Handedness per track: a running mean in logit space of DetNet's handedness head
-   (mapped back through the flip) and, at detection, the finder's. Two tracks that DetNet
+   (mapped back through the flip), at detection the finder's, and every
+   `mirror_vote_every` frames (and on a new track's crops) the head's answer on the crop
+   flipped the other way: a head biased towards one side on an unfamiliar view leans the
+   same way on both, and the mean of the two readings cancels the bias. Two tracks that DetNet
    believes are hands (running mean heatmap peak >= `opposite_hands`) and that read as the
    same hand are one person's left and right: the one with the weaker evidence turns.
 6. Two tracks on one hand (joint-box IoU >= 0.5, or the smaller box 70% inside the other):
@@ -296,7 +299,7 @@ class HandDetector:
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
                  birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
-                 opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3):
+                 opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3):
         self.detnet, self.finder = detnet, finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
@@ -338,6 +341,11 @@ class HandDetector:
         self.upright_step = upright_step
         # weight of the finder's handedness against one DetNet reading (0: DetNet's alone)
         self.finder_handedness = finder_handedness
+        # every this many frames of a track (and on its first), DetNet also reads its crop
+        # flipped the other way and the handedness head's answer there votes too (0: never).
+        # The head alone is biased on views unlike its training data; asked about a crop and
+        # its mirror image, its two answers share the bias and averaging them cancels it
+        self.mirror_vote_every = mirror_vote_every
         # the finder checks the tracks every `redetect_every` frames: a found hand inside a
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
@@ -476,13 +484,16 @@ class HandDetector:
         return inside or box_iou(cb, box)[0, 0] >= 0.3
 
     # -------------------------------------------------------------- per frame
-    def _run(self, image_bgr, crops):
-        """DetNet's outputs on the CropTransforms `crops` of a frame."""
+    def _run(self, image_bgr, crops, flipped=()):
+        """DetNet's outputs on the CropTransforms `crops` of a frame, then on the crops with
+        indices `flipped` mirrored the other way (in the same batch, after the others)."""
         # cut from the BGR frame and reverse the channels of the crops only: cutting from a
         # reversed-channel view of the frame made OpenCV copy the whole frame for each crop
-        pixels = np.ascontiguousarray(np.stack([c.cut(image_bgr) for c in crops])[..., ::-1])
-        self.stats["crops"] += len(crops)
-        return self.detnet(pixels)
+        pixels = np.stack([c.cut(image_bgr) for c in crops])
+        if len(flipped):
+            pixels = np.concatenate([pixels, pixels[list(flipped), :, ::-1]])
+        self.stats["crops"] += len(pixels)
+        return self.detnet(np.ascontiguousarray(pixels[..., ::-1]))
 
     def process(self, image_bgr):
         """HandKeypoints hands of one BGR frame (H,W,3) uint8, sorted by track id."""
@@ -500,7 +511,7 @@ class HandDetector:
         self.lost_last_frame = False
         if not self.tracks:
             return []
-        out = self._run(image_bgr, [t.crop for t in self.tracks])
+        out = self._run_voting(image_bgr, self.tracks)
         idx = [i for i, t in enumerate(self.tracks) if t in new]
         if self.upright_step is not None and idx:
             self._turn_new_tracks(image_bgr, idx, out)
@@ -512,7 +523,7 @@ class HandDetector:
                     t.add_handedness(1.0 - right_seen if t.crop.mirrored else right_seen)
                     t.crop = crop_for_joints(t.crop.to_frame(out["uv"][i]), not t.is_right, self.crop_scale,
                                              self.upright_step)
-            again = self._run(image_bgr, [self.tracks[i].crop for i in idx])
+            again = self._run_voting(image_bgr, [self.tracks[i] for i in idx])   # a new track votes again here
             for k, i in enumerate(idx):
                 for key in out:
                     out[key][i] = again[key][k]
@@ -560,6 +571,18 @@ class HandDetector:
         if self.opposite_hands is not None:
             self._one_left_one_right()
         return sorted(hands, key=lambda h: h["track_id"])
+
+    def _run_voting(self, image_bgr, tracks):
+        """DetNet's outputs on the crops of `tracks`; the crops of those due a mirror vote
+        (`mirror_vote_every`; a new track on each of its first frame's crops) are also read
+        flipped, and the handedness head's answer there goes into their running handedness."""
+        due = [i for i, t in enumerate(tracks) if self.mirror_vote_every and t.age % self.mirror_vote_every == 0]
+        out = self._run(image_bgr, [t.crop for t in tracks], due)
+        n = len(tracks)
+        for k, i in enumerate(due):
+            flipped_right = float(out["handedness"][n + k])     # the head on the crop mirrored the other way
+            tracks[i].add_handedness(flipped_right if tracks[i].crop.mirrored else 1.0 - flipped_right)
+        return {key: v[:n] for key, v in out.items()}
 
     def _turn_new_tracks(self, image_bgr, idx, out):
         """New tracks (indices `idx` into self.tracks, `out` DetNet's outputs on their crops)

@@ -70,9 +70,10 @@ class FakeDetNet:
     handedness. xyz: the 2D joints lifted to z = 0, normalized (or `xyz_right`, a fixed
     right hand, when given)."""
 
-    def __init__(self, xyz_right=None, prefers_upright=False):
+    def __init__(self, xyz_right=None, prefers_upright=False, right_bias=0.0):
         self.xyz_right = xyz_right
         self.prefers_upright = prefers_upright     # heatmap peaks fall as the hand turns from upright
+        self.right_bias = right_bias               # logit added to the handedness head: a biased head
         self.calls = 0
 
     def __call__(self, crops_rgb):
@@ -93,7 +94,8 @@ class FakeDetNet:
                 upright = max(0.2, -wrist_to_base[1] / (np.linalg.norm(wrist_to_base) + 1e-9))
             out["confidence"].append(seen.astype(np.float32) * upright)
             out["presence"].append(1.0 if ok else 0.0)
-            out["handedness"].append(appears_right(uv) if ok else 0.5)
+            sure = 2.0 * (2 * appears_right(uv) - 1) + self.right_bias
+            out["handedness"].append(1 / (1 + np.exp(-sure)) if ok else 0.5)
         return {k: np.asarray(v, np.float32) for k, v in out.items()}
 
 
@@ -194,7 +196,9 @@ def test_a_new_track_takes_the_quarter_turn_detnet_believes_most():
         assert len(out) == (0 if step is None else 1)        # upside down, its peaks stay below birth
         if step is not None:
             assert abs(abs(det.tracks[0].crop.angle) - abs(angle)) < 0.05, det.tracks[0].crop.angle
-            assert det.stats["crops"] == 1 + 3 + 1         # first look, three more turns, the refinement
+            # first look, three more turns, the refinement; the first look and the refinement
+            # also flipped for the mirror vote
+            assert det.stats["crops"] == 1 + 3 + 1 + 2
             np.testing.assert_allclose(out[0]["uv"], np.round(uv_true), atol=DOT_TOL)
 
 
@@ -229,6 +233,26 @@ def test_detnets_handedness_overrides_a_wrong_finder_at_once():
     hands = det.process(frame)
     assert [h["handedness"] for h in hands] == ["left"]
     np.testing.assert_allclose(hands[0]["uv"], np.round(canonical_hand((250, 300), 160, right=False)), atol=DOT_TOL)
+
+
+def test_the_mirror_vote_cancels_a_handedness_head_biased_to_one_side():
+    """A head that leans 3 logits towards "right" calls a left hand right on its crop
+    (-2 + 3 > 0); on the crop flipped, which shows a right hand, it says right all the more
+    (2 + 3), i.e. the hand as filmed is left: the two readings' mean is the head's unbiased
+    answer (-2). Every `mirror_vote_every` frames of a track, and on its first crops."""
+    frame = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160, right=False))
+    for every, side in ((0, "right"), (3, "left")):
+        net = FakeDetNet(right_bias=3.0)
+        # the finder's wrong side cuts the first crop unmirrored, as filmed
+        det = HandDetector(net, FakeFinder(wrong_handedness=True), finder_handedness=0.0, mirror_vote_every=every,
+                           upright_step=None)
+        assert [h["handedness"] for h in det.process(frame)] == [side], every
+    crops = [det.stats["crops"]]
+    for _ in range(6):                       # a tracked hand: one crop a frame, two every third
+        det.process(frame)
+        crops.append(det.stats["crops"])
+    assert np.diff(crops).tolist() == [1, 1, 2, 1, 1, 2]
+    assert det.tracks[0].right_logit < 0
 
 
 def two_hand_frames(n, drop=()):
@@ -274,11 +298,13 @@ def test_tracked_hands_do_not_run_the_finder_unless_it_checks_the_tracks():
     for f in frames:
         det.process(f)
     # + three more quarter turns and the refinement of each new track
-    assert det.finder.calls == 1 and det.stats["crops"] == 2 * 30 + 2 * 3 + 2
+    # and the mirror vote: each new track's first and refined crop, then every third frame (ages 3 .. 27)
+    assert det.finder.calls == 1 and det.stats["crops"] == 2 * 30 + 2 * 3 + 2 + 2 * 2 + 2 * 9
     det = detector(redetect_every=5)          # default: the finder checks the tracks every 5 frames
     for f in frames:
         det.process(f)
-    assert det.finder.calls == 1 + 29 // 5 and det.stats["reseeds"] == 0 and det.stats["crops"] == 2 * 30 + 2 * 3 + 2
+    assert det.finder.calls == 1 + 29 // 5 and det.stats["reseeds"] == 0
+    assert det.stats["crops"] == 2 * 30 + 2 * 3 + 2 + 2 * 2 + 2 * 9
 
 
 def test_a_track_whose_joints_left_the_found_hand_is_reseeded_from_the_finder():
