@@ -102,6 +102,11 @@ def read_node_files(directory: Path, alive_only: bool = True) -> dict[str, NodeI
     return nodes
 
 
+# how long a closing publisher goes on flushing to a subscriber that is slow to read (one
+# still busy finishing its own work on shutdown): within reason, lose nothing
+PUBLISHER_LINGER_S = 10
+
+
 class Publisher:
     """One XPUB socket per node. XPUB (not PUB) so that the node sees subscriptions arrive and
     can hold its first message until every subscriber of the graph is connected."""
@@ -110,7 +115,7 @@ class Publisher:
         self.sock = ctx.socket(zmq.XPUB)
         self.sock.setsockopt(zmq.SNDHWM, 0)       # keep-all subscribers must lose nothing
         self.sock.setsockopt(zmq.XPUB_VERBOSE, 1)  # count every subscriber, not each prefix once
-        self.sock.setsockopt(zmq.LINGER, 10000)   # flush a slow subscriber at close, within reason
+        self.sock.setsockopt(zmq.LINGER, int(PUBLISHER_LINGER_S * 1000))   # flush a slow subscriber at close
         self.sock.bind(endpoint)
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.subscriptions: Counter[bytes] = Counter()

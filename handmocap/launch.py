@@ -81,7 +81,10 @@ FALSE_WORDS = {"", "false", "no", "off", "0", "null", "none"}
 TOP_KEYS = {"graph", "args", "env", "nodes"}
 VAR = re.compile(r"\$\((var|env) ([A-Za-z_][A-Za-z0-9_]*)(?: ([^)]*))?\)")
 STARTUP_TIMEOUT_S = 120
-STOP_TIMEOUT_S = 5
+# a stopping process may wait out its publishers' linger (a subscriber in another process
+# still finishing its own shutdown, e.g. a visualizer drawing its last frames, has not read
+# the last frames yet): it is killed only after that, or it could lose them
+STOP_TIMEOUT_S = bus.PUBLISHER_LINGER_S + 5
 MAX_BACKOFF_S = 30
 
 
