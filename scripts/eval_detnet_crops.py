@@ -10,8 +10,9 @@ where the split has one), DetNet runs once, and its 2D joints are mapped back to
 Prints the mean px error in frame px and relative to the hand's joint-box side, to set
 beside `handeval splits`' whole-frame figures. Where the split knows each hand's side, also
 DetNet's handedness head on the unmirrored labelled crop (how often it says the label's
-side) and the 2D error when the crop is mirrored the wrong way (what a wrong handedness
-costs the keypoints, since they are read as a right hand).
+side), the same with the detector's mirror vote (the head's answers on the crop and on it
+flipped, averaged in logit space) and the 2D error when the crop is mirrored the wrong way
+(what a wrong handedness costs the keypoints, since they are read as a right hand).
 """
 import argparse
 import glob
@@ -21,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.detector import DetNetRunner, HandDetector, crop_for_joints
+from handmocap.detector import DetNetRunner, HandDetector, crop_for_joints, logit
 
 UPRIGHT_STEP = inspect.signature(HandDetector).parameters["upright_step"].default
 
@@ -30,7 +31,7 @@ def evaluate(detnet, split_dir, upright_step=UPRIGHT_STEP):
     gt = np.load(split_dir / "gt.npz")
     files = sorted(glob.glob(str(split_dir / "images" / "*")))
     sided = "handedness" in gt.files
-    err, rel, head_right, wrong_err = [], [], [], []
+    err, rel, head_right, vote_right, wrong_err = [], [], [], [], []
     for i, f in enumerate(files):
         uv = gt["uv"][i]
         if not np.all(np.isfinite(uv)):
@@ -47,10 +48,12 @@ def evaluate(detnet, split_dir, upright_step=UPRIGHT_STEP):
         if known:
             unmirrored = 1 if left else 0       # the head is asked on the crop as filmed
             head_right.append((out["handedness"][unmirrored] > 0.5) == (not left))
+            vote = logit(out["handedness"][unmirrored]) - logit(out["handedness"][1 - unmirrored])
+            vote_right.append((vote > 0) == (not left))
             wrong_err.append(e[1])
     nan = float("nan")
-    return (len(err), float(np.mean(err)), float(np.median(rel)),
-            float(np.mean(head_right)) if head_right else nan, float(np.mean(wrong_err)) if wrong_err else nan)
+    share = lambda v: float(np.mean(v)) if v else nan   # noqa: E731
+    return len(err), float(np.mean(err)), float(np.median(rel)), share(head_right), share(vote_right), share(wrong_err)
 
 
 def main():
@@ -63,11 +66,12 @@ def main():
     args = p.parse_args()
     detnet = DetNetRunner.load(args.detnet)
     print("| split | hands | DetNet on labelled crops: mean px | median error / joint-box side "
-          "| handedness head right | mean px, crop mirrored the wrong way |")
-    print("|---|---|---|---|---|---|")
+          "| handedness head right | with the mirror vote | mean px, crop mirrored the wrong way |")
+    print("|---|---|---|---|---|---|---|")
     for s in args.splits:
-        n, e, r, hand, wrong = evaluate(detnet, args.work / s, args.upright_step)
-        print(f"| {s} | {n} | {e:.1f} | {r:.3f} | {hand:.1%} | {wrong:.1f} |".replace("nan%", "–").replace("nan", "–"))
+        n, e, r, hand, vote, wrong = evaluate(detnet, args.work / s, args.upright_step)
+        print(f"| {s} | {n} | {e:.1f} | {r:.3f} | {hand:.1%} | {vote:.1%} | {wrong:.1f} |"
+              .replace("nan%", "–").replace("nan", "–"))
 
 
 if __name__ == "__main__":

@@ -121,10 +121,15 @@ def test_all_joint_fit_recovers_the_root_exactly_and_averages_out_joint_errors(s
     rel = xyz - xyz[9]
     root, ok = root_fitting_keypoints(K, project(xyz), rel)
     assert ok and np.linalg.norm(root - xyz[9]) / depth < 1e-9
-    # a skeleton whose joints are off by 5 mm (5% of a hand): the root stays within ~10% of its depth
-    noisy = rel + rng.normal(0, 0.005, rel.shape)
+    # a skeleton whose joints are off by 5 mm (5% of a hand): the depth is read from the hand's
+    # size in the image, so the root's error is about depth x noise / the hand's spread across
+    # the view (0.15x that at the median over 30,000 random hands, 0.92x at the worst: 1.5x is
+    # the bound). A fixed 10% of the depth failed on 0.05% of hands, those seen nearly edge-on
+    sigma = 0.005
+    noisy = rel + rng.normal(0, sigma, rel.shape)
     root, ok = root_fitting_keypoints(K, project(xyz), noisy)
-    assert ok and np.linalg.norm(root - xyz[9]) < 0.1 * depth + 0.01
+    spread = np.sqrt(np.mean(np.sum((rel[:, :2] - rel[:, :2].mean(0)) ** 2, axis=1)))   # metres
+    assert ok and np.linalg.norm(root - xyz[9]) < 1.5 * depth * sigma / spread
 
 
 def test_all_joint_fit_skips_missing_joints_and_refuses_degenerate_input():
