@@ -1,6 +1,6 @@
 """Evaluate IKNet (the exported ONNX model, as shipped) beside the analytic IK baseline.
 
-    python -m handmocap.eval_iknet [--model int8|float32|PATH] [--n 10000]
+    python -m handmocap.eval_iknet [--model int8|float32|PATH] [--n 10000] [--pairs PAIRS.npz]
 
 (default: the file IKSolver.load opens by default, models/iknet_int8.onnx)
 
@@ -19,6 +19,11 @@ to the true clean joints, mm with the reference bone scaled to 95 mm; limits = s
 15 finger joints within the anatomical limits (JointLimits of the average hand, 0.5 deg
 tolerance). "clamped to limits" clips IKNet's finger angles into those limits
 (ik_solver.clamp_to_limits), as the ik node does by default.
+
+--pairs PAIRS.npz (scripts/detnet_noisy_pairs.py on a held-out shard, e.g. the synthetic
+validation shard): the paper's Table 2 on a real detector's output. DetNet's 3D of
+rendered crops against the rendered truth, alone and through IKNet + FK at the true rest
+pose: mean joint error (mm, reference bone 95 mm) and 3D AUC over 20-50 mm.
 """
 import argparse
 import time
@@ -28,6 +33,7 @@ import numpy as np
 from .hand_model import HandModel
 from .ik_solver import IKSolver, analytic_ik, clamp_to_limits, model_path
 from .joint_limits import JointLimits
+from .metrics import PCK_THRESHOLDS_MM, auc, pck
 from .kinematics import bone_rotations_to_frames, forward_kinematics, frames_to_bone_rotations
 from .pose_data import REAL_EVAL, SHARED_DATA, PositionPairs, PoseSampler, corrupt_joints, load_real_sequences
 from .rotations import quat_angle_between, quat_to_matrix
@@ -83,6 +89,23 @@ def evaluate(solver, n=10000, data_root=SHARED_DATA, batch=1000):
     return results, noise_mm
 
 
+def evaluate_pairs(solver, path, batch=1000):
+    """{method: (mean joint error mm, AUC 20-50 mm)} on a detector's output (PositionPairs.from_npz)."""
+    model = HandModel.load()
+    limits = JointLimits.for_model(model)
+    pairs = PositionPairs.from_npz(path, model)
+    x, rest, target = pairs.inputs, pairs.rest, pairs.targets
+    quats = np.concatenate([solver.solve(x[i:i + batch], rest[i:i + batch]) for i in range(0, len(x), batch)])
+    joints = {"the detector's joints (DetNet alone)": x,
+              "IKNet + FK": fk_joints(quats, rest),
+              "IKNet, clamped to limits, + FK": fk_joints(clamp_to_limits(quats, limits), rest)}
+    out = {}
+    for method, xyz in joints.items():
+        err_mm = np.linalg.norm(xyz - target, axis=-1) * REF_MM
+        out[method] = (float(err_mm.mean()), auc(PCK_THRESHOLDS_MM, pck(err_mm, PCK_THRESHOLDS_MM)))
+    return out, len(x)
+
+
 def format_table(results, noise_mm):
     rows = ["| data | method | rotation error, deg (all 21 / 15 finger bones) | FK joint error, mm | joints within limits |",
             "|---|---|---|---|---|"]
@@ -103,8 +126,17 @@ def main(argv=None):
     p.add_argument("--model", default=None, help="int8 (default), float32 or an ONNX path")
     p.add_argument("--n", type=int, default=10000)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--pairs", help="an .npz of a detector's output on rendered crops (scripts/detnet_noisy_pairs.py): "
+                                   "this table only")
     args = p.parse_args(argv)
     t0 = time.perf_counter()
+    if args.pairs:
+        results, n = evaluate_pairs(IKSolver.load(args.model, threads=args.threads), args.pairs)
+        print(f"model: {model_path(args.model)}; {n} pairs from {args.pairs}")
+        print("| input | mean joint error, mm | 3D AUC 20-50 mm |\n|---|---|---|")
+        for method, (mm, area) in results.items():
+            print(f"| {method} | {mm:.2f} | {area:.3f} |")
+        return
     results, noise_mm = evaluate(IKSolver.load(args.model, threads=args.threads), args.n)
     print(f"model: {model_path(args.model)}")
     print(format_table(results, noise_mm))

@@ -271,3 +271,22 @@ def test_one_euro_smooths_still_signals_and_follows_fast_ones():
     assert ramp(5.0, t[-1]) == pytest.approx(ramp.x)   # a repeated stamp changes nothing
     ramp.reset()
     assert ramp(7.0, 100.0) == 7.0            # after a reset the first value passes through
+
+
+def test_eval_iknet_pairs_scores_a_detectors_output_alone_and_through_iknet(tmp_path):
+    """`python -m handmocap.eval_iknet --pairs`: the paper's Table 2 on (prediction, truth)
+    pairs. The detector's own row is the plain joint error; exact predictions give AUC 1
+    alone and nearly 1 through IKNet + FK (the model posed by IKNet's rotations)."""
+    from handmocap.eval_iknet import evaluate_pairs
+    d = samples(300, 11)
+    noisy = corrupt_joints(d["xyz"], np.random.default_rng(12))
+    solver = IKSolver.load()
+    for pred, path in ((d["xyz"], tmp_path / "exact.npz"), (noisy, tmp_path / "noisy.npz")):
+        np.savez(path, pred=pred, target=d["xyz"], rest=d["rest"])
+    exact, n = evaluate_pairs(solver, tmp_path / "exact.npz")
+    assert n == 300 and exact["the detector's joints (DetNet alone)"] == (0.0, 1.0)
+    assert exact["IKNet + FK"][0] < 3.0 and exact["IKNet + FK"][1] > 0.99
+    noisy_rows, _ = evaluate_pairs(solver, tmp_path / "noisy.npz")
+    alone_mm = np.linalg.norm(normalize_joints(noisy) - normalize_joints(d["xyz"]), axis=-1).mean() * REF_MM
+    np.testing.assert_allclose(noisy_rows["the detector's joints (DetNet alone)"][0], alone_mm, rtol=1e-9)
+    assert noisy_rows["IKNet + FK"][0] > exact["IKNet + FK"][0]
