@@ -44,6 +44,8 @@ def add_arguments(p):
     p.add_argument("--share-real", type=float, default=0.15, help="share of each batch from real sequences")
     p.add_argument("--noisy-source", default="emulated",
                    help="'emulated' (corrupt_joints) or an .npz of detector predictions (pred, target[, rest])")
+    p.add_argument("--share-detector", type=float, default=1.0,
+                   help="with a --noisy-source file: the share of the noisy samples taken from it (the rest emulated)")
     p.add_argument("--no-real", action="store_true", help="do not use the real joint sequences")
     p.add_argument("--data", type=Path, default=SHARED_DATA, help="real data pack (default %(default)s)")
     p.add_argument("--seed", type=int, default=0)
@@ -64,25 +66,29 @@ def add_arguments(p):
 class BatchMaker:
     """Numpy batches: features (N,252) f32, targets in the palm frame of each input."""
 
-    def __init__(self, model, noisy_pairs=None, real_pairs=None, share_noisy=0.35, share_real=0.15):
+    def __init__(self, model, noisy_pairs=None, real_pairs=None, share_noisy=0.35, share_real=0.15,
+                 share_detector=1.0):
         self.sampler = PoseSampler(model)
         self.noisy_pairs, self.real_pairs = noisy_pairs, real_pairs
         self.share_noisy = share_noisy
+        # of the noisy samples, the share taken from the detector's pairs; the rest emulated
+        self.share_detector = share_detector if noisy_pairs is not None else 0.0
         self.share_real = share_real if real_pairs is not None and len(real_pairs) else 0.0
 
     def make(self, n, rng):
         n_real = int(round(self.share_real * n))
         n_noisy = int(round(self.share_noisy * n))
+        n_detector = int(round(self.share_detector * n_noisy))
         n_pose = n - n_real - n_noisy
-        poses = self.sampler.sample(n_pose + (n_noisy if self.noisy_pairs is None else 0), rng)
+        poses = self.sampler.sample(n_pose + n_noisy - n_detector, rng)
         inputs, targets, rest = [poses["xyz"][:n_pose]], [poses["xyz"][:n_pose]], [poses["rest"][:n_pose]]
-        if self.noisy_pairs is None:
+        if n_noisy > n_detector:
             clean = poses["xyz"][n_pose:]
             inputs.append(corrupt_joints(clean, rng))
             targets.append(clean)
             rest.append(poses["rest"][n_pose:])
-        else:
-            for a, b in zip((inputs, targets, rest), self.noisy_pairs.sample(n_noisy, rng)):
+        if n_detector:
+            for a, b in zip((inputs, targets, rest), self.noisy_pairs.sample(n_detector, rng)):
                 a.append(b)
         if n_real:
             for a, b in zip((inputs, targets, rest), self.real_pairs.sample(n_real, rng)):
@@ -171,7 +177,7 @@ def main(args):
             print(f"real joint sequences: {len(sequences)} clips, {len(real_pairs)} frames from {args.data}")
         else:
             print(f"note: no real joint sequences under {args.data}; training on synthetic data only")
-    maker = BatchMaker(model, noisy_pairs, real_pairs, args.share_noisy, args.share_real)
+    maker = BatchMaker(model, noisy_pairs, real_pairs, args.share_noisy, args.share_real, args.share_detector)
     val = validation_set(model)
     args.run_dir.mkdir(parents=True, exist_ok=True)
 
