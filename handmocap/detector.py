@@ -273,6 +273,11 @@ class Track:
     def is_right(self) -> bool:
         return self.right_logit >= 0.0
 
+    def add_head_reading(self, p_right_seen, mirrored):
+        """DetNet's handedness head p_right_seen (does the crop show a right hand) on a crop
+        of this hand that was (mirrored) or was not flipped."""
+        self.add_handedness(1.0 - p_right_seen if mirrored else p_right_seen)
+
     def add_handedness(self, p_right, weight=1.0, memory=20):
         """Running mean of logits over about the last `memory` observations."""
         n = min(self.samples + weight, memory)
@@ -519,8 +524,7 @@ class HandDetector:
             for i in idx:
                 t = self.tracks[i]
                 if out["presence"][i] >= self.presence_threshold:
-                    right_seen = float(out["handedness"][i])
-                    t.add_handedness(1.0 - right_seen if t.crop.mirrored else right_seen)
+                    t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
                     t.crop = crop_for_joints(t.crop.to_frame(out["uv"][i]), not t.is_right, self.crop_scale,
                                              self.upright_step)
             again = self._run_voting(image_bgr, [self.tracks[i] for i in idx])   # a new track votes again here
@@ -548,13 +552,11 @@ class HandDetector:
             if not np.all(np.isfinite(xyz)):
                 self.lost_last_frame = True
                 continue
-            right_seen = float(out["handedness"][i])
             if t.crop.mirrored:
                 xyz = mirror_points(xyz)
-                right_seen = 1.0 - right_seen
             if t.crop.angle:
                 xyz = t.crop.to_frame_axes(xyz)
-            t.add_handedness(right_seen)
+            t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
             if t.uv is not None:
                 t.velocity = np.median(uv - t.uv, axis=0)
             t.uv, t.age = uv, t.age + 1
@@ -579,9 +581,8 @@ class HandDetector:
         due = [i for i, t in enumerate(tracks) if self.mirror_vote_every and t.age % self.mirror_vote_every == 0]
         out = self._run(image_bgr, [t.crop for t in tracks], due)
         n = len(tracks)
-        for k, i in enumerate(due):
-            flipped_right = float(out["handedness"][n + k])     # the head on the crop mirrored the other way
-            tracks[i].add_handedness(flipped_right if tracks[i].crop.mirrored else 1.0 - flipped_right)
+        for k, i in enumerate(due):     # the head on the crop mirrored the other way
+            tracks[i].add_head_reading(float(out["handedness"][n + k]), not tracks[i].crop.mirrored)
         return {key: v[:n] for key, v in out.items()}
 
     def _turn_new_tracks(self, image_bgr, idx, out):

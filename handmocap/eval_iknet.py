@@ -33,8 +33,8 @@ import numpy as np
 from .hand_model import HandModel
 from .ik_solver import IKSolver, analytic_ik, clamp_to_limits, model_path
 from .joint_limits import JointLimits
-from .metrics import PCK_THRESHOLDS_MM, auc, pck
 from .kinematics import bone_rotations_to_frames, forward_kinematics, frames_to_bone_rotations
+from .metrics import PCK_THRESHOLDS_MM, auc, pck
 from .pose_data import REAL_EVAL, SHARED_DATA, PositionPairs, PoseSampler, corrupt_joints, load_real_sequences
 from .rotations import quat_angle_between, quat_to_matrix
 from .skeleton import normalize_joints
@@ -48,6 +48,11 @@ def fk_joints(quats, rest):
     """Normalized joints of the model posed by bone quaternions (rigid palm, as HandModel)."""
     bones = frames_to_bone_rotations(bone_rotations_to_frames(quat_to_matrix(quats)))
     return normalize_joints(forward_kinematics(bones, rest))
+
+
+def solve_in_batches(solver, xyz, rest, batch=1000):
+    """IKSolver.solve over (N,21,3) joints and rest poses, `batch` hands per call."""
+    return np.concatenate([solver.solve(xyz[i:i + batch], rest[i:i + batch]) for i in range(0, len(xyz), batch)])
 
 
 def metrics(quats, rest, target, limits, quats_true=None):
@@ -68,7 +73,7 @@ def evaluate(solver, n=10000, data_root=SHARED_DATA, batch=1000):
     poses = PoseSampler(model).sample(n, rng)
     noisy = corrupt_joints(poses["xyz"], rng)
     def iknet(x, r):
-        return np.concatenate([solver.solve(x[i:i + batch], r[i:i + batch]) for i in range(0, len(x), batch)])
+        return solve_in_batches(solver, x, r, batch)
 
     methods = {"IKNet": iknet,
                "IKNet, clamped to limits": lambda x, r: clamp_to_limits(iknet(x, r), limits),
@@ -95,7 +100,7 @@ def evaluate_pairs(solver, path, batch=1000):
     limits = JointLimits.for_model(model)
     pairs = PositionPairs.from_npz(path, model)
     x, rest, target = pairs.inputs, pairs.rest, pairs.targets
-    quats = np.concatenate([solver.solve(x[i:i + batch], rest[i:i + batch]) for i in range(0, len(x), batch)])
+    quats = solve_in_batches(solver, x, rest, batch)
     joints = {"the detector's joints (DetNet alone)": x,
               "IKNet + FK": fk_joints(quats, rest),
               "IKNet, clamped to limits, + FK": fk_joints(clamp_to_limits(quats, limits), rest)}

@@ -460,6 +460,17 @@ LOSS_WEIGHTS = {"heat": 100.0, "coord": 0.5, "loc": 10.0, "delta": 1.0, "presenc
 
 
 # ------------------------------------------------------------------ validation
+def shown_as_right(image, uv, xyz, left):
+    """Copies of crops image (n,S,S,3), their joints uv (n,21,2) crop px and xyz (n,21,3)
+    with the hands where left (n,) bool mirrored into right ones, as DetNet is shown them:
+    the image flipped left-right, u -> S - 1 - u, x -> -x."""
+    image, uv, xyz = image.copy(), uv.copy(), xyz.copy()
+    image[left] = image[left][:, :, ::-1]
+    uv[left, :, 0] = image.shape[2] - 1 - uv[left, :, 0]
+    xyz[left, :, 0] *= -1
+    return image, uv, xyz
+
+
 def synth_val_set(path, limit=512):
     """Held-out synthetic crops as the detector sees them: left hands mirrored to the right
     (image, uv, xyz_rel), plus the unmirrored images for the handedness head."""
@@ -467,12 +478,7 @@ def synth_val_set(path, limit=512):
     if s is None:
         return None
     left = s["handedness"] == 1
-    image = s["image"].copy()
-    image[left] = image[left][:, :, ::-1]
-    uv = s["uv"].copy()
-    uv[left, :, 0] = 127.0 - uv[left, :, 0]
-    xyz = s["xyz_rel"].copy()
-    xyz[left, :, 0] *= -1
+    image, uv, xyz = shown_as_right(s["image"], s["uv"], s["xyz_rel"], left)
     bone_m = np.linalg.norm(s["xyz"][:, 0] - s["xyz"][:, ROOT], axis=-1)
     return {"image": image, "raw": s["image"], "uv": uv, "xyz": xyz, "in_image": s["in_image"],
             "right": (~left).astype(np.float32), "bone_m": bone_m}

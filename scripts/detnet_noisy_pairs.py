@@ -19,22 +19,19 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap.detector import DetNetRunner
 from handmocap.hand_model import HandModel
-from handmocap.quantize_detnet import quarter_turned
+from handmocap.quantize_detnet import OnnxNet, quarter_turned
 from handmocap.skeleton import normalize_joints
 from handmocap.synth.dataset import SynthDataset
+from handmocap.train_detnet import shown_as_right
 
 
 def pairs(detnet, shard, model, batch=128):
-    """(pred, target, rest) of one shard dict (SynthDataset.shard)."""
-    left = shard["handedness"] == 1
-    image, uv, xyz = shard["image"].copy(), shard["uv"].copy(), shard["xyz_rel"].astype(np.float64)
-    image[left] = image[left][:, :, ::-1]
-    uv[left, :, 0] = image.shape[2] - 1 - uv[left, :, 0]
-    xyz[left, :, 0] *= -1
+    """(pred, target, rest) of one shard dict (SynthDataset.shard); detnet: a quantize_detnet.OnnxNet."""
+    image, uv, xyz = shown_as_right(shard["image"], shard["uv"], shard["xyz_rel"].astype(np.float64),
+                                    shard["handedness"] == 1)
     shown = quarter_turned({"image": image, "uv": uv, "xyz": xyz})
-    pred = np.concatenate([detnet(shown["image"][k:k + batch])["xyz"] for k in range(0, len(image), batch)])
+    pred = detnet.predict(shown["image"], batch)[0][1]
     rest = model.rest_joints(shard["beta"].astype(np.float64))
     return normalize_joints(pred), normalize_joints(shown["xyz"]), normalize_joints(rest)
 
@@ -48,7 +45,7 @@ def main():
     dirs = sorted({d for pat in args.data for d in glob.glob(pat) if (Path(d) / "meta.json").exists()})
     if not dirs:
         raise SystemExit(f"no complete shard directory matches {args.data}: render some with handsynth generate")
-    detnet, model = DetNetRunner.load(args.detnet), HandModel.load()
+    detnet, model = OnnxNet(args.detnet), HandModel.load()
     out = {"pred": [], "target": [], "rest": []}
     for d in dirs:
         ds = SynthDataset(d)

@@ -16,8 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from handmocap import real_data
-from handmocap.detector import DetNetRunner, hand_angle, logit
+from handmocap.detector import hand_angle, logit
 from handmocap.pose_data import SHARED_DATA
+from handmocap.quantize_detnet import OnnxNet
 from handmocap.train_detnet import CTX, CTX_SCALE, load_real
 
 
@@ -35,10 +36,6 @@ def heldout_crops(real):
     return np.asarray(crops), np.asarray(flipped), real["right"][idx].astype(bool), source
 
 
-def head(detnet, crops, batch=64):
-    return np.concatenate([detnet(crops[k:k + batch])["handedness"] for k in range(0, len(crops), batch)])
-
-
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--detnet", default=None)
@@ -48,8 +45,8 @@ def main():
     if real is None:
         raise SystemExit(f"no real data pack at {args.shared}: nothing held out to measure")
     crops, flipped, right, source = heldout_crops(real)
-    detnet = DetNetRunner.load(args.detnet)
-    as_filmed, on_flipped = head(detnet, crops), head(detnet, flipped)
+    detnet = OnnxNet(args.detnet)
+    as_filmed, on_flipped = detnet.predict(crops)[2], detnet.predict(flipped)[2]
     answers = {"head alone": as_filmed > 0.5, "flipped crop alone": on_flipped < 0.5,
                "mirror vote": logit(as_filmed) - logit(on_flipped) > 0}
     print("| source | crops | right hands | " + " | ".join(answers) + " |")
