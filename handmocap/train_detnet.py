@@ -74,6 +74,10 @@ def add_arguments(p):
     p.add_argument("--share-real", type=float, default=0.25, help="share of real hand crops per batch")
     p.add_argument("--share-neg", type=float, default=0.12, help="share of no-hand crops per batch")
     p.add_argument("--share-left", type=float, default=0.3, help="share of hand crops presented as left hands")
+    p.add_argument("--left-2d", type=float, default=0.0, metavar="W",
+                   help="2D weight of the crops shown as left hands (default 0: they train presence and "
+                        "handedness only). With W > 0 the heatmaps also learn to place the joints of a hand "
+                        "mirrored the wrong way, so a wrong handedness call costs the 3D but not the 2D")
     p.add_argument("--real-3d", type=float, default=0.0, metavar="W",
                    help="3D weight of real video crops against their MediaPipe world landmarks, x MediaPipe's "
                         "score (default 0: real crops train 2D only, as the paper's)")
@@ -273,9 +277,10 @@ class BatchMaker:
     """Numpy batches: image (B,128,128,3) uint8, uv (B,21,2), xyz (B,21,3), w2d, w3d,
     presence, right, w_hand (B,) float32."""
 
-    def __init__(self, synth, real, share_real, share_neg, share_left, upright=None, real_3d=0.0):
+    def __init__(self, synth, real, share_real, share_neg, share_left, upright=None, real_3d=0.0, left_2d=0.0):
         self.synth, self.real = synth, real
         self.real_3d = real_3d
+        self.left_2d = left_2d
         self.share_left = share_left
         self.upright = upright
         self.real_train = np.flatnonzero(~real["held"]) if real is not None else np.zeros(0, int)
@@ -328,7 +333,8 @@ class BatchMaker:
             uv[i] = real_data.apply_affine(M, s["uv"][idx[i]])
         xyz = rotate_mirror_3d(s["xyz_rel"][idx], angle, mirror).astype(np.float32)
         keypoints = (~show_left).astype(np.float32)
-        return {"image": images, "uv": uv, "xyz": xyz, "w2d": keypoints, "w3d": keypoints,
+        w2d = np.where(show_left, self.left_2d, 1.0).astype(np.float32)
+        return {"image": images, "uv": uv, "xyz": xyz, "w2d": w2d, "w3d": keypoints,
                 "presence": np.ones(n, np.float32), "right": (~show_left).astype(np.float32),
                 "w_hand": np.ones(n, np.float32)}
 
@@ -348,11 +354,12 @@ class BatchMaker:
             uv[i] = real_data.apply_affine(M, r["uv"][idx[i]])
         weight = r["weight"][idx].astype(np.float32)
         keypoints = np.where(show_left, 0.0, weight).astype(np.float32)
+        w2d = np.where(show_left, self.left_2d * weight, weight).astype(np.float32)
         xyz, w3d = np.zeros((n, 21, 3), np.float32), np.zeros(n, np.float32)
         if self.real_3d and "has_3d" in r:
             xyz = rotate_mirror_3d(r["xyz"][idx], angles, mirror).astype(np.float32)
             w3d = (keypoints * self.real_3d * r["has_3d"][idx]).astype(np.float32)
-        return {"image": images, "uv": uv, "xyz": xyz, "w2d": keypoints, "w3d": w3d,
+        return {"image": images, "uv": uv, "xyz": xyz, "w2d": w2d, "w3d": w3d,
                 "presence": np.ones(n, np.float32), "right": (~show_left).astype(np.float32), "w_hand": weight}
 
     def _negatives(self, n, rng):
@@ -565,6 +572,16 @@ def validate(net, sval, rval, refines=("logquad",)):
             m["howiema001_heldout_px"] = float(err[how].mean())
         if (~how).any():
             m["video_heldout_px_vs_mediapipe"] = float(err[~how].mean())
+        # the same crops mirrored the wrong way (a left hand shown as it is): what a wrong
+        # handedness call costs the 2D
+        flipped = np.ascontiguousarray(rval["image"][:, :, ::-1])
+        uv_flipped = rval["uv"].copy()
+        uv_flipped[..., 0] = rval["image"].shape[2] - 1 - uv_flipped[..., 0]
+        err_wrong = np.linalg.norm(predict(net, flipped, refines[:1])[0][refines[0]][0] - uv_flipped, axis=-1).mean(-1)
+        if how.any():
+            m["howiema001_heldout_px_wrong_side"] = float(err_wrong[how].mean())
+        if (~how).any():
+            m["video_heldout_px_wrong_side"] = float(err_wrong[~how].mean())
         if "has_3d" in rval and rval["has_3d"].any():   # agreement with MediaPipe's 3D, not accuracy
             has = rval["has_3d"]
             err_mm = np.linalg.norm(reads[refines[0]][1][has] - rval["xyz"][has], axis=-1) * PALM_M * 1000
@@ -697,7 +714,8 @@ def main(args):
     if real is not None:
         print(f"real: {int((~real['held']).sum())} training hand crops, {int(real['held'].sum())} held out; "
               f"{int((~real['neg_held']).sum())} negatives ({int(real['neg_held'].sum())} held out)")
-    maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright, args.real_3d)
+    maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright, args.real_3d,
+                       args.left_2d)
     sval = synth_val_set(args.val) if (Path(args.val) / "meta.json").exists() else None
     if sval is None:
         print(f"note: no held-out synthetic set at {args.val}")
