@@ -71,8 +71,12 @@ DETNET_PATH = DETNET_INT8                                       # what runs by d
 DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32}  # short names for the detnet param
 CENTRE = "centre"           # the fallback that tries the centre square of the frame
 # HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
-# so no birth threshold; a close-up the finder misses is tried on the centre square
-PHOTO_SETTINGS = {"birth_confidence": 0.0, "fallback_path": CENTRE}
+# so no birth threshold; a close-up the finder misses is tried on the centre square; each
+# hand read on its crop and 4 variants of it (chosen on training-side stills, models/README.md)
+PHOTO_SETTINGS = {"birth_confidence": 0.0, "fallback_path": CENTRE, "test_time_crops": 4}
+# (side factor, extra turn in degrees) of the crops a new track's reading is averaged over
+# besides its own (`test_time_crops`): within the jitter DetNet was trained with
+TEST_TIME_VARIANTS = ((0.9, 0.0), (1.1, 0.0), (1.0, -20.0), (1.0, 20.0), (0.95, -10.0), (1.05, 10.0))
 
 
 def detnet_path(path=None) -> Path:
@@ -175,6 +179,18 @@ class CropTransform:
         M = np.hstack([A * k, t[:, None]])
         crop = cv2.warpAffine(src, M, (self.size, self.size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return np.ascontiguousarray(crop[:, ::-1]) if self.mirrored else crop
+
+
+def crop_to_frame_xyz(crop, xyz):
+    """(..., 3) DetNet 3D read on `crop` (right-hand, crop axes) -> the frame camera's axes."""
+    return crop.to_frame_axes(mirror_points(xyz) if crop.mirrored else xyz)
+
+
+def frame_to_crop_xyz(crop, xyz):
+    """Inverse of crop_to_frame_xyz: (..., 3) frame-camera axes -> as DetNet reads `crop`."""
+    xyz = np.array(xyz, dtype=np.float64)
+    xyz[..., :2] = xyz[..., :2] @ crop.rotation.T
+    return mirror_points(xyz) if crop.mirrored else xyz
 
 
 def hand_angle(uv):
@@ -304,7 +320,8 @@ class HandDetector:
                  crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
                  birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
-                 opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3):
+                 opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3,
+                 test_time_crops=0):
         self.detnet, self.finder = detnet, finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
@@ -351,6 +368,13 @@ class HandDetector:
         # The head alone is biased on views unlike its training data; asked about a crop and
         # its mirror image, its two answers share the bias and averaging them cancels it
         self.mirror_vote_every = mirror_vote_every
+        # a new track's reading is the per-coordinate median over its crop and this many
+        # more (TEST_TIME_VARIANTS: a little larger, smaller, turned): for photos, where each
+        # hand is read once and a crop's chance placement otherwise stays in the result
+        test_time_crops = test_time_crops or 0
+        if not 0 <= test_time_crops <= len(TEST_TIME_VARIANTS):
+            raise ValueError(f"test_time_crops must be 0..{len(TEST_TIME_VARIANTS)}, got {test_time_crops}")
+        self.test_time_crops = test_time_crops
         # the finder checks the tracks every `redetect_every` frames: a found hand inside a
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
@@ -531,6 +555,8 @@ class HandDetector:
             for k, i in enumerate(idx):
                 for key in out:
                     out[key][i] = again[key][k]
+        if self.test_time_crops and idx:
+            self._median_over_nearby_crops(image_bgr, idx, out)
         hands, keep = [], []
         for i, t in enumerate(self.tracks):
             presence, confidence = float(out["presence"][i]), float(np.mean(out["confidence"][i]))
@@ -600,6 +626,32 @@ class HandDetector:
                 self.tracks[i].crop = turns[3 * n + k]
                 for key in out:
                     out[key][i] = more[key][3 * n + k]
+
+    def _median_over_nearby_crops(self, image_bgr, idx, out):
+        """New tracks (indices `idx` into self.tracks; `out` DetNet's outputs on their
+        crops, replaced in place): each reading becomes the per-coordinate median of DetNet's
+        on its crop and on `test_time_crops` variants of it (TEST_TIME_VARIANTS), 2D in
+        frame px and 3D in the frame camera's axes, mapped back to the track's crop, and the
+        handedness the mean logit. Presence and heatmap peaks stay the crop's own: which
+        hands are born does not change (a turned variant's peaks are lower)."""
+        variants = TEST_TIME_VARIANTS[:self.test_time_crops]
+        crops = [CropTransform.around(self.tracks[i].crop.centre, self.tracks[i].crop.side * scale,
+                                      mirrored=self.tracks[i].crop.mirrored,
+                                      angle=self.tracks[i].crop.angle + math.radians(turn))
+                 for i in idx for scale, turn in variants]
+        more = self._run(image_bgr, crops)
+        k = len(variants)
+        for n, i in enumerate(idx):
+            own = self.tracks[i].crop
+            views = [own] + crops[n * k:(n + 1) * k]
+            rows = [(out, i)] + [(more, n * k + j) for j in range(k)]
+            uv = np.median([c.to_frame(o["uv"][r]) for c, (o, r) in zip(views, rows)], axis=0)
+            xyz = np.median([crop_to_frame_xyz(c, normalize_joints(o["xyz"][r])) for c, (o, r) in zip(views, rows)],
+                            axis=0)
+            out["uv"][i] = own.to_crop(uv)
+            out["xyz"][i] = frame_to_crop_xyz(own, xyz)
+            p = np.clip([o["handedness"][r] for o, r in rows], 1e-6, 1 - 1e-6)
+            out["handedness"][i] = 1.0 / (1.0 + np.exp(-np.mean(np.log(p / (1 - p)))))
 
     def _one_left_one_right(self):
         """Two tracks DetNet believes are hands (running mean heatmap peak >= opposite_hands)

@@ -38,8 +38,9 @@ class HandTracker:
     presence_threshold, min_confidence, birth_confidence, redetect_every, crop_scale,
     fallback_path, ...). For unrelated photos: reset() before each, and
     `HandTracker(**detector.PHOTO_SETTINGS)`: birth_confidence 0 (the default 0.3 is for video,
-    where a doubtful hand gets another chance next frame) and the centre square tried where
-    the finder found nothing (a close-up), as `handeval predict` does."""
+    where a doubtful hand gets another chance next frame), the centre square tried where
+    the finder found nothing (a close-up) and each hand read on 4 variants of its crop as
+    well (test_time_crops), as `handeval predict` does."""
 
     def __init__(self, detnet=None, finder=None, iknet=None, model=None, threads=1, smooth=True,
                  vertices=False, fps=30.0, clamp_to_limits=True, detector=None, **detector_kwargs):

@@ -585,6 +585,63 @@ def test_refine_passes_recut_a_new_tracks_crop_that_many_times():
         assert net.calls == 1 + 1 + passes         # the crops, their three other quarter turns, the passes
 
 
+@pytest.mark.parametrize("right,angle", [(True, 0.0), (False, 0.0), (True, 2.2), (False, -0.6)])
+def test_test_time_crops_read_a_new_hand_on_variants_of_its_crop_and_map_them_back(right, angle):
+    """test_time_crops=K: a new track's reading is the median over its crop and K variants
+    (larger, smaller, turned), each mapped back through its own crop: 2D in frame px and 3D
+    in the frame camera's axes come out where the hand is, mirrored and turned crops too."""
+    uv_true = turned_hand((320, 240), 150, angle, right)
+    frame = draw(np.zeros((H, W, 3), np.uint8), uv_true)
+    plain = HandDetector(FakeDetNet(), FakeFinder(), birth_confidence=0.0)
+    base = plain.process(frame)
+    det = HandDetector(FakeDetNet(), FakeFinder(), birth_confidence=0.0, test_time_crops=4)
+    out = det.process(frame)
+    assert det.stats["crops"] == plain.stats["crops"] + 4
+    assert [h["handedness"] for h in out] == [h["handedness"] for h in base]
+    np.testing.assert_allclose(out[0]["uv"], np.round(uv_true), atol=DOT_TOL)
+    # the fake DetNet lifts each crop's 2D to 3D: back in frame axes, the frame's 2D lifted
+    lifted = normalize_joints(np.concatenate([out[0]["uv"], np.zeros((21, 1))], 1))
+    np.testing.assert_allclose(out[0]["xyz_rel"], lifted, atol=0.03)
+    plain.process(frame), det.process(frame)                # a tracked hand is read on its own crop only
+    assert det.stats["crops"] == plain.stats["crops"] + 4
+
+
+def test_test_time_crops_halve_the_scatter_of_a_noisy_reading():
+    """A DetNet whose 2D answer scatters by 3 crop px per joint, independently per crop:
+    the median over the crop and 4 variants is nearer the hand than the crop's reading."""
+    class NoisyDetNet(FakeDetNet):
+        def __init__(self):
+            super().__init__()
+            self.rng = np.random.default_rng(0)
+
+        def __call__(self, crops_rgb):
+            out = super().__call__(crops_rgb)
+            out["uv"] = out["uv"] + self.rng.normal(0, 3.0, out["uv"].shape).astype(np.float32)
+            return out
+    uv_true = np.round(canonical_hand((320, 240), 150))
+    frame = draw(np.zeros((H, W, 3), np.uint8), uv_true)
+    errors = {}
+    for k in (0, 4):
+        det = HandDetector(NoisyDetNet(), FakeFinder(), test_time_crops=k, refine_passes=0, birth_confidence=0.0)
+        err = []
+        for _ in range(40):
+            det.reset()
+            err.append(np.linalg.norm(det.process(frame)[0]["uv"] - uv_true, axis=1).mean())
+        errors[k] = np.mean(err)
+    assert errors[4] < 0.75 * errors[0], errors
+    with pytest.raises(ValueError, match="test_time_crops"):
+        HandDetector(FakeDetNet(), FakeFinder(), test_time_crops=99)
+
+
+def test_crop_and_frame_camera_axes_are_inverse_for_mirrored_and_turned_crops():
+    from handmocap.detector import crop_to_frame_xyz, frame_to_crop_xyz
+    xyz = np.random.default_rng(5).normal(size=(21, 3))
+    for mirrored in (False, True):
+        for angle in (0.0, 0.4, -2.0):
+            crop = CropTransform.around((300, 200), 150, mirrored=mirrored, angle=angle)
+            np.testing.assert_allclose(frame_to_crop_xyz(crop, crop_to_frame_xyz(crop, xyz)), xyz, atol=1e-12)
+
+
 def test_with_duplicate_joints_two_overlapping_hands_are_kept_and_one_hand_twice_is_not():
     from handmocap.detector import CropTransform, Track
     right = canonical_hand((300, 300), 150)
