@@ -18,10 +18,10 @@ How (onnxruntime.quantization.quantize_static, QDQ format, fused into int8 kerne
   AVX-512 VNNI, onnxruntime's uint8 x int8 kernels sum pairs of products in int16, which
   full 8-bit weights can overflow; on an AVX2 AMD EPYC the 7-bit copy is the nearer to
   float32: median 2D gap 0.51 crop px against 0.83, heatmap peaks 0.10 at most against
-  0.18, session 13; activations uint8, MinMax ranges) and the residual Adds and ReLUs between them, so that activations stay int8
-  from one convolution to the next, except the delta and location heads (KEEP_FLOAT):
-  their inputs concatenate features, coordinate channels, sigmoid heatmaps and delta
-  maps of very different ranges, and one uint8 scale over them cost 0.9 mm of 3D error
+  0.18, session 13; activations uint8, MinMax ranges) and the residual Adds and ReLUs
+  between them, so that activations stay int8 from one convolution to the next, except
+  the delta and location heads (KEEP_FLOAT): their inputs concatenate features,
+  coordinate channels, sigmoid heatmaps and delta maps of very different ranges, and one uint8 scale over them cost 0.9 mm of 3D error
   (held-out synthetic; 0.06 mm with them float32). The read-out after the heads
   (argmax, sub-pixel parabola, location look-up) and the presence / handedness Gemms
   stay float32 too.
