@@ -21,10 +21,10 @@ How (onnxruntime.quantization.quantize_static, QDQ format, fused into int8 kerne
   0.18, session 13; activations uint8, MinMax ranges) and the residual Adds and ReLUs
   between them, so that activations stay int8 from one convolution to the next, except
   the delta and location heads (KEEP_FLOAT): their inputs concatenate features,
-  coordinate channels, sigmoid heatmaps and delta maps of very different ranges, and one uint8 scale over them cost 0.9 mm of 3D error
-  (held-out synthetic; 0.06 mm with them float32). The read-out after the heads
-  (argmax, sub-pixel parabola, location look-up) and the presence / handedness Gemms
-  stay float32 too.
+  coordinate channels, sigmoid heatmaps and delta maps of very different ranges, and one
+  uint8 scale over them cost 0.9 mm of 3D error (held-out synthetic; 0.06 mm with them
+  float32). The read-out after the heads (argmax, sub-pixel parabola, location look-up)
+  and the presence / handedness Gemms stay float32 too.
 `--compare` prints the training run's held-out metrics (train_detnet.validate: synthetic
 2D px and 3D mm, howiema 001 L8/R8, video tails, handedness, presence) for each file, so a
 quantized file is judged on the same numbers as the float one it came from.
