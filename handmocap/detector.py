@@ -321,7 +321,7 @@ class HandDetector:
                  birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
                  opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3,
-                 test_time_crops=0):
+                 test_time_crops=0, reseed_margin=0.2):
         self.detnet, self.finder = detnet, finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
@@ -375,6 +375,11 @@ class HandDetector:
         if not 0 <= test_time_crops <= len(TEST_TIME_VARIANTS):
             raise ValueError(f"test_time_crops must be 0..{len(TEST_TIME_VARIANTS)}, got {test_time_crops}")
         self.test_time_crops = test_time_crops
+        # a re-seed must convince DetNet: its mean heatmap peak on the found box's crop at
+        # least the track's running peak minus this (None: every re-seed is taken). A track
+        # whose crop has swollen around an exploded prediction holds boxes of other things,
+        # which a re-seed would otherwise move it onto
+        self.reseed_margin = reseed_margin
         # the finder checks the tracks every `redetect_every` frames: a found hand inside a
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
@@ -454,7 +459,9 @@ class HandDetector:
                 owner[k] = t.track_id
                 if self.finder_handedness:
                     t.add_handedness(right_prob, weight=0.5 * self.finder_handedness)
-                if t.uv is not None and overlap.get((k, t.track_id), 0.0) < self.reseed_iou:
+                if t.uv is not None and overlap.get((k, t.track_id), 0.0) < self.reseed_iou and \
+                        (self.reseed_margin is None or
+                         self._found_peaks(image, [(box, right_prob)])[0] >= t.confidence - self.reseed_margin):
                     # the track's joints no longer match the hand the finder sees in its crop
                     # (a track sliding up the forearm): start the crop again from the finder's box
                     t.crop = crop_for_box(box, not t.is_right, self.crop_scale)

@@ -26,7 +26,8 @@ its crop and this many variants of it, larger, smaller, turned, and the median k
 streams of unrelated photos; 0, the default for video, or null = off),
 redetect_every (frames between finder runs, which also check the tracks), reseed_iou (a track
 whose joints overlap the hand the finder sees in its crop less than this restarts from the
-finder's box; 0 = never), crop_scale (crop side / joint-box side), every_frame.
+finder's box; 0 = never), reseed_margin (... only where DetNet's mean heatmap peak on that
+box's crop is at least the track's running peak minus this; null = always), crop_scale (crop side / joint-box side), every_frame.
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ from handmocap.node import Message, Node, run, spin
 # HandDetector's settings, with its own defaults (one place for them: the class)
 TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "evict_margin",
            "opposite_hands", "upright_step", "finder_handedness", "mirror_vote_every", "redetect_every", "reseed_iou",
-           "crop_scale", "test_time_crops")
+           "crop_scale", "test_time_crops", "reseed_margin")
 _DEFAULTS = inspect.signature(HandDetector).parameters
 PARAMS = {"detnet": None, "finder": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
           "every_frame": False}

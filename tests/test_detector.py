@@ -325,6 +325,34 @@ def test_a_track_whose_joints_left_the_found_hand_is_reseeded_from_the_finder():
     np.testing.assert_allclose(hands["right"]["uv"], truth[-1][0], atol=DOT_TOL)
 
 
+def test_a_reseed_onto_a_box_detnet_does_not_believe_is_refused():
+    """A track's crop holds a finder box of something else (no hand there) that its joints
+    do not overlap: with reseed_margin the track stays on its hand, since DetNet's peaks on
+    that box's crop are far below the track's; without it the track is moved onto the box."""
+    uv_true = canonical_hand((250, 300), 160)
+    frame = draw(np.zeros((H, W, 3), np.uint8), uv_true)
+
+    class FalseBoxFinder:              # a box in a corner of the track's crop, off the hand
+        def __init__(self, crop):
+            x0, y0 = crop.box[:2]
+            self.box = np.array([x0 + 4.0, y0 + 4.0, x0 + 44.0, y0 + 44.0])
+
+        def find(self, image_bgr, threshold=None, max_hands=2):
+            return [FoundHand(self.box, 1.0, 1.0)]
+    for margin, reseeds in ((0.2, 0), (None, 1)):
+        det = detector(redetect_every=5, reseed_margin=margin)
+        for _ in range(3):
+            det.process(frame)
+        det.finder, det.frames_since_find = FalseBoxFinder(det.tracks[0].crop), det.redetect_every - 1
+        det.process(frame)
+        assert det.stats["reseeds"] == reseeds
+        hands = det.process(frame)
+        if reseeds:
+            assert hands == [] or np.abs(hands[0]["uv"] - uv_true).max() > 50
+        else:
+            np.testing.assert_allclose(hands[0]["uv"], np.round(uv_true), atol=DOT_TOL)
+
+
 class DimDetNet(FakeDetNet):
     """FakeDetNet whose heatmap peaks (confidence) are `levels[k]` on its k-th call."""
 
