@@ -57,7 +57,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .hand_finder import HandFinder, box_iou, square
+from .hand_finder import HandFinder, box_iou, sigmoid, square
 from .onnx_models import open_session, stale_quantization
 from .rotations import mirror_points
 from .skeleton import normalize_joints
@@ -460,8 +460,7 @@ class HandDetector:
                 if self.finder_handedness:
                     t.add_handedness(right_prob, weight=0.5 * self.finder_handedness)
                 if t.uv is not None and overlap.get((k, t.track_id), 0.0) < self.reseed_iou and \
-                        (self.reseed_margin is None or
-                         self._found_peaks(image, [(box, right_prob)])[0] >= t.confidence - self.reseed_margin):
+                        self._reseed_believed(image, box, right_prob, t):
                     # the track's joints no longer match the hand the finder sees in its crop
                     # (a track sliding up the forearm): start the crop again from the finder's box
                     t.crop = crop_for_box(box, not t.is_right, self.crop_scale)
@@ -486,6 +485,12 @@ class HandDetector:
         """(M,) DetNet's mean heatmap peak on the crop of each found (box, right_prob)."""
         crops = [crop_for_box(box, right_prob < 0.5, self.crop_scale) for box, right_prob in found]
         return self._run(image, crops)["confidence"].mean(axis=1)
+
+    def _reseed_believed(self, image, box, right_prob, track):
+        """Whether DetNet's mean heatmap peak on the crop of a found box is at least the
+        track's running peak minus `reseed_margin` (always, with no margin)."""
+        return self.reseed_margin is None or \
+            self._found_peaks(image, [(box, right_prob)])[0] >= track.confidence - self.reseed_margin
 
     def _new_track(self, box, right_prob):
         track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale))
@@ -657,8 +662,7 @@ class HandDetector:
                             axis=0)
             out["uv"][i] = own.to_crop(uv)
             out["xyz"][i] = frame_to_crop_xyz(own, xyz)
-            p = np.clip([o["handedness"][r] for o, r in rows], 1e-6, 1 - 1e-6)
-            out["handedness"][i] = 1.0 / (1.0 + np.exp(-np.mean(np.log(p / (1 - p)))))
+            out["handedness"][i] = sigmoid(np.mean(logit([o["handedness"][r] for o, r in rows])))
 
     def _one_left_one_right(self):
         """Two tracks DetNet believes are hands (running mean heatmap peak >= opposite_hands)

@@ -574,9 +574,8 @@ def validate(net, sval, rval, refines=("logquad",)):
             m["video_heldout_px_vs_mediapipe"] = float(err[~how].mean())
         # the same crops mirrored the wrong way (a left hand shown as it is): what a wrong
         # handedness call costs the 2D
-        flipped = np.ascontiguousarray(rval["image"][:, :, ::-1])
-        uv_flipped = rval["uv"].copy()
-        uv_flipped[..., 0] = rval["image"].shape[2] - 1 - uv_flipped[..., 0]
+        flipped, uv_flipped, _ = shown_as_right(rval["image"], rval["uv"], np.zeros((len(err), 21, 3)),
+                                                np.ones(len(err), bool))
         err_wrong = np.linalg.norm(predict(net, flipped, refines[:1])[0][refines[0]][0] - uv_flipped, axis=-1).mean(-1)
         if how.any():
             m["howiema001_heldout_px_wrong_side"] = float(err_wrong[how].mean())
