@@ -2,6 +2,11 @@
 One Euro smoothing per track. The maths of the `ik` node and of HandTracker (no bus).
 
 Per hand (pose_from_keypoints):
+0. The joints IKNet reads are DetNet's xyz_rel with their x, y moved `xy_from_keypoints`
+   (0.5) of the way onto the ones the 2D keypoints imply through K at DetNet's depths
+   (translation.joints_through_keypoints): the heatmaps' 2D and the location maps' x, y err
+   differently, and half of each measured better on held-out synthetic crops and on real
+   clips (models/README.md, "3D x, y from the 2D"). HandKeypoints' xyz_rel stays DetNet's.
 1. A left hand's xyz_rel (the hand as seen) is mirrored (x -> -x) into the right-hand model.
 2. IKNet (IKSolver; the static int8 file by default, "float32" on request) turns the joints
    into 21 global bone quaternions, given the rest pose of the person (the paper's X_ref,
@@ -35,14 +40,14 @@ from .kinematics import RIGID_PALM_BONES, as_matrices, forward_kinematics, globa
 from .one_euro import OneEuroFilter
 from .rotations import mirror_points, quat_normalize, quat_to_matrix
 from .skeleton import REF_BONE, ROOT
-from .translation import camera_joints_from_keypoints, root_fitting_keypoints
+from .translation import camera_joints_from_keypoints, joints_through_keypoints, root_fitting_keypoints
 
 # Settings of PoseEstimator (the ik node's parameters): filter cut-offs in Hz (handmocap/one_euro.py),
 # chosen on the detector's output on real clips by scripts/tune_smoothing.py (model card,
 # "Pose smoothing"): the root's min cut-off 0.5 Hz, first set on synthetic jitter, lagged
 # behind real motion (median 11 mm from the motion's zero-phase estimate, 6 mm unsmoothed); at
 # 2 Hz it is 7 mm with a jitter 7x below the unsmoothed output's. The rotations' were kept.
-POSE_DEFAULTS = {"clamp_to_limits": True, "smooth": True, "rot_min_cutoff": 1.0, "rot_beta": 1.5,
+POSE_DEFAULTS = {"clamp_to_limits": True, "smooth": True, "xy_from_keypoints": 0.5, "rot_min_cutoff": 1.0, "rot_beta": 1.5,
                  "root_min_cutoff": 2.0, "root_beta": 2.0, "d_cutoff": 1.0, "reset_after_s": 0.5}
 
 
@@ -84,13 +89,23 @@ def pose_fields(hand, quats, beta, K, model):
             "translation_valid": bool(valid)}
 
 
-def pose_from_keypoints(hand, K, rest, solver, model, beta=None, limits=None):
+def joints_for_iknet(hand, K, xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints"]):
+    """(21,3) the joints IKNet reads for one HandKeypoints hand (as seen, camera axes):
+    xyz_rel with x, y moved `xy_from_keypoints` of the way onto the ones its uv implies (0: xyz_rel)."""
+    if not xy_from_keypoints:
+        return hand["xyz_rel"]
+    return joints_through_keypoints(K, hand["uv"], hand["xyz_rel"], xy_from_keypoints)
+
+
+def pose_from_keypoints(hand, K, rest, solver, model, beta=None, limits=None,
+                        xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints"]):
     """One HandKeypoints hand -> one HandPose hand, unsmoothed. rest: (21,3) rest joints of
     the person (None: the model's at beta); beta (10,) (None: the average hand); limits: a
-    JointLimits to clip the finger angles into (None: IKNet's angles as they are)."""
+    JointLimits to clip the finger angles into (None: IKNet's angles as they are);
+    xy_from_keypoints: see joints_for_iknet."""
     beta = np.zeros(model.num_betas) if beta is None else np.asarray(beta, dtype=np.float64)
     rest = model.rest_joints(beta) if rest is None else rest
-    quats = solve_rotations(hand["xyz_rel"], hand["handedness"], rest, solver, limits)
+    quats = solve_rotations(joints_for_iknet(hand, K, xy_from_keypoints), hand["handedness"], rest, solver, limits)
     return pose_fields(hand, quats, beta, K, model)
 
 
@@ -135,7 +150,8 @@ class PoseEstimator:
                 continue
             beta, rest = self.shapes.get(hand["track_id"], (np.zeros(self.model.num_betas), None))
             rest = self.model.rest_joints(beta) if rest is None else rest
-            q = solve_rotations(hand["xyz_rel"], hand["handedness"], rest, self.solver, self.limits)
+            q = solve_rotations(joints_for_iknet(hand, K, self.p["xy_from_keypoints"]), hand["handedness"], rest,
+                                self.solver, self.limits)
             if not self.p["smooth"]:
                 out.append(pose_fields(hand, q, beta, K, self.model))
                 continue

@@ -20,7 +20,7 @@ that is degenerate too (non-finite or collapsed input), DEFAULT_DEPTH_M.
 import numpy as np
 
 from .camera_info import project
-from .skeleton import REF_BONE, ROOT
+from .skeleton import REF_BONE, ROOT, normalize_joints
 
 # Reference bone (wrist -> middle MCP) of an average adult hand, metres: the bundled
 # model at beta = 0 measures 0.102 m; adult palm length (wrist crease to MCP3) is about
@@ -198,3 +198,32 @@ def root_fitting_keypoints(K, uv, rel_m):
     nearest = np.min(np.where(seen, p[..., 2], np.inf), axis=-1) + t[..., 2]
     ok = enough & np.all(np.isfinite(t), axis=-1) & (nearest > MIN_DEPTH_M)
     return np.where(ok[..., None], t, np.nan), ok
+
+
+def joints_through_keypoints(K, uv, xyz_rel, weight=1.0):
+    """Normalized root-relative joints (..., 21, 3) (camera axes, joint 9 at 0, |0-9| = 1)
+    whose x, y are moved `weight` of the way (0: unchanged, 1: all the way) onto the ones
+    the 2D keypoints uv (..., 21, 2) px imply at the depths of xyz_rel.
+
+    Joint i lies on its ray r_i = K⁻¹ [u_i, v_i, 1] at depth Z_9 + s z_i (s: the metric
+    reference bone, z_i its normalized relative depth), so divided by s and relative to
+    joint 9 it is a (r_i - r_9) + z_i r_i, with the one unknown a = Z_9 / s (the distance
+    in reference bones) fitted to xyz_rel's x, y by least squares; z stays z_i. DetNet's
+    2D is read from heatmaps, its x, y from location maps: on held-out synthetic crops
+    and real clips (models/README.md, "3D x, y from the 2D") half of each beats either.
+    Joints with a non-finite pixel keep xyz_rel's x, y; so does a hand whose fit fails."""
+    K = _k_matrix(K)[..., None, :, :]                       # broadcasts over the 21 joints
+    p = np.asarray(xyz_rel, dtype=np.float64)
+    uv = np.asarray(uv, dtype=np.float64)
+    ry = (uv[..., 1] - K[..., 1, 2]) / K[..., 1, 1]
+    r = np.stack([(uv[..., 0] - K[..., 0, 2] - K[..., 0, 1] * ry) / K[..., 0, 0], ry], axis=-1)   # rays' x, y (z = 1)
+    d = r - r[..., ROOT:ROOT + 1, :]                                           # (..., 21, 2)
+    target = p[..., :2] - p[..., 2:] * r                                       # = a d where all agree
+    seen = np.isfinite(np.sum(d + target, axis=-1))                            # (..., 21) pixel and joint
+    d0, t0 = np.where(seen[..., None], d, 0.0), np.where(seen[..., None], target, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.sum(d0 * t0, axis=(-2, -1)) / np.sum(d0 * d0, axis=(-2, -1))    # (...,) distance in bones
+    shift = weight * (a[..., None, None] * d - target)                         # x, y moved onto the rays
+    moved = p.copy()
+    moved[..., :2] += np.where(np.isfinite(shift), shift, 0.0)
+    return normalize_joints(moved)

@@ -11,7 +11,9 @@ paper's X_ref, D_ref); the bundled average hand until a shape is known. K from
 
 Params: model (hand model path, default bundled), iknet ("int8", the default:
 models/iknet_int8.onnx; "float32": models/iknet.onnx; or an ONNX path), threads (onnxruntime intra-op threads), and PoseEstimator's settings
-(handmocap.pose.POSE_DEFAULTS): clamp_to_limits, smooth, rot_min_cutoff Hz / rot_beta on
+(handmocap.pose.POSE_DEFAULTS): xy_from_keypoints (0.5: how far the x, y of the joints IKNet
+reads move from DetNet's onto those the 2D keypoints imply through K; 0: DetNet's as they
+are), clamp_to_limits, smooth, rot_min_cutoff Hz / rot_beta on
 quaternion components, root_min_cutoff Hz / root_beta on metres, d_cutoff Hz, reset_after_s.
 The filter defaults were chosen on the detector's output on real clips
 (scripts/tune_smoothing.py): lower cut-offs smooth more and lag more.

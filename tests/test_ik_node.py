@@ -64,8 +64,11 @@ def test_left_hand_is_solved_in_the_right_model_and_mirrored_back():
         out_r = ik.pose_from_keypoints(r, K, None, SOLVER, MODEL, beta)
         out_l = ik.pose_from_keypoints(l, K, None, SOLVER, MODEL, beta)
         assert out_l["handedness"] == "left"
-        assert np.degrees(quat_angle_between(out_l["quat"], out_r["quat"])).max() < 0.1   # right-model rotations (float32)
-        np.testing.assert_allclose(out_l["pose"], out_r["pose"], atol=1e-4)
+        # right-model rotations: the two hands' joints for IKNet mirror each other to 1e-7 (their
+        # x, y come through K's rays), which can move the int8 network's input over a rounding
+        # step: 0.3 degrees at most here, hence 1
+        assert np.degrees(quat_angle_between(out_l["quat"], out_r["quat"])).max() < 1.0
+        np.testing.assert_allclose(out_l["pose"], out_r["pose"], atol=0.02)
         # the hand as seen: mirrored positions (K's principal point is at the image centre)
         np.testing.assert_allclose(out_l["xyz"], mirror_points(out_r["xyz"]), atol=1e-3)
         _, joints = MODEL.forward(out_l["quat"], beta, handedness="left")

@@ -5,9 +5,10 @@ from handmocap.hand_model import HandModel
 from handmocap.joint_limits import JointLimits
 from handmocap.rotations import axis_angle_to_matrix
 from handmocap.translation import (
-    DEFAULT_DEPTH_M, camera_joints_from_keypoints, depth_from_hand_size, root_depth_from_intrinsics,
-    root_fitting_keypoints,
+    DEFAULT_DEPTH_M, camera_joints_from_keypoints, depth_from_hand_size, joints_through_keypoints,
+    root_depth_from_intrinsics, root_fitting_keypoints,
 )
+from handmocap.skeleton import normalize_joints
 
 MODEL = HandModel.load()
 LIMITS = JointLimits.for_model(MODEL)
@@ -145,3 +146,38 @@ def test_all_joint_fit_skips_missing_joints_and_refuses_degenerate_input():
     behind = xyz[0] * np.array([1, 1, -1])                       # a hand behind the camera
     root, ok = root_fitting_keypoints(K, project(behind), behind - behind[9])
     assert not ok and np.all(np.isnan(root))
+
+
+@settings(deadline=None, max_examples=30)
+@given(st.integers(0, 2 ** 31), st.floats(0.25, 2.0))
+def test_joints_through_keypoints_take_x_y_from_exact_keypoints(seed, depth):
+    rng = np.random.default_rng(seed)
+    xyz = hand_in_camera(rng, depth)
+    truth = normalize_joints(xyz)
+    for weight in (0.0, 0.5, 1.0):          # joints that agree with their pixels stay as they are
+        np.testing.assert_allclose(joints_through_keypoints(K, project(xyz), truth, weight), truth, atol=1e-9)
+    # x, y off by 0.2 bone lengths, depths right: the pixels bring them back (all the way
+    # but for the error that the wrong x, y leave in the fitted distance)
+    wrong_xy = truth + np.concatenate([rng.normal(0, 0.2, (21, 2)), np.zeros((21, 1))], axis=1)
+    error = lambda j: np.linalg.norm(j - truth, axis=-1).mean()    # noqa: E731
+    np.testing.assert_allclose(joints_through_keypoints(K, project(xyz), wrong_xy, 0.0), normalize_joints(wrong_xy),
+                               atol=1e-12)
+    assert error(joints_through_keypoints(K, project(xyz), wrong_xy, 1.0)) < 0.3 * error(normalize_joints(wrong_xy))
+    assert error(joints_through_keypoints(K, project(xyz), wrong_xy, 0.5)) < 0.75 * error(normalize_joints(wrong_xy))
+
+
+def test_joints_through_keypoints_batch_and_missing_pixels():
+    rng = np.random.default_rng(4)
+    xyz = np.stack([hand_in_camera(rng, d) for d in (0.4, 0.9)])
+    rel = normalize_joints(normalize_joints(xyz) + rng.normal(0, 0.1, (2, 21, 3)))
+    uv = project(xyz)
+    one_by_one = np.stack([joints_through_keypoints(K, uv[i], rel[i], 0.5) for i in range(2)])
+    np.testing.assert_allclose(joints_through_keypoints(np.repeat(K[None], 2, 0), uv, rel, 0.5), one_by_one,
+                               atol=1e-12)
+    uv[0, [4, 8]] = np.nan                                       # no pixel: DetNet's x, y kept
+    out = joints_through_keypoints(K, uv, rel, 1.0)
+    assert np.all(np.isfinite(out))
+    scale = out[0, 5, 2] / rel[0, 5, 2]                          # depths are only rescaled (|0-9| = 1 again)
+    np.testing.assert_allclose(out[0, [4, 8]], scale * rel[0, [4, 8]], atol=1e-12)
+    uv[1] = np.nan                                               # no pixel at all: the input as it is
+    np.testing.assert_allclose(joints_through_keypoints(K, uv, rel, 1.0)[1], normalize_joints(rel[1]), atol=1e-12)
