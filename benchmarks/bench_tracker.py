@@ -3,7 +3,7 @@ MediaPipe Hands (tracking/video mode) on the same frames when /tmp/mpenv has it.
 
     python benchmarks/bench_tracker.py [--video data/demo/hand_clip.mp4] [--repeat 3] [--threads 1]
                                        [--detnet PATH] [--finder PATH] [--iknet int8|float32|PATH]
-                                       [--max-hands 2]
+                                       [--max-hands 2] [--set KEY=VALUE ...]
 
 Prints median and p90 ms per frame of: the whole pipeline (HandTracker.process: detector +
 shape + IKNet + FK + translation + smoothing), its stages as CPU ms per frame (one more pass
@@ -118,7 +118,11 @@ def main():
     p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx)")
     p.add_argument("--iknet", help="IKNet: int8 (default, models/iknet_int8.onnx), float32 or an ONNX path")
     p.add_argument("--max-hands", type=int, default=2, help="HandTracker/HandDetector max_hands (1: exactly one track)")
+    p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="detector settings (HandDetector keywords), e.g. tracked_test_time_crops=4")
     args = p.parse_args()
+    from handmocap.eval_cli import detector_settings
+    settings = detector_settings(args.set)
     from handmocap.detector import HandDetector
     from handmocap.frames import read_video
     from handmocap.tracker import HandTracker
@@ -126,17 +130,17 @@ def main():
     frames = [cv2.resize(f, (640, 480)) if f.shape[:2] != (480, 640) else f for f in read_video(args.video)]
     from handmocap.ik_solver import model_path
     results = {"frames": len(frames), "load_avg": os.getloadavg()[0], "threads": args.threads,
-               "max_hands": args.max_hands, "iknet": str(model_path(args.iknet))}
+               "max_hands": args.max_hands, "iknet": str(model_path(args.iknet)), "settings": settings}
 
     tracker = HandTracker(detnet=args.detnet, finder=args.finder, iknet=args.iknet, threads=args.threads,
-                          max_hands=args.max_hands)
+                          max_hands=args.max_hands, **settings)
     for f in frames:                   # warm-up pass, and the hand is tracked from here on
         tracker.process(f)
     results["tracker"] = stats(timed(tracker.process, frames, args.repeat))
     results["tracker"]["hands_per_frame"] = float(np.mean([len(tracker.process(f)) for f in frames]))
     results["tracker_stages_cpu_ms_per_frame"] = stage_cpu_ms(tracker, frames)
 
-    det = HandDetector.load(args.detnet, args.finder, threads=args.threads, max_hands=args.max_hands)
+    det = HandDetector.load(args.detnet, args.finder, threads=args.threads, max_hands=args.max_hands, **settings)
     for f in frames:
         det.process(f)
     results["detector"] = stats(timed(det.process, frames, args.repeat))

@@ -74,6 +74,11 @@ CENTRE = "centre"           # the fallback that tries the centre square of the f
 # so no birth threshold; a close-up the finder misses is tried on the centre square; each
 # hand read on its crop and 4 variants of it (chosen on training-side stills, models/README.md)
 PHOTO_SETTINGS = {"birth_confidence": 0.0, "fallback_path": CENTRE, "test_time_crops": 4}
+# HandDetector.load's keywords for video where accuracy is worth ~2.3x the time (offline
+# processing, a fast CPU): every tracked hand read on its crop and 4 variants on every frame
+# (chosen on training-side clips at three turns, models/README.md; 20 ms a frame against 9
+# on the AVX2 machine, MediaPipe 32)
+ACCURATE_VIDEO_SETTINGS = {"tracked_test_time_crops": 4}
 # (side factor, extra turn in degrees) of the crops a new track's reading is averaged over
 # besides its own (`test_time_crops`): within the jitter DetNet was trained with
 TEST_TIME_VARIANTS = ((0.9, 0.0), (1.1, 0.0), (1.0, -20.0), (1.0, 20.0), (0.95, -10.0), (1.05, 10.0))
@@ -321,7 +326,7 @@ class HandDetector:
                  birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
                  opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3,
-                 test_time_crops=0, reseed_margin=0.2):
+                 test_time_crops=0, reseed_margin=0.2, tracked_test_time_crops=0):
         self.detnet, self.finder = detnet, finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
@@ -375,6 +380,13 @@ class HandDetector:
         if not 0 <= test_time_crops <= len(TEST_TIME_VARIANTS):
             raise ValueError(f"test_time_crops must be 0..{len(TEST_TIME_VARIANTS)}, got {test_time_crops}")
         self.test_time_crops = test_time_crops
+        # the same for every tracked hand on every frame (0: never): K more DetNet crops per
+        # hand and frame, for accuracy where the time is there
+        tracked_test_time_crops = tracked_test_time_crops or 0
+        if not 0 <= tracked_test_time_crops <= len(TEST_TIME_VARIANTS):
+            raise ValueError(f"tracked_test_time_crops must be 0..{len(TEST_TIME_VARIANTS)}, "
+                             f"got {tracked_test_time_crops}")
+        self.tracked_test_time_crops = tracked_test_time_crops
         # a re-seed must convince DetNet: its mean heatmap peak on the found box's crop at
         # least the track's running peak minus this (None: every re-seed is taken). A track
         # whose crop has swollen around an exploded prediction holds boxes of other things,
@@ -568,7 +580,10 @@ class HandDetector:
                 for key in out:
                     out[key][i] = again[key][k]
         if self.test_time_crops and idx:
-            self._median_over_nearby_crops(image_bgr, idx, out)
+            self._median_over_nearby_crops(image_bgr, idx, out, self.test_time_crops)
+        tracked = [i for i in range(len(self.tracks)) if i not in idx]
+        if self.tracked_test_time_crops and tracked:
+            self._median_over_nearby_crops(image_bgr, tracked, out, self.tracked_test_time_crops)
         hands, keep = [], []
         for i, t in enumerate(self.tracks):
             presence, confidence = float(out["presence"][i]), float(np.mean(out["confidence"][i]))
@@ -639,20 +654,19 @@ class HandDetector:
                 for key in out:
                     out[key][i] = more[key][3 * n + k]
 
-    def _median_over_nearby_crops(self, image_bgr, idx, out):
-        """New tracks (indices `idx` into self.tracks; `out` DetNet's outputs on their
+    def _median_over_nearby_crops(self, image_bgr, idx, out, k):
+        """Tracks (indices `idx` into self.tracks; `out` DetNet's outputs on their
         crops, replaced in place): each reading becomes the per-coordinate median of DetNet's
-        on its crop and on `test_time_crops` variants of it (TEST_TIME_VARIANTS), 2D in
+        on its crop and on `k` variants of it (TEST_TIME_VARIANTS), 2D in
         frame px and 3D in the frame camera's axes, mapped back to the track's crop, and the
         handedness the mean logit. Presence and heatmap peaks stay the crop's own: which
         hands are born does not change (a turned variant's peaks are lower)."""
-        variants = TEST_TIME_VARIANTS[:self.test_time_crops]
+        variants = TEST_TIME_VARIANTS[:k]
         crops = [CropTransform.around(self.tracks[i].crop.centre, self.tracks[i].crop.side * scale,
                                       mirrored=self.tracks[i].crop.mirrored,
                                       angle=self.tracks[i].crop.angle + math.radians(turn))
                  for i in idx for scale, turn in variants]
         more = self._run(image_bgr, crops)
-        k = len(variants)
         for n, i in enumerate(idx):
             own = self.tracks[i].crop
             views = [own] + crops[n * k:(n + 1) * k]

@@ -1,7 +1,7 @@
 """`handeval`: run the image-to-pose pipeline on images and score it.
 
     handeval predict --images DIR|VIDEO [--K fx,fy,cx,cy | --K-file K.npy] --out PRED.npz [--sequence]
-                     [--detnet PATH] [--finder PATH|none] [--iknet PATH]
+                     [--detnet PATH] [--finder PATH|none] [--iknet PATH] [--set KEY=VALUE ...]
     handeval score --pred PRED.npz --gt GT.npz [--png CURVE.png] [--json OUT.json]
     handeval splits [--data shared/data] [--work /tmp/handeval] [--markdown TABLE.md]
                     [--methods ours mediapipe] [--only SPLIT ...] [--detnet ...]
@@ -18,7 +18,8 @@ str, the file of each row. A file that cannot be decoded is reported (one warnin
 its row left empty (not found), and the other images go on. K.npy: (4,) or (N,4) fx, fy,
 cx, cy, or (3,3) / (N,3,3). Without K, the default field of view of
 camera_info.default_K (60 degrees horizontal). Grey, alpha and 16-bit images are read as
-8-bit BGR.
+8-bit BGR. --set KEY=VALUE: HandDetector settings for this run (e.g.
+tracked_test_time_crops=4: every tracked hand read on five crops a frame).
 
 score: GT.npz with uv (N,21,2) px, optional xyz (N,21,3) m camera frame (NaN where there
 is none) and joint_valid (N,21). When PRED has all_* arrays, the predicted hand nearest to
@@ -33,6 +34,7 @@ predict + score on each, printing one table (see `splits_table`).
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import sys
 import warnings
@@ -92,7 +94,8 @@ def put_hands(pred, i, hands):
 def predict(source, K=None, out=None, sequence=None, tracker=None, models=None, log=print):
     """Run HandTracker on a folder of images or a video; returns the PRED dict (and writes
     it to `out` when given). K: None, or (N,3,3) per frame (see parse_K); models: dict of
-    HandTracker path keywords (detnet, finder, iknet)."""
+    HandTracker keywords (detnet, finder, iknet paths; detector settings, which override the
+    photo settings)."""
     from .detector import PHOTO_SETTINGS
     from .tracker import HandTracker
     frames = open_frames(source)
@@ -102,7 +105,7 @@ def predict(source, K=None, out=None, sequence=None, tracker=None, models=None, 
     sequence = is_video if sequence is None else sequence
     n = frames.frame_count
     stills = {} if sequence else PHOTO_SETTINGS
-    tracker = tracker or HandTracker(smooth=sequence, max_hands=MAX_HANDS, **stills, **(models or {}))
+    tracker = tracker or HandTracker(smooth=sequence, **{"max_hands": MAX_HANDS, **stills, **(models or {})})
     tracker.poses.p["smooth"] = sequence
     pred = empty_prediction(n)
     unreadable = np.zeros(n, bool)
@@ -453,7 +456,25 @@ def cmd_predict(args):
 
 
 def model_paths(args):
-    return {k: getattr(args, k) for k in ("detnet", "finder", "iknet") if getattr(args, k, None)}
+    """HandTracker keywords from the command line: model paths and --set detector settings."""
+    return {**{k: getattr(args, k) for k in ("detnet", "finder", "iknet") if getattr(args, k, None)},
+            **detector_settings(getattr(args, "set", None) or [])}
+
+
+def detector_settings(pairs):
+    """["KEY=VALUE", ...] -> {KEY: VALUE} of HandDetector keywords (VALUE read as YAML: 4,
+    0.2, null)."""
+    import yaml
+
+    from .detector import HandDetector
+    known = set(inspect.signature(HandDetector).parameters) - {"detnet", "finder", "fallback"}
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or key not in known:
+            raise ValueError(f"--set {pair}: expected KEY=VALUE with KEY one of {', '.join(sorted(known))}")
+        out[key] = yaml.safe_load(value)
+    return out
 
 
 def add_model_arguments(p):
@@ -461,6 +482,8 @@ def add_model_arguments(p):
                                      "(models/detnet.onnx) or an ONNX path")
     p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx; 'none': centre square)")
     p.add_argument("--iknet", help="IKNet ONNX (default models/iknet.onnx)")
+    p.add_argument("--set", nargs="+", metavar="KEY=VALUE",
+                   help="detector settings (HandDetector keywords), e.g. tracked_test_time_crops=4")
 
 
 def cmd_score(args):

@@ -661,6 +661,22 @@ def test_test_time_crops_halve_the_scatter_of_a_noisy_reading():
         HandDetector(FakeDetNet(), FakeFinder(), test_time_crops=99)
 
 
+def test_tracked_test_time_crops_read_every_tracked_hand_on_variants_on_every_frame():
+    uv_true = turned_hand((320, 240), 150, 0.4, False)
+    frame = draw(np.zeros((H, W, 3), np.uint8), uv_true)
+    plain = HandDetector(FakeDetNet(), FakeFinder(), mirror_vote_every=0)
+    det = HandDetector(FakeDetNet(), FakeFinder(), mirror_vote_every=0, tracked_test_time_crops=2)
+    plain.process(frame), det.process(frame)
+    assert det.stats["crops"] == plain.stats["crops"]       # a new track: test_time_crops' business
+    for _ in range(3):
+        base, out = plain.process(frame), det.process(frame)
+        np.testing.assert_allclose(out[0]["uv"], np.round(uv_true), atol=DOT_TOL)
+        np.testing.assert_allclose(out[0]["xyz_rel"], base[0]["xyz_rel"], atol=0.03)
+    assert det.stats["crops"] == plain.stats["crops"] + 3 * 2
+    with pytest.raises(ValueError, match="tracked_test_time_crops"):
+        HandDetector(FakeDetNet(), FakeFinder(), tracked_test_time_crops=-1)
+
+
 def test_crop_and_frame_camera_axes_are_inverse_for_mirrored_and_turned_crops():
     from handmocap.detector import crop_to_frame_xyz, frame_to_crop_xyz
     xyz = np.random.default_rng(5).normal(size=(21, 3))

@@ -162,6 +162,17 @@ def test_bad_K_is_an_error_not_a_crash(tmp_path, capsys):
     assert "K.npy" in capsys.readouterr().err
 
 
+def test_set_passes_detector_settings_and_refuses_unknown_ones(tmp_path, capsys):
+    assert eval_cli.detector_settings(["tracked_test_time_crops=4", "evict_margin=null", "crop_scale=1.4"]) == \
+        {"tracked_test_time_crops": 4, "evict_margin": None, "crop_scale": 1.4}
+    (tmp_path / "imgs").mkdir()
+    cv2.imwrite(str(tmp_path / "imgs" / "a.png"), np.zeros((8, 8, 3), np.uint8))
+    args = ["predict", "--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "p.npz"), "--set"]
+    assert eval_cli.main(args + ["tracked_test_time_crop=4"]) == 2
+    assert "--set tracked_test_time_crop=4" in capsys.readouterr().err
+    assert eval_cli.main(args + ["test_time_crops=2"]) == 0         # overrides the photo settings' 4
+
+
 @pytest.mark.skipif(not (SHARED_DATA / "samples" / "mmpose" / "rhd").is_dir(), reason="no shared/data pack beside the repository")
 def test_split_ground_truth_reprojects(tmp_path):
     """The RHD and InterHand samples' 3D projects onto their 2D labels (joint orders right)."""
