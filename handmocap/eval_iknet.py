@@ -18,7 +18,8 @@ FK error = mean distance of the model posed by the rotations (at the sample's re
 to the true clean joints, mm with the reference bone scaled to 95 mm; limits = share of the
 15 finger joints within the anatomical limits (JointLimits of the average hand, 0.5 deg
 tolerance). "clamped to limits" clips IKNet's finger angles into those limits
-(ik_solver.clamp_to_limits), as the ik node does by default.
+(ik_solver.clamp_to_limits, down each finger, keeping each bone's direction as far as
+the limits allow), as the ik node does by default.
 
 --pairs PAIRS.npz (scripts/detnet_noisy_pairs.py on a held-out shard, e.g. the synthetic
 validation shard): the paper's Table 2 on a real detector's output. DetNet's 3D of

@@ -33,7 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from . import onnx_models
-from .kinematics import FRAME_BONE, FRAME_PARENTS, PARENTS
+from .joint_limits import euler_xyz_to_matrix
+from .kinematics import FRAME_BONE, PARENTS
 from .onnx_models import open_session
 from .rotations import matrix_to_quat, quat_left_matrix, quat_normalize, quat_to_matrix
 from .skeleton import NON_TIP_JOINTS, NUM_JOINTS, normalize_joints
@@ -225,35 +226,41 @@ _FINGER_FRAME_BONES = np.array([j + 1 for j in NON_TIP_JOINTS[1:]])
 
 def clamp_to_limits(quats, limits):
     """(N,21,4) global bone quaternions -> the same with every finger joint's (flexion,
-    abduction, twist) clipped into `limits` (a JointLimits); the wrist is kept. The result is
-    normalized (w >= 0) and the five palm bones carry the wrist's rotation (the model's rigid
-    palm). Joints inside their limits keep their relative rotation exactly; when no joint of
-    any hand is outside, the input comes back as it is (after that normalization).
+    abduction, twist) clipped into `limits` (a JointLimits), keeping each finger bone
+    pointing where the input points it as far as the limits allow; the wrist is kept. The
+    result is normalized (w >= 0) and the five palm bones carry the wrist's rotation (the
+    model's rigid palm).
 
-    Straight from the quaternions to the 15 relative rotation matrices and anatomical angles,
-    and back only for the hands that have a joint outside: no axis-angle round trip."""
+    Down each finger, parents first: the joint's rotation relative to its (possibly clipped)
+    parent is read in its anatomical frame as L = Rx(flexion) Ry(abduction) Rz(twist). The
+    bone's direction L e_z fixes flexion and abduction, which are clipped; the twist (the
+    bone's turn about itself) is clipped on its own, and the joints below then turn to
+    point their bones where the input did, as far as their own limits allow (a DIP's twist
+    moves no joint at all). Joints inside their limits under an unchanged parent keep their
+    rotation exactly. Clipping the three Euler angles of the relative
+    rotation independently (until session 14) moved the bone whenever IKNet's guessed twist
+    was out of range: on real clips its index, ring and little finger joints came out
+    turned by up to +-150 degrees, and the clip put those fingers somewhere else."""
     shape = np.shape(quats)
-    q = quat_normalize(np.reshape(quats, (-1, NUM_JOINTS, 4)))             # (N,21,4)
-    q[:, PALM_JOINTS[1:]] = q[:, :1]
-    frames = quat_to_matrix(q[:, FRAME_BONE])                               # (N,16,3,3) joint frames G
-    rel = np.swapaxes(frames[:, FRAME_PARENTS[1:]], -1, -2) @ frames[:, 1:]   # (N,15,3,3) R = G_parentᵀ G
-    angles = limits.angles_from_relative(rel)                               # (N,15,3)
-    clipped = np.clip(angles, limits.limits[..., 0], limits.limits[..., 1])
-    outside = np.any(clipped != angles, axis=-1)                            # (N,15) joints to change
-    hands = np.flatnonzero(np.any(outside, axis=-1))                        # (M,) hands to change
-    if len(hands):
-        rel = np.where(outside[hands, :, None, None], limits.relative_from_angles(clipped[hands]), rel[hands])
-        q[hands[:, None], _FINGER_FRAME_BONES] = matrix_to_quat(_finger_frames(frames[hands, 0], rel))
-    return q.reshape(shape)
-
-
-def _finger_frames(wrist, rel):
-    """Wrist frames (M,3,3) and finger relative rotations (M,15,3,3) -> the 15 global finger
-    joint frames (M,15,3,3), G = G_parent R, down the five chains at once (three steps)."""
-    rel = rel.reshape(len(rel), 5, 3, 3, 3)                                 # (M, finger, level, 3, 3)
-    g = np.broadcast_to(wrist[:, None], rel.shape[:2] + (3, 3))
-    levels = []
-    for level in range(3):
-        g = g @ rel[:, :, level]
+    q = quat_normalize(np.reshape(quats, (-1, NUM_JOINTS, 4)))               # (N,21,4)
+    frames = quat_to_matrix(q[:, FRAME_BONE])                                 # (N,16,3,3) joint frames G
+    n = len(q)
+    joint = frames[:, 1:].reshape(n, 5, 3, 3, 3)                              # (N, finger, level, 3, 3)
+    F = limits.frames.reshape(5, 3, 3, 3)                                     # [f a t] per finger and level
+    rest_flexion = limits.rest_flexion.reshape(5, 3)
+    lo, hi = limits.limits[..., 0].reshape(5, 3, 3), limits.limits[..., 1].reshape(5, 3, 3)
+    g, levels = frames[:, :1], []                                             # the wrist, for all five
+    for level in range(3):                                                    # down the five chains at once
+        Fl = F[:, level]
+        L = np.swapaxes(Fl, -1, -2) @ np.swapaxes(g, -1, -2) @ joint[:, :, level] @ Fl   # (N,5,3,3) Fᵀ Gpᵀ G F
+        u = L[..., :, 2]                                                      # the bone's direction, locally
+        angles = np.stack([np.arctan2(-u[..., 1], u[..., 2]) + rest_flexion[:, level],
+                           np.arcsin(np.clip(u[..., 0], -1.0, 1.0)),
+                           np.arctan2(-L[..., 0, 1], L[..., 0, 0])], axis=-1)
+        angles = np.clip(angles, lo[:, level], hi[:, level])
+        angles[..., 0] -= rest_flexion[:, level]
+        g = g @ (Fl @ euler_xyz_to_matrix(angles) @ np.swapaxes(Fl, -1, -2))
         levels.append(g)
-    return np.stack(levels, axis=2).reshape(len(rel), 15, 3, 3)
+    q[:, _FINGER_FRAME_BONES] = matrix_to_quat(np.stack(levels, axis=2).reshape(n, 15, 3, 3))
+    q[:, PALM_JOINTS[1:]] = q[:, :1]
+    return q.reshape(shape)

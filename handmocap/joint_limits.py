@@ -93,7 +93,7 @@ def local_frames(rest):
     return frames, rest_flexion
 
 
-def _euler_xyz_to_matrix(angles):
+def euler_xyz_to_matrix(angles):
     """(...,3) (x, y, z) angles -> (...,3,3) Rx(x) Ry(y) Rz(z), written out (one stack of
     nine products instead of three axis-angle -> quaternion -> matrix conversions)."""
     angles = np.asarray(angles, dtype=np.float64)
@@ -152,7 +152,7 @@ class JointLimits:
         finger joints (model axes); the inverse of angles_from_relative."""
         angles = np.array(angles, dtype=np.float64)
         angles[..., 0] -= self.rest_flexion
-        return self.frames @ _euler_xyz_to_matrix(angles) @ np.swapaxes(self.frames, -1, -2)
+        return self.frames @ euler_xyz_to_matrix(angles) @ np.swapaxes(self.frames, -1, -2)
 
     def pose_from_angles(self, angles, wrist=None):
         """(..., 15, 3) anatomical angles (radians) -> (..., 16, 3) relative axis-angle pose.

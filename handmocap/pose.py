@@ -10,10 +10,10 @@ Per hand (pose_from_keypoints):
 1. A left hand's xyz_rel (the hand as seen) is mirrored (x -> -x) into the right-hand model.
 2. IKNet (IKSolver; the static int8 file by default, "float32" on request) turns the joints
    into 21 global bone quaternions, given the rest pose of the person (the paper's X_ref,
-   D_ref; the average hand until a shape is known). With
-   clamp_to_limits the finger angles are then clipped into the anatomical limits of the
-   average hand (ik_solver.clamp_to_limits; the IKNet section of models/README.md says what
-   it costs).
+   D_ref; the average hand until a shape is known). With clamp_to_limits the finger angles
+   are then clipped into the anatomical limits of the average hand, down each finger,
+   keeping each bone where IKNet points it as far as the limits allow
+   (ik_solver.clamp_to_limits; models/README.md, "The limits clamp keeps the bones").
 3. Optional One Euro smoothing per track of the quaternions (sign-aligned with the last
    output, renormalized) and of the root translation; a track's filters are reset when the
    track is missing from a keypoints message or unseen for `reset_after_s`.

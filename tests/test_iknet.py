@@ -4,11 +4,13 @@ import numpy as np
 import pytest
 
 from handmocap.hand_model import HandModel
-from handmocap.ik_solver import (DEFAULT_MODEL, FLOAT32_MODEL, INT8_MODEL, IKSolver, analytic_ik, canonical_frame,
-                                 clamp_to_limits, iknet_inputs, iknet_outputs, model_path, stale_quantization)
+from handmocap.ik_solver import (DEFAULT_MODEL, FLOAT32_MODEL, INT8_MODEL, IKSolver, _unit, analytic_ik,
+                                 canonical_frame, clamp_to_limits, iknet_inputs, iknet_outputs, model_path,
+                                 stale_quantization)
 from handmocap.joint_limits import JointLimits
 from handmocap.kinematics import forward_kinematics, relative_to_global_quats
 from handmocap.one_euro import OneEuroFilter
+from handmocap.pose import posed_joints
 from handmocap.pose_data import PoseSampler, corrupt_joints
 from handmocap.rotations import matrix_to_quat, quat_angle_between, quat_normalize, quat_to_matrix
 from handmocap.skeleton import normalize_joints
@@ -216,31 +218,47 @@ def test_clamp_to_limits_keeps_valid_joints_and_fixes_the_rest():
     np.testing.assert_allclose(np.abs(np.sum(fixed[:, 0] * bad[:, 0], -1)), 1, atol=1e-9)   # wrist kept
 
 
-def _clamp_reference(quats, limits):
-    """The first clamp_to_limits (axis-angle round trip through the relative pose), kept as
-    the reference the fast one must equal."""
-    from handmocap.kinematics import global_quats_to_relative, relative_to_global_quats
-    angles = np.clip(limits.angles(quats), limits.limits[..., 0], limits.limits[..., 1])
-    wrist = global_quats_to_relative(quats)[..., 0, :]
-    return relative_to_global_quats(limits.pose_from_angles(angles, wrist))
+def _legal_angles(limits, n, seed):
+    """(n,15,3) anatomical angles well inside the limits (sampled poses may touch one)."""
+    lo, hi = limits.limits[..., 0], limits.limits[..., 1]
+    return lo + (hi - lo) * np.random.default_rng(seed).uniform(0.2, 0.8, (n,) + lo.shape)
 
 
-def test_clamp_to_limits_equals_the_axis_angle_round_trip():
+def _global(limits, angles, wrist):
+    return quat_normalize(relative_to_global_quats(limits.pose_from_angles(angles, wrist)))
+
+
+def test_clamp_to_limits_keeps_legal_hands_and_where_the_bones_point():
     limits = JointLimits.for_model(MODEL)
-    d = samples(300, 15)
-    noisy = analytic_ik(corrupt_joints(d["xyz"], np.random.default_rng(16)), d["rest"])
+    rest = MODEL.rest_joints()
+    d = samples(5, 15)
+    angles = _legal_angles(limits, 5, 18)
+    inside = _global(limits, angles, d["pose16"][:, 0])
+    np.testing.assert_allclose(clamp_to_limits(inside, limits), inside, atol=1e-12)     # legal: kept
+    # a wild twist of a last bone (its turn about itself) is clipped without moving any joint
+    twisted = angles.copy()
+    twisted[:, [5, 11, 14], 2] = np.radians([150.0, -120.0, 90.0])   # index, ring, little DIP
+    wrung = _global(limits, twisted, d["pose16"][:, 0])
+    fixed = clamp_to_limits(wrung, limits)
+    assert limits.within(fixed).all()
+    np.testing.assert_allclose(posed_joints(fixed, MODEL, None, rest), posed_joints(wrung, MODEL, None, rest),
+                               atol=1e-9)
+    # an over-bent parent is clipped and its child, inside its own limits, still points its
+    # bone where it did (index MCP bent 120 degrees: limit 90; its PIP bent 20 takes up 30 more)
+    bent = angles.copy()
+    bent[:, 3], bent[:, 4] = [np.radians(120.0), 0, 0], [np.radians(20.0), 0, 0]
+    over = _global(limits, bent, d["pose16"][:, 0])
+    fixed = clamp_to_limits(over, limits)
+    assert limits.within(fixed).all()
+    joints, before = posed_joints(fixed, MODEL, None, rest), posed_joints(over, MODEL, None, rest)
+    direction = lambda j: _unit(j[:, 7] - j[:, 6])        # noqa: E731  the bone leaving the PIP
+    np.testing.assert_allclose(direction(joints), direction(before), atol=1e-9)
+    assert np.linalg.norm(joints[:, 6] - before[:, 6], axis=-1).min() > 1e-3     # the PIP itself moved
+    # a batch is its hands one by one; (21,4) in, (21,4) out
+    batch = clamp_to_limits(np.concatenate([wrung, over]), limits)
+    np.testing.assert_allclose(batch[7], clamp_to_limits(over[2], limits), atol=1e-12)
     wild = np.random.default_rng(17).normal(size=(200, 21, 4))
-    for quats in (d["quats"], noisy, wild, np.concatenate([d["quats"][:5], noisy[:5]])):
-        fast, ref = clamp_to_limits(quats, limits), _clamp_reference(quats, limits)
-        np.testing.assert_allclose(fast, ref, atol=1e-12)
-    # inside the limits: returned as given (normalized), whatever the other hands of the batch
-    lo, hi = limits.limits[..., 0], limits.limits[..., 1]       # well inside (sampled poses may touch a limit)
-    middle = lo + (hi - lo) * np.random.default_rng(18).uniform(0.2, 0.8, (3,) + lo.shape)
-    inside = quat_normalize(relative_to_global_quats(limits.pose_from_angles(middle, d["pose16"][:3, 0])))
-    np.testing.assert_array_equal(clamp_to_limits(inside, limits), quat_normalize(inside))
-    batch = clamp_to_limits(np.concatenate([noisy[:7], inside[:1]]), limits)
-    np.testing.assert_array_equal(batch[-1], quat_normalize(inside[0]))
-    np.testing.assert_array_equal(batch[3], clamp_to_limits(noisy[3], limits))        # (21,4) in, (21,4) out
+    assert limits.within(clamp_to_limits(wild, limits)).all()
 
 
 def test_palm_frame_is_a_rotation_that_follows_the_hand():
