@@ -29,7 +29,9 @@ Per frame (`HandDetector.process`):
    outweighs the finder's), and the track is only born if its mean heatmap peak there
    reaches `birth_confidence`: DetNet's presence head is sure of almost anything the
    finder proposes (a mouse on a desk, a face), its heatmap peaks are not. After a hand
-   was refused, the finder looks again `unborn_retry` frames later.
+   was refused, the finder looks again `unborn_retry` frames later. With
+   `test_time_crops` (photos) a new track's reading, with `tracked_test_time_crops` every
+   tracked hand's on every frame, is the median over its crop and that many variants of it.
 4. The next frame's crop of a track comes from this frame's 2D joints (their box, centre
    moved on by half the last displacement, side changing by at most 1.33x per frame), as
    MediaPipe and the paper's videos do.
