@@ -237,10 +237,10 @@ def clamp_to_limits(quats, limits):
     bone's turn about itself) is clipped on its own, and the joints below then turn to
     point their bones where the input did, as far as their own limits allow (a DIP's twist
     moves no joint at all). Joints inside their limits under an unchanged parent keep their
-    rotation exactly. Clipping the three Euler angles of the relative
-    rotation independently (until session 14) moved the bone whenever IKNet's guessed twist
-    was out of range: on real clips its index, ring and little finger joints came out
-    turned by up to +-150 degrees, and the clip put those fingers somewhere else."""
+    rotation exactly. Clipping the three Euler angles of the relative rotation
+    independently (until session 14) moved the bone whenever IKNet's guessed twist was out
+    of range: on real clips its index, ring and little finger joints came out turned by up
+    to +-150 degrees, and the clip put those fingers somewhere else."""
     shape = np.shape(quats)
     q = quat_normalize(np.reshape(quats, (-1, NUM_JOINTS, 4)))               # (N,21,4)
     frames = quat_to_matrix(q[:, FRAME_BONE])                                 # (N,16,3,3) joint frames G

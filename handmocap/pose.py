@@ -47,8 +47,8 @@ from .translation import camera_joints_from_keypoints, joints_through_keypoints,
 # "Pose smoothing"): the root's min cut-off 0.5 Hz, first set on synthetic jitter, lagged
 # behind real motion (median 11 mm from the motion's zero-phase estimate, 6 mm unsmoothed); at
 # 2 Hz it is 7 mm with a jitter 7x below the unsmoothed output's. The rotations' were kept.
-POSE_DEFAULTS = {"clamp_to_limits": True, "smooth": True, "xy_from_keypoints": 0.5, "rot_min_cutoff": 1.0, "rot_beta": 1.5,
-                 "root_min_cutoff": 2.0, "root_beta": 2.0, "d_cutoff": 1.0, "reset_after_s": 0.5}
+POSE_DEFAULTS = {"clamp_to_limits": True, "smooth": True, "xy_from_keypoints": 0.5, "rot_min_cutoff": 1.0,
+                 "rot_beta": 1.5, "root_min_cutoff": 2.0, "root_beta": 2.0, "d_cutoff": 1.0, "reset_after_s": 0.5}
 
 
 def posed_joints(quats, model, beta, rest=None):
