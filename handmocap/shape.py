@@ -160,8 +160,12 @@ class ShapeTracker:
     """
 
     def __init__(self, fitter, window=600, trim=3.0, min_frames_for_noise=8, prior_until_noise_known=1e-3,
-                 refresh_every=8, refresh_all_until=64):
+                 refresh_every=8, refresh_all_until=64, refit_every=8):
         self.fitter = fitter
+        # past `refresh_all_until` frames, beta is fitted again every this many frames only (its
+        # trimmed means and Gauss-Newton steps cost ~0.3 ms; one frame moves beta by ~1/window)
+        self.refit_every = refit_every
+        self._since_fit = 0
         # the median and MAD of a full window take two partitions of (600, 20..40) values,
         # ~0.45 ms a frame; one frame moves them by ~1/window, so past `refresh_all_until`
         # frames they are recomputed every `refresh_every` frames (the trimmed mean itself,
@@ -190,6 +194,7 @@ class ShapeTracker:
     def reset(self):
         self.frames.clear()
         self._robust = None
+        self._since_fit = 0
         self.beta = np.zeros(self.fitter.num_betas)
 
     def update(self, xyz):
@@ -200,9 +205,13 @@ class ShapeTracker:
             # not rescaled per frame: rescaling by a noisy reference bone would spread its
             # noise over every bone; bones are rigid in any fixed unit (normalized or metres)
             self.frames.append(np.concatenate([sq, np.sqrt(sq)]))
-            ratios, ratio_var = self.ratios()
-            # MAP weight of the N(0, I) prior on beta: variance of the averaged ratios
-            self.beta = self.fitter.fit_ratios(ratios, prior=max(self.fitter.prior, ratio_var / self.n_samples))
+            self._since_fit += 1
+            self._robust_age += 1
+            if self.n_samples < self.refresh_all_until or self._since_fit >= self.refit_every:
+                self._since_fit = 0
+                ratios, ratio_var = self.ratios()
+                # MAP weight of the N(0, I) prior on beta: variance of the averaged ratios
+                self.beta = self.fitter.fit_ratios(ratios, prior=max(self.fitter.prior, ratio_var / self.n_samples))
         return self.beta.copy(), self.n_samples
 
     def ratios(self):
@@ -212,7 +221,6 @@ class ShapeTracker:
         if len(sq) < self.min_frames_for_noise:
             ratios = np.sqrt(np.median(sq, axis=0) / np.median(sq[:, _REF_INDEX]))
             return ratios, self.prior_until_noise_known
-        self._robust_age += 1
         if self._robust is None or len(sq) < self.refresh_all_until or self._robust_age >= self.refresh_every:
             self._robust, self._robust_age = self._robust_stats(both), 0
         med, spread, noise_var = self._robust
@@ -248,6 +256,7 @@ class ShapeEstimator:
         self.forget_after_s = forget_after_s
         self.window = window
         self.tracks: dict[int, tuple[ShapeTracker, str, float]] = {}
+        self._rest_cache: dict[int, tuple[np.ndarray, dict]] = {}     # track id -> (beta, its fields)
 
     def update(self, hands: list[dict], now: float) -> list[dict]:
         """hands: HandKeypoints hands; returns HandShape shapes of every live track."""
@@ -257,12 +266,20 @@ class ShapeEstimator:
             self.tracks[h["track_id"]] = (tracker, h["handedness"], now)
         for tid in [t for t, (_, _, seen) in self.tracks.items() if now - seen > self.forget_after_s]:
             del self.tracks[tid]
+            self._rest_cache.pop(tid, None)
         out = []
         for tid, (tracker, handedness, _) in sorted(self.tracks.items()):
-            rest = normalize_joints(self.model.rest_joints(tracker.beta))
-            out.append({"track_id": tid, "handedness": handedness,
-                        "beta": tracker.beta.astype(np.float32),
-                        "rest_xyz": rest.astype(np.float32),
-                        "bone_ratios": bone_ratios(rest).astype(np.float32),
+            out.append({"track_id": tid, "handedness": handedness, **self._rest_of(tid, tracker.beta),
                         "samples": tracker.n_samples})
         return out
+
+    def _rest_of(self, tid, beta):
+        """beta, rest_xyz and bone_ratios (float32) of a track, kept while its beta stays the
+        same (ShapeTracker refits it every few frames only)."""
+        kept_beta, fields = self._rest_cache.get(tid, (None, None))
+        if kept_beta is None or not np.array_equal(kept_beta, beta):
+            rest = normalize_joints(self.model.rest_joints(beta))
+            fields = {"beta": beta.astype(np.float32), "rest_xyz": rest.astype(np.float32),
+                      "bone_ratios": bone_ratios(rest).astype(np.float32)}
+            self._rest_cache[tid] = (beta.copy(), fields)
+        return fields

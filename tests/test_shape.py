@@ -89,7 +89,8 @@ def test_refreshing_the_robust_statistics_every_few_frames_changes_beta_little()
     _, joints = MODEL.forward(LIMITS.sample(400, rng), beta)
     xyz = (joints - joints[:, 9:10]) / MODEL.ref_bone_length(beta) + rng.normal(0, 0.05, joints.shape)
     xyz[::13] = rng.normal(0, 1.0, xyz[::13].shape)
-    every, sparse = ShapeTracker(FITTER, window=200, refresh_every=1), ShapeTracker(FITTER, window=200)
+    every = ShapeTracker(FITTER, window=200, refresh_every=1, refit_every=1)
+    sparse = ShapeTracker(FITTER, window=200, refit_every=1)
     exact = np.array([every.update(frame)[0] for frame in xyz])
     fast = np.array([sparse.update(frame)[0] for frame in xyz])
     np.testing.assert_array_equal(exact[:63], fast[:63])            # every frame while < 64 frames
@@ -99,3 +100,22 @@ def test_refreshing_the_robust_statistics_every_few_frames_changes_beta_little()
     assert abs(rms(fast[-1]) - rms(exact[-1])) < 0.05
     sparse.reset()
     assert sparse._robust is None and sparse.n_samples == 0
+
+
+def test_refitting_beta_every_few_frames_holds_it_in_between_and_changes_it_little():
+    """Past the first 64 frames beta is refitted every 8 frames (speed): in between it holds,
+    at each refit it is what refitting every frame gives there, and over the run it stays
+    within beta's own 8-frame motion of it."""
+    rng = np.random.default_rng(8)
+    beta = rng.normal(size=10)
+    _, joints = MODEL.forward(LIMITS.sample(300, rng), beta)
+    xyz = (joints - joints[:, 9:10]) / MODEL.ref_bone_length(beta) + rng.normal(0, 0.05, joints.shape)
+    every, sparse = ShapeTracker(FITTER, window=200, refit_every=1), ShapeTracker(FITTER, window=200)
+    exact = np.array([every.update(frame)[0] for frame in xyz])
+    fast = np.array([sparse.update(frame)[0] for frame in xyz])
+    np.testing.assert_array_equal(exact[:63], fast[:63])
+    changes = np.flatnonzero(np.any(fast[64:] != fast[63:-1], axis=1)) + 64
+    assert np.all(np.diff(changes) == 8)                                    # held in between
+    np.testing.assert_allclose(fast[changes], exact[changes], atol=1e-12)   # the same fit at a refit
+    moved = np.abs(exact[72:] - exact[64:-8]).max(1)
+    assert np.percentile(np.abs(exact - fast).max(1)[72:], 90) <= np.max(moved)
