@@ -31,7 +31,9 @@ Per frame (`HandDetector.process`):
    finder proposes (a mouse on a desk, a face), its heatmap peaks are not. After a hand
    was refused, the finder looks again `unborn_retry` frames later. With
    `test_time_crops` (photos) a new track's reading, with `tracked_test_time_crops` every
-   tracked hand's on every frame, is the median over its crop and that many variants of it.
+   tracked hand's on every frame, is the median over its crop and that many variants of it;
+   a tracked hand whose joints' box changed size by more than `second_look` (10%) since the
+   last frame gets that second look on 4 variants too.
 4. The next frame's crop of a track comes from this frame's 2D joints (their box, centre
    moved on by half the last displacement, side changing by at most 1.33x per frame), as
    MediaPipe and the paper's videos do.
@@ -328,7 +330,7 @@ class HandDetector:
                  birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
                  opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3,
-                 test_time_crops=0, reseed_margin=0.2, tracked_test_time_crops=0):
+                 test_time_crops=0, reseed_margin=0.2, tracked_test_time_crops=0, second_look=0.1):
         self.detnet, self.finder = detnet, finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
@@ -389,6 +391,10 @@ class HandDetector:
             raise ValueError(f"tracked_test_time_crops must be 0..{len(TEST_TIME_VARIANTS)}, "
                              f"got {tracked_test_time_crops}")
         self.tracked_test_time_crops = tracked_test_time_crops
+        # a tracked hand whose joints' box changed size by more than this fraction since the
+        # last frame is read again on 4 variants of its crop and the median kept (0: never):
+        # a hand does not change size that fast, and such readings were often wrong
+        self.second_look = second_look or 0.0
         # a re-seed must convince DetNet: its mean heatmap peak on the found box's crop at
         # least the track's running peak minus this (None: every re-seed is taken). A track
         # whose crop has swollen around an exploded prediction holds boxes of other things,
@@ -409,7 +415,7 @@ class HandDetector:
         self.frames_since_find = 0
         self.lost_last_frame = False
         self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
-                      "evictions": 0, "handedness_turns": 0}
+                      "evictions": 0, "handedness_turns": 0, "second_looks": 0}
 
     @classmethod
     def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, **kwargs):
@@ -586,6 +592,11 @@ class HandDetector:
         tracked = [i for i in range(len(self.tracks)) if i not in idx]
         if self.tracked_test_time_crops and tracked:
             self._median_over_nearby_crops(image_bgr, tracked, out, self.tracked_test_time_crops)
+        elif self.second_look and tracked:
+            jumped = [i for i in tracked if self._size_jumped(self.tracks[i], out["uv"][i])]
+            if jumped:
+                self.stats["second_looks"] += len(jumped)
+                self._median_over_nearby_crops(image_bgr, jumped, out, 4)
         hands, keep = [], []
         for i, t in enumerate(self.tracks):
             presence, confidence = float(out["presence"][i]), float(np.mean(out["confidence"][i]))
@@ -655,6 +666,15 @@ class HandDetector:
                 self.tracks[i].crop = turns[3 * n + k]
                 for key in out:
                     out[key][i] = more[key][3 * n + k]
+
+    def _size_jumped(self, track, uv_crop):
+        """Whether the joints read on the track's crop (uv_crop (21,2) crop px) span a box whose
+        side differs from the last frame's by more than `second_look` of it."""
+        if track.uv is None:
+            return False
+        uv = track.crop.to_frame(uv_crop)
+        side, last = np.max(np.ptp(uv, axis=0)), np.max(np.ptp(track.uv, axis=0))
+        return bool(np.isfinite(side) and last > 0 and abs(side / last - 1.0) > self.second_look)
 
     def _median_over_nearby_crops(self, image_bgr, idx, out, k):
         """Tracks (indices `idx` into self.tracks; `out` DetNet's outputs on their

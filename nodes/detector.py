@@ -26,6 +26,8 @@ its crop and this many variants of it, larger, smaller, turned, and the median k
 streams of unrelated photos; 0, the default for video, or null = off),
 tracked_test_time_crops (the same for every tracked hand on every frame: that many more
 DetNet crops per hand and frame for a more accurate 2D and 3D; 0, the default, or null = off),
+second_look (a tracked hand whose joints' box changed size by more than this fraction since
+the last frame is read again on 4 variants of its crop and the median kept; 0 or null = never),
 redetect_every (frames between finder runs, which also check the tracks), reseed_iou (a track
 whose joints overlap the hand the finder sees in its crop less than this restarts from the
 finder's box; 0 = never), reseed_margin (... only where DetNet's mean heatmap peak on that
@@ -45,7 +47,7 @@ from handmocap.node import Message, Node, run, spin
 # HandDetector's settings, with its own defaults (one place for them: the class)
 TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "evict_margin",
            "opposite_hands", "upright_step", "finder_handedness", "mirror_vote_every", "redetect_every", "reseed_iou",
-           "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops")
+           "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops", "second_look")
 _DEFAULTS = inspect.signature(HandDetector).parameters
 PARAMS = {"detnet": None, "finder": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
           "every_frame": False}

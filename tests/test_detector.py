@@ -677,6 +677,19 @@ def test_tracked_test_time_crops_read_every_tracked_hand_on_variants_on_every_fr
         HandDetector(FakeDetNet(), FakeFinder(), tracked_test_time_crops=-1)
 
 
+def test_second_look_reads_a_hand_again_when_its_size_jumps():
+    """second_look=f: a tracked hand whose joints' box changed size by more than f since the
+    last frame is read again on 4 variants of its crop; a steady hand is read once."""
+    steady = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((320, 260), 110))
+    bigger = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((320, 260), 135))
+    det = HandDetector(FakeDetNet(), FakeFinder(), mirror_vote_every=0, second_look=0.15)
+    plain = HandDetector(FakeDetNet(), FakeFinder(), mirror_vote_every=0, second_look=0)
+    for frame in (steady, steady, steady, bigger, bigger):
+        out, base = det.process(frame), plain.process(frame)
+        np.testing.assert_allclose(out[0]["uv"], base[0]["uv"], atol=DOT_TOL)    # the median of good readings
+    assert det.stats["second_looks"] == 1 and det.stats["crops"] == plain.stats["crops"] + 4
+
+
 def test_crop_and_frame_camera_axes_are_inverse_for_mirrored_and_turned_crops():
     from handmocap.detector import crop_to_frame_xyz, frame_to_crop_xyz
     xyz = np.random.default_rng(5).normal(size=(21, 3))
