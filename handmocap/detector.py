@@ -86,6 +86,15 @@ ACCURATE_VIDEO_SETTINGS = {"tracked_test_time_crops": 4}
 # (side factor, extra turn in degrees) of the crops a new track's reading is averaged over
 # besides its own (`test_time_crops`): within the jitter DetNet was trained with
 TEST_TIME_VARIANTS = ((0.9, 0.0), (1.1, 0.0), (1.0, -20.0), (1.0, 20.0), (0.95, -10.0), (1.05, 10.0))
+SECOND_LOOK_CROPS = 4       # variants read for a tracked hand whose size jumped (`second_look`)
+
+
+def _variant_count(name, value):
+    """A count of TEST_TIME_VARIANTS (None: 0); a ValueError naming `name` outside 0..6."""
+    value = value or 0
+    if not 0 <= value <= len(TEST_TIME_VARIANTS):
+        raise ValueError(f"{name} must be 0..{len(TEST_TIME_VARIANTS)}, got {value}")
+    return value
 
 
 def detnet_path(path=None) -> Path:
@@ -380,19 +389,12 @@ class HandDetector:
         # a new track's reading is the per-coordinate median over its crop and this many
         # more (TEST_TIME_VARIANTS: a little larger, smaller, turned): for photos, where each
         # hand is read once and a crop's chance placement otherwise stays in the result
-        test_time_crops = test_time_crops or 0
-        if not 0 <= test_time_crops <= len(TEST_TIME_VARIANTS):
-            raise ValueError(f"test_time_crops must be 0..{len(TEST_TIME_VARIANTS)}, got {test_time_crops}")
-        self.test_time_crops = test_time_crops
+        self.test_time_crops = _variant_count("test_time_crops", test_time_crops)
         # the same for every tracked hand on every frame (0: never): K more DetNet crops per
         # hand and frame, for accuracy where the time is there
-        tracked_test_time_crops = tracked_test_time_crops or 0
-        if not 0 <= tracked_test_time_crops <= len(TEST_TIME_VARIANTS):
-            raise ValueError(f"tracked_test_time_crops must be 0..{len(TEST_TIME_VARIANTS)}, "
-                             f"got {tracked_test_time_crops}")
-        self.tracked_test_time_crops = tracked_test_time_crops
+        self.tracked_test_time_crops = _variant_count("tracked_test_time_crops", tracked_test_time_crops)
         # a tracked hand whose joints' box changed size by more than this fraction since the
-        # last frame is read again on 4 variants of its crop and the median kept (0: never):
+        # last frame is read again on SECOND_LOOK_CROPS variants of its crop and the median kept (0: never):
         # a hand does not change size that fast, and such readings were often wrong
         self.second_look = second_look or 0.0
         # a re-seed must convince DetNet: its mean heatmap peak on the found box's crop at
@@ -596,7 +598,7 @@ class HandDetector:
             jumped = [i for i in tracked if self._size_jumped(self.tracks[i], out["uv"][i])]
             if jumped:
                 self.stats["second_looks"] += len(jumped)
-                self._median_over_nearby_crops(image_bgr, jumped, out, 4)
+                self._median_over_nearby_crops(image_bgr, jumped, out, SECOND_LOOK_CROPS)
         hands, keep = [], []
         for i, t in enumerate(self.tracks):
             presence, confidence = float(out["presence"][i]), float(np.mean(out["confidence"][i]))

@@ -212,11 +212,8 @@ def joints_through_keypoints(K, uv, xyz_rel, weight=1.0):
     2D is read from heatmaps, its x, y from location maps: on held-out synthetic crops
     and real clips (models/README.md, "3D x, y from the 2D") half of each beats either.
     Joints with a non-finite pixel keep xyz_rel's x, y; so does a hand whose fit fails."""
-    K = _k_matrix(K)[..., None, :, :]                       # broadcasts over the 21 joints
     p = np.asarray(xyz_rel, dtype=np.float64)
-    uv = np.asarray(uv, dtype=np.float64)
-    ry = (uv[..., 1] - K[..., 1, 2]) / K[..., 1, 1]
-    r = np.stack([(uv[..., 0] - K[..., 0, 2] - K[..., 0, 1] * ry) / K[..., 0, 0], ry], axis=-1)   # rays' x, y (z = 1)
+    r = back_project(_k_matrix(K)[..., None, :, :], uv)[..., :2]             # rays' x, y (z = 1), K per hand
     d = r - r[..., ROOT:ROOT + 1, :]                                           # (..., 21, 2)
     target = p[..., :2] - p[..., 2:] * r                                       # = a d where all agree
     seen = np.isfinite(np.sum(d + target, axis=-1))                            # (..., 21) pixel and joint

@@ -31,7 +31,7 @@ from handmocap.hand_model import HandModel
 from handmocap.ik_solver import IKSolver
 from handmocap.joint_limits import FINGER_JOINTS, JointLimits
 from handmocap.kinematics import global_quats_to_relative
-from handmocap.metrics import PCK_THRESHOLDS_MM, auc, pck
+from handmocap.metrics import PCK_THRESHOLDS_MM, align_to_ground_truth, auc, joint_errors, pck
 from handmocap.pose import PoseEstimator, joints_for_iknet, solve_rotations
 from handmocap.pose_data import SHARED_DATA
 from handmocap.shape import ShapeEstimator
@@ -42,10 +42,8 @@ WEIGHTS = (0.0, 0.25, 0.4, 0.5, 0.6, 0.75, 1.0)
 
 
 def error_mm(pred, xyz):
-    """(N,21) mm between normalized predictions scaled and moved onto the truth (N,21,3) m."""
-    gt = xyz - xyz[:, 9:10]
-    scale = np.linalg.norm(gt[:, 0], axis=-1)[:, None, None]
-    return 1000 * np.linalg.norm(normalize_joints(pred) * scale - gt, axis=-1)
+    """(N,21) mm between predictions root- and scale-aligned onto the truth (N,21,3) m, as `handeval`."""
+    return 1000 * joint_errors(align_to_ground_truth(pred, xyz), xyz)
 
 
 def summary(err):
@@ -69,7 +67,8 @@ def synthetic(folder):
         print(f"{shard} ({len(uv)} crops), mean mm / AUC 20-50 mm:")
         for w in WEIGHTS:
             print(f"  x, y weight {w:.2f}: {summary(error_mm(joints_through_keypoints(K, uv, P, w), truth))}")
-        print(f"  the true 2D, DetNet's depths: {summary(error_mm(joints_through_keypoints(K, d['uv'], P, 1.0), truth))}")
+        true_2d = joints_through_keypoints(K, d["uv"], P, 1.0)
+        print(f"  the true 2D, DetNet's depths: {summary(error_mm(true_2d, truth))}")
 
 
 def clip_paths(shared):
@@ -150,7 +149,8 @@ def limits_table(shared):
         for c, name in enumerate(("flexion", "abduction", "twist")):
             outside = np.mean((a[:, k, c] < lim[k, c, 0]) | (a[:, k, c] > lim[k, c, 1]))
             p = np.percentile(a[:, k, c], [5, 50, 95])
-            cells.append(f"{name} [{lim[k, c, 0]:.0f},{lim[k, c, 1]:.0f}] {outside:4.0%} {p[0]:6.1f} {p[1]:6.1f} {p[2]:6.1f}")
+            cells.append(f"{name} [{lim[k, c, 0]:.0f},{lim[k, c, 1]:.0f}] {outside:4.0%} "
+                         f"{p[0]:6.1f} {p[1]:6.1f} {p[2]:6.1f}")
         print(f"joint {joint:2d} | " + " | ".join(cells))
 
 
