@@ -307,10 +307,10 @@ class Track:
     def is_right(self) -> bool:
         return self.right_logit >= 0.0
 
-    def add_head_reading(self, p_right_seen, mirrored):
+    def add_head_reading(self, p_right_seen, mirrored, memory=20):
         """DetNet's handedness head p_right_seen (does the crop show a right hand) on a crop
         of this hand that was (mirrored) or was not flipped."""
-        self.add_handedness(1.0 - p_right_seen if mirrored else p_right_seen)
+        self.add_handedness(1.0 - p_right_seen if mirrored else p_right_seen, memory=memory)
 
     def add_handedness(self, p_right, weight=1.0, memory=20):
         """Running mean of logits over about the last `memory` observations."""
@@ -339,7 +339,8 @@ class HandDetector:
                  birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
                  opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3,
-                 test_time_crops=0, reseed_margin=0.2, tracked_test_time_crops=0, second_look=0.1):
+                 test_time_crops=0, reseed_margin=0.2, tracked_test_time_crops=0, second_look=0.1,
+                 handedness_memory=20):
         self.detnet, self.finder = detnet, finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
@@ -386,6 +387,8 @@ class HandDetector:
         # The head alone is biased on views unlike its training data; asked about a crop and
         # its mirror image, its two answers share the bias and averaging them cancels it
         self.mirror_vote_every = mirror_vote_every
+        # a track's handedness is the running mean logit of about its last this many readings
+        self.handedness_memory = handedness_memory
         # a new track's reading is the per-coordinate median over its crop and this many
         # more (TEST_TIME_VARIANTS: a little larger, smaller, turned): for photos, where each
         # hand is read once and a crop's chance placement otherwise stays in the result
@@ -480,7 +483,7 @@ class HandDetector:
                 t = covering[0]
                 owner[k] = t.track_id
                 if self.finder_handedness:
-                    t.add_handedness(right_prob, weight=0.5 * self.finder_handedness)
+                    t.add_handedness(right_prob, weight=0.5 * self.finder_handedness, memory=self.handedness_memory)
                 if t.uv is not None and overlap.get((k, t.track_id), 0.0) < self.reseed_iou and \
                         self._reseed_believed(image, box, right_prob, t):
                     # the track's joints no longer match the hand the finder sees in its crop
@@ -517,7 +520,7 @@ class HandDetector:
     def _new_track(self, box, right_prob):
         track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale))
         if self.finder_handedness:
-            track.add_handedness(right_prob, weight=self.finder_handedness)
+            track.add_handedness(right_prob, weight=self.finder_handedness, memory=self.handedness_memory)
         self.next_id += 1
         return track
 
@@ -582,7 +585,7 @@ class HandDetector:
             for i in idx:
                 t = self.tracks[i]
                 if out["presence"][i] >= self.presence_threshold:
-                    t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
+                    t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored, self.handedness_memory)
                     t.crop = crop_for_joints(t.crop.to_frame(out["uv"][i]), not t.is_right, self.crop_scale,
                                              self.upright_step)
             again = self._run_voting(image_bgr, [self.tracks[i] for i in idx])   # a new track votes again here
@@ -624,7 +627,7 @@ class HandDetector:
                 xyz = mirror_points(xyz)
             if t.crop.angle:
                 xyz = t.crop.to_frame_axes(xyz)
-            t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
+            t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored, self.handedness_memory)
             if t.uv is not None:
                 t.velocity = np.median(uv - t.uv, axis=0)
             t.uv, t.age = uv, t.age + 1
@@ -650,7 +653,8 @@ class HandDetector:
         out = self._run(image_bgr, [t.crop for t in tracks], due)
         n = len(tracks)
         for k, i in enumerate(due):     # the head on the crop mirrored the other way
-            tracks[i].add_head_reading(float(out["handedness"][n + k]), not tracks[i].crop.mirrored)
+            tracks[i].add_head_reading(float(out["handedness"][n + k]), not tracks[i].crop.mirrored,
+                                        self.handedness_memory)
         return {key: v[:n] for key, v in out.items()}
 
     def _turn_new_tracks(self, image_bgr, idx, out):

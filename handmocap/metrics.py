@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .skeleton import normalize_joints, REF_BONE, ROOT
+from .skeleton import normalize_joints, PARENTS, REF_BONE, ROOT
 
 PCK_THRESHOLDS_MM = np.linspace(20.0, 50.0, 15)
 PCK_THRESHOLDS_PX = np.linspace(0.0, 30.0, 16)
@@ -72,3 +72,25 @@ def score_2d(pred_uv, gt_uv, joint_valid=None, thresholds=PCK_THRESHOLDS_PX):
     return {"mean_px": float(finite.mean()) if finite.size else np.nan,
             "median_px": float(np.median(finite)) if finite.size else np.nan,
             "pck": curve, "auc": auc(thresholds, curve), "thresholds_px": np.asarray(thresholds)}
+
+
+def bone_per_reference(xyz):
+    """Bone lengths over the reference bone: xyz (N,21,3) -> (N,21), row j the bone from
+    PARENTS[j] to j divided by |j0 - j9| (column 0: zero). The proportions that root and
+    scale alignment keep: two skeletons whose ratios differ cannot match by alignment."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    bones = np.linalg.norm(xyz - xyz[:, np.maximum(PARENTS, 0)], axis=-1)
+    return bones / np.linalg.norm(xyz[:, REF_BONE[0]] - xyz[:, REF_BONE[1]], axis=-1)[:, None]
+
+
+def with_proportions(xyz, bone_ratio):
+    """Joints xyz (N,21,3) rebuilt down the kinematic tree from the wrist: every bone keeps
+    its direction, its length becomes bone_ratio (21,) (as bone_per_reference gives) times
+    the hand's own |j0 - j9|. -> (N,21,3), the wrist where it was."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    ref = np.linalg.norm(xyz[:, REF_BONE[0]] - xyz[:, REF_BONE[1]], axis=-1)[:, None]
+    out = np.repeat(xyz[:, :1], xyz.shape[1], axis=1)
+    for j in range(1, xyz.shape[1]):                # PARENTS lists every parent before its child
+        d = xyz[:, j] - xyz[:, PARENTS[j]]
+        out[:, j] = out[:, PARENTS[j]] + d / np.linalg.norm(d, axis=-1, keepdims=True) * (bone_ratio[j] * ref)
+    return out

@@ -21,7 +21,8 @@ upright_step (a track's crop turns in steps of this many degrees so that its han
 upright, from its last 2D joints: 90 quarter turns, 0 any angle, null never),
 finder_handedness (weight of the hand finder's handedness against one DetNet reading),
 mirror_vote_every (every this many frames of a track, and on its first, DetNet's handedness
-head also reads the crop flipped; 0 or null = never), test_time_crops (a new track is read on
+head also reads the crop flipped; 0 or null = never), handedness_memory (a track's handedness
+is the running mean logit of about this many readings), test_time_crops (a new track is read on
 its crop and this many variants of it, larger, smaller, turned, and the median kept: for
 streams of unrelated photos; 0, the default for video, or null = off),
 tracked_test_time_crops (the same for every tracked hand on every frame: that many more
@@ -47,7 +48,8 @@ from handmocap.node import Message, Node, run, spin
 # HandDetector's settings, with its own defaults (one place for them: the class)
 TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "evict_margin",
            "opposite_hands", "upright_step", "finder_handedness", "mirror_vote_every", "redetect_every", "reseed_iou",
-           "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops", "second_look")
+           "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops", "second_look",
+           "handedness_memory")
 _DEFAULTS = inspect.signature(HandDetector).parameters
 PARAMS = {"detnet": None, "finder": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
           "every_frame": False}

@@ -255,6 +255,22 @@ def test_the_mirror_vote_cancels_a_handedness_head_biased_to_one_side():
     assert det.tracks[0].right_logit < 0
 
 
+def test_handedness_memory_sets_how_long_contrary_readings_take_to_turn_a_track():
+    """After 40 sure "right" readings, sure "left" ones turn the running mean in about
+    0.7 x memory readings (its first `memory` readings count alike, older ones then fade)."""
+    def readings_to_turn(memory):
+        t = Track(0, CropTransform.around(np.array([300.0, 300.0]), 200.0))
+        for _ in range(40):
+            t.add_head_reading(0.95, mirrored=False, memory=memory)
+        for n in range(1, 200):
+            t.add_head_reading(0.05, mirrored=False, memory=memory)
+            if not t.is_right:
+                return n
+    assert [readings_to_turn(m) for m in (10, 20, 60)] == [7, 14, 38]
+    det = HandDetector(FakeDetNet(), FakeFinder(), handedness_memory=60)
+    assert det.handedness_memory == 60
+
+
 def two_hand_frames(n, drop=()):
     """A right hand moving right on the left, a left hand moving left on the right; the left
     one is missing in frames `drop`. Returns frames and true uv per hand."""

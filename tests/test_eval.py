@@ -57,6 +57,23 @@ def test_auc_is_the_normalized_trapezoid():
     assert metrics.auc([0, 1, 2], [0.0, 1.0, 1.0]) == pytest.approx(0.75)
 
 
+def test_a_skeleton_rebuilt_on_other_proportions_keeps_its_bone_directions_and_costs_auc():
+    gt = hands()
+    ratio = metrics.bone_per_reference(gt)
+    assert ratio.shape == (10, 21) and np.allclose(ratio[:, 9], 1.0) and np.all(ratio[:, 0] == 0.0)
+    same = metrics.with_proportions(gt, ratio[0])      # every hand on the first one's proportions
+    np.testing.assert_allclose(metrics.with_proportions(gt[:1], ratio[0]), gt[:1], atol=1e-12)   # its own: unchanged
+    longer = ratio[0].copy()
+    longer[[6, 10, 14, 18]] *= 1.5                     # proximal finger bones half as long again
+    moved = metrics.with_proportions(gt, longer)
+    np.testing.assert_allclose(metrics.bone_per_reference(moved)[:, 1:], np.broadcast_to(longer[1:], (10, 20)),
+                               rtol=1e-9)
+    bone = lambda x, j, p: (x[:, j] - x[:, p]) / np.linalg.norm(x[:, j] - x[:, p], axis=-1, keepdims=True)  # noqa: E731
+    np.testing.assert_allclose(bone(moved, 7, 6), bone(gt, 7, 6), atol=1e-12)
+    np.testing.assert_allclose(moved[:, 0], gt[:, 0])
+    assert metrics.score_3d(moved, gt)["auc"] < metrics.score_3d(same, gt)["auc"] <= 1.0
+
+
 def test_2d_offsets():
     gt = np.random.default_rng(0).uniform(0, 300, (5, 21, 2))
     s = metrics.score_2d(gt + np.array([3.0, 4.0]), gt)
