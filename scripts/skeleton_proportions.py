@@ -43,6 +43,8 @@ def main():
                    help="DetNet's real-crop cache (handtrain detnet builds it): its MediaPipe world landmarks "
                         "of the training videos get a row too, when the file is there")
     args = p.parse_args()
+    if not args.work.is_dir():
+        raise SystemExit(f"no handeval work folder at {args.work}: run `handeval splits --work {args.work}` first")
     rest = HandModel.load().rest_joints()[None]
     model_per_palm = metrics.bone_per_reference(rest)[0]
     splits = [args.work / s for s in args.only] if args.only else sorted(args.work.iterdir())
