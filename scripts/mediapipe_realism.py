@@ -17,6 +17,14 @@ found; for found hands, the pixel error against the labels (mean over the 21 joi
 the detection closest to the labels, in the data set's pixels, and as a fraction of the
 labelled hand box side); and how often MediaPipe's handedness matches the label.
 --json writes the numbers and per-image results.
+--conventions: also where MediaPipe puts the joints against the labels, on the hands it
+read well (mean error under a quarter of the wrist-middle-MCP length |0-9|, every joint
+in the image): the scale of its skeleton against the labels' (median least-squares
+scale about the centroid), and then, with the labels scaled to its size, its offset along
+the wrist -> middle MCP bone at the wrist, along the metacarpal (towards the wrist) at each
+MCP, along the last bone (inwards) at each fingertip, and along the proximal bone at the
+index and middle PIP, in units of |0-9|. On the engine's crops this is where MediaPipe's
+landmark convention differs from the hand model's joints (models/README.md, Evaluation).
 """
 import argparse
 import json
@@ -76,6 +84,33 @@ def real_webcam_crops(root, n, size=128, crop_scale=1.3, joint_to_vertex_box=1.1
     return data, {"config": {"mode": "real webcam crop"}, "backgrounds": "real"}
 
 
+def print_conventions(labels, found_uv):
+    """Scale and per-joint offsets of MediaPipe's joints found_uv (N,21,2; NaN: not found)
+    against the labels (N,21,2), as the module doc describes."""
+    palm = np.linalg.norm(labels[:, 9] - labels[:, 0], axis=-1)
+    err = np.linalg.norm(found_uv - labels, axis=-1).mean(1) / palm
+    side = labels.max() + 1
+    good = np.isfinite(err) & (err < 0.25) & ((labels >= 0) & (labels < side)).all(axis=(1, 2))
+    U, M = labels[good], found_uv[good]
+    Uc, Mc = U - U.mean(1, keepdims=True), M - M.mean(1, keepdims=True)
+    scale = (Uc * Mc).sum((1, 2)) / (Uc * Uc).sum((1, 2))
+    print(f"  conventions, on the {int(good.sum())} hands read within 0.25 |0-9|: MediaPipe's skeleton is "
+          f"{np.median(scale):.3f} x the labels' (median; IQR {np.percentile(scale, 25):.3f}-"
+          f"{np.percentile(scale, 75):.3f})")
+    A = scale[:, None, None] * Uc + M.mean(1, keepdims=True)        # the labels at MediaPipe's size
+    unit = palm[good] * scale
+
+    def along(j, towards):                                          # offset of joint j towards joint `towards`
+        d = A[:, towards] - A[:, j]
+        return float(np.median(((M[:, j] - A[:, j]) * d / np.linalg.norm(d, axis=-1, keepdims=True)).sum(-1) / unit))
+    rows = [("wrist, towards the middle MCP", along(0, 9))]
+    rows += [(f"MCP {j}, towards the wrist", along(j, 0)) for j in (5, 9, 13, 17)]
+    rows += [(f"tip {j}, inwards", along(j, j - 1)) for j in (4, 8, 12, 16, 20)]
+    rows += [(f"PIP {j}, towards its MCP", along(j, j - 1)) for j in (6, 10)]
+    for name, value in rows:
+        print(f"    {name:32s} {value:+.3f} |0-9|")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("data", type=Path, help="a directory written by `handsynth generate`, or with --real the "
@@ -87,6 +122,8 @@ def main():
                     help="add this fraction of the side as replicated border on each side (more context)")
     ap.add_argument("--min-confidence", type=float, default=0.5)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--conventions", action="store_true", help="also the scale and per-joint offsets of "
+                    "MediaPipe's joints against the labels (see the module doc)")
     args = ap.parse_args()
 
     import mediapipe as mp
@@ -96,6 +133,7 @@ def main():
     found = np.zeros(n, bool)
     err_px = np.full(n, np.nan)
     hand_match = np.zeros(n, bool)
+    mp_uv = np.full((n, 21, 2), np.nan)
     with mp.solutions.hands.Hands(static_image_mode=True, max_num_hands=2,
                                   min_detection_confidence=args.min_confidence) as hands:
         pad = 0
@@ -115,9 +153,12 @@ def main():
                 uv = np.array([(p.x, p.y) for p in lm.landmark]) * (size + 2 * pad) - pad   # data-set pixels
                 e = np.linalg.norm(uv - data["uv"][i], axis=1).mean()
                 if best is None or e < best[0]:
-                    best = (e, hd.classification[0].label)
+                    best = (e, hd.classification[0].label, uv)
             err_px[i] = best[0]
-            hand_match[i] = (best[1] == "Left") == bool(data["handedness"][i])
+            mp_uv[i] = best[2]
+            # solutions.hands labels assume a mirrored (selfie) image: on these unmirrored images its
+            # "Right" is a left hand (as scripts/mediapipe_reference.py swaps it)
+            hand_match[i] = (best[1] == "Right") == bool(data["handedness"][i])
     box = data["box"]
     box_side = np.maximum(box[:, 2] - box[:, 0], box[:, 3] - box[:, 1])
     rel = err_px / box_side
@@ -139,6 +180,8 @@ def main():
               f"{summary['median_error_px']:.2f} px ({100 * summary['median_error_box_fraction']:.1f}% of the hand "
               f"box); {100 * summary['within_10pct_box_rate']:.1f}% of hands within 10% of the box; "
               f"handedness agrees {100 * summary['handedness_agreement']:.1f}%")
+    if args.conventions:
+        print_conventions(data["uv"], mp_uv)
     if args.json:
         args.json.write_text(json.dumps({**summary, "found": found.tolist(),
                                          "error_px": [None if np.isnan(e) else float(e) for e in err_px]}, indent=1))
