@@ -43,7 +43,9 @@ Per frame (`HandDetector.process`):
    flipped the other way: a head biased towards one side on an unfamiliar view leans the
    same way on both, and the mean of the two readings cancels the bias. Two tracks that DetNet
    believes are hands (running mean heatmap peak >= `opposite_hands`) and that read as the
-   same hand are one person's left and right: the one with the weaker evidence turns.
+   same hand are one person's left and right: the one with the weaker evidence turns. With
+   `handedness` "left" or "right" (one known hand) every track is that side, and none of
+   this runs.
 6. Two tracks on one hand (joint-box IoU >= 0.5, or the smaller box 70% inside the other):
    the lower-scoring one is dropped.
 
@@ -302,6 +304,7 @@ class Track:
     age: int = 0
     confidence: float = 0.0           # running mean heatmap peak: how much DetNet believes it is a hand
     birth_confidence: float | None = None   # its own birth threshold (None: the detector's)
+    fixed_side: bool = False          # the side was given (HandDetector `handedness`): readings are ignored
 
     @property
     def is_right(self) -> bool:
@@ -314,6 +317,8 @@ class Track:
 
     def add_handedness(self, p_right, weight=1.0, memory=20):
         """Running mean of logits over about the last `memory` observations."""
+        if self.fixed_side:
+            return
         n = min(self.samples + weight, memory)
         self.right_logit += (float(np.clip(logit(p_right), -6, 6)) - self.right_logit) * weight / n
         self.samples = min(self.samples + weight, memory)
@@ -340,7 +345,7 @@ class HandDetector:
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
                  opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3,
                  test_time_crops=0, reseed_margin=0.2, tracked_test_time_crops=0, second_look=0.1,
-                 handedness_memory=20):
+                 handedness_memory=20, handedness=None):
         self.detnet, self.finder = detnet, finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
@@ -389,6 +394,12 @@ class HandDetector:
         self.mirror_vote_every = mirror_vote_every
         # a track's handedness is the running mean logit of about its last this many readings
         self.handedness_memory = handedness_memory
+        # "left" or "right": every hand is that side (one known hand, e.g. the hand that drives a
+        # robot hand): no wrong-side reading, and no mirror vote to pay for; None: each track's
+        # side from DetNet's handedness head and the finder
+        if handedness not in (None, "left", "right"):
+            raise ValueError(f"handedness must be 'left', 'right' or None, got {handedness!r}")
+        self.handedness = handedness
         # a new track's reading is the per-coordinate median over its crop and this many
         # more (TEST_TIME_VARIANTS: a little larger, smaller, turned): for photos, where each
         # hand is read once and a crop's chance placement otherwise stays in the result
@@ -461,6 +472,8 @@ class HandDetector:
             full = self.evict_margin is not None and len(self.tracks) >= self.max_hands
             found = [(f.box, f.score, f.right_prob) for f in finder.find(
                 image, self.finder_threshold, max(self.max_hands + full, self.candidates))]
+        if self.handedness is not None:             # the given side, not the finder's guess
+            found = [(box, score, float(self.handedness == "right")) for box, score, _ in found]
         new, reseeded, fresh = [], [], []
         # each found box first goes to the track whose joints it overlaps best (one box per
         # track): a second hand close beside a tracked one lies inside that track's crop, but
@@ -519,6 +532,8 @@ class HandDetector:
 
     def _new_track(self, box, right_prob):
         track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale))
+        if self.handedness is not None:
+            track.right_logit, track.fixed_side = (1.0 if self.handedness == "right" else -1.0), True
         if self.finder_handedness:
             track.add_handedness(right_prob, weight=self.finder_handedness, memory=self.handedness_memory)
         self.next_id += 1
@@ -641,7 +656,7 @@ class HandDetector:
             keep.append(t)
         self.tracks = keep
         hands = self._drop_duplicates(hands)
-        if self.opposite_hands is not None:
+        if self.opposite_hands is not None and self.handedness is None:
             self._one_left_one_right()
         return sorted(hands, key=lambda h: h["track_id"])
 
@@ -649,7 +664,8 @@ class HandDetector:
         """DetNet's outputs on the crops of `tracks`; the crops of those due a mirror vote
         (`mirror_vote_every`; a new track on each of its first frame's crops) are also read
         flipped, and the handedness head's answer there goes into their running handedness."""
-        due = [i for i, t in enumerate(tracks) if self.mirror_vote_every and t.age % self.mirror_vote_every == 0]
+        due = [i for i, t in enumerate(tracks)
+               if self.mirror_vote_every and not t.fixed_side and t.age % self.mirror_vote_every == 0]
         out = self._run(image_bgr, [t.crop for t in tracks], due)
         n = len(tracks)
         for k, i in enumerate(due):     # the head on the crop mirrored the other way

@@ -22,7 +22,9 @@ upright, from its last 2D joints: 90 quarter turns, 0 any angle, null never),
 finder_handedness (weight of the hand finder's handedness against one DetNet reading),
 mirror_vote_every (every this many frames of a track, and on its first, DetNet's handedness
 head also reads the crop flipped; 0 or null = never), handedness_memory (a track's handedness
-is the running mean logit of about this many readings), test_time_crops (a new track is read on
+is the running mean logit of about this many readings), handedness (left or right: every
+hand is read as that side, for one known hand: no wrong-side readings and no mirror vote;
+null, the default: each hand's side from DetNet and the finder), test_time_crops (a new track is read on
 its crop and this many variants of it, larger, smaller, turned, and the median kept: for
 streams of unrelated photos; 0, the default for video, or null = off),
 tracked_test_time_crops (the same for every tracked hand on every frame: that many more
@@ -49,7 +51,7 @@ from handmocap.node import Message, Node, run, spin
 TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "evict_margin",
            "opposite_hands", "upright_step", "finder_handedness", "mirror_vote_every", "redetect_every", "reseed_iou",
            "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops", "second_look",
-           "handedness_memory")
+           "handedness_memory", "handedness")
 _DEFAULTS = inspect.signature(HandDetector).parameters
 PARAMS = {"detnet": None, "finder": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
           "every_frame": False}
@@ -57,9 +59,13 @@ PARAMS = {"detnet": None, "finder": None, "threads": 1, **{k: _DEFAULTS[k].defau
 
 def setting(name: str, value):
     """A TUNABLE param as HandDetector takes it: null stays None (off, where the class allows
-    it), a number the default's type (int or float)."""
+    it), a number the default's type (int or float), handedness "left" or "right"."""
     if value is None:
         return None
+    if name == "handedness":                      # the one setting that is a word
+        if value not in ("left", "right"):
+            raise ValueError(f"detector param handedness: expected left, right or null, got {value!r}")
+        return value
     try:
         if isinstance(value, (bool, str)):
             raise TypeError

@@ -271,6 +271,24 @@ def test_handedness_memory_sets_how_long_contrary_readings_take_to_turn_a_track(
     assert det.handedness_memory == 60
 
 
+def test_a_given_handedness_holds_against_the_head_and_the_finder_and_skips_the_vote():
+    """handedness="left": a head sure of "right" and a finder that says right change nothing;
+    every crop is mirrored (DetNet sees a right hand), and no flipped crop is read."""
+    frame = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160, right=False))
+    det = HandDetector(FakeDetNet(right_bias=6.0), FakeFinder(wrong_handedness=True), handedness="left",
+                       upright_step=None)
+    crops = []
+    for _ in range(7):
+        hands = det.process(frame)
+        assert [h["handedness"] for h in hands] == ["left"]
+        crops.append(det.stats["crops"])
+    np.testing.assert_allclose(hands[0]["uv"], np.round(canonical_hand((250, 300), 160, right=False)), atol=DOT_TOL)
+    assert det.tracks[0].crop.mirrored and det.tracks[0].fixed_side
+    assert np.diff(crops).tolist() == [1] * 6                  # one crop a frame: no mirror vote
+    with pytest.raises(ValueError, match="handedness"):
+        HandDetector(FakeDetNet(), FakeFinder(), handedness="both")
+
+
 def two_hand_frames(n, drop=()):
     """A right hand moving right on the left, a left hand moving left on the right; the left
     one is missing in frames `drop`. Returns frames and true uv per hand."""
@@ -740,3 +758,6 @@ def test_detector_node_params_take_null_and_booleans_as_the_class_does():
     assert isinstance(PARAMS["upright_step"], float)
     with pytest.raises(ValueError, match="max_hands"):
         setting("max_hands", "two")
+    assert setting("handedness", "right") == "right" and setting("handedness", None) is None
+    with pytest.raises(ValueError, match="handedness"):
+        setting("handedness", "Rigth")
