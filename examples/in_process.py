@@ -13,6 +13,8 @@ video_path = sys.argv[1] if len(sys.argv) > 1 else "data/demo/hand_clip.mp4"
 video = HandTracker()                        # a video or camera stream: tracks and smooths
 # HandTracker(**ACCURATE_VIDEO_SETTINGS) (handmocap.detector): each hand read on five crops a
 # frame: 12-17% lower median 2D error for ~2.3x the time (detector node: tracked_test_time_crops 4)
+# HandTracker(handedness="right"): only that hand is filmed; every hand is read as that side, so
+# no handedness mistakes (detector node: handedness; webcam.yaml hand:=right)
 cap = cv2.VideoCapture(video_path)
 ok, frame = cap.read()
 while ok:
