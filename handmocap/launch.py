@@ -259,15 +259,23 @@ def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
         if not isinstance(params, dict):
             raise err(kp + ("params",), f"node {name!r}: 'params' must be a mapping")
         try:
-            known = getattr(importlib.import_module(module), "PARAMS", None)
+            node_module = importlib.import_module(module)
         except Exception as e:   # a node whose module cannot even be imported cannot run
             raise err(kp + ("node",), f"node {name!r}: module {module} fails to import: "
                       f"{type(e).__name__}: {e}") from None
+        known = getattr(node_module, "PARAMS", None)
         if known is not None:
             for p in params:
                 if p not in known:
                     raise err(kp + ("params", p), f"node {name!r} ({entry['node']}) has no parameter {p!r}; "
                               f"known: {', '.join(sorted(known))}")
+        # a node module may check its params' values too (`check_params(params)`, ValueError)
+        check = getattr(node_module, "check_params", None)
+        if check is not None:
+            try:
+                check(params)
+            except ValueError as e:
+                raise err(kp + ("params",), f"node {name!r}: {e}") from None
         container = entry.get("container")
         if container is not None and (not isinstance(container, str)
                                       or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", container)):

@@ -74,6 +74,14 @@ def setting(name: str, value):
         raise ValueError(f"detector param {name}: expected a number or null, got {value!r}") from None
 
 
+def check_params(params: dict) -> None:
+    """The launcher's check of a graph's detector params before any process starts: each
+    HandDetector setting given must read as `setting` reads it (ValueError naming it)."""
+    for name in TUNABLE:
+        if name in params:
+            setting(name, params[name])
+
+
 def warm_up(detector: HandDetector, params: dict) -> None:
     """Run each network once on blank input before the graph starts: onnxruntime sets up its
     buffers on a session's first run (tens of ms here), which would otherwise hold up the

@@ -44,6 +44,10 @@ def test_good_file_substitutes_arguments_keeping_types(tmp_path):
     (GOOD.replace("$(var rate)}", "$(var speed)}"), {"input": "x"}, 7, "$(var speed) is not declared"),
     (GOOD.replace("rate: $(var rate)}", "rat: 1}"), {"input": "x"}, 7, "has no parameter 'rat'"),
     (GOOD.replace("  replay:\n", "  replay:\n   - [\n"), {"input": "x"}, 8, "malformed YAML"),
+    (GOOD + "  detector:\n    node: detector\n    params: {handedness: rigth}\n", {"input": "x"}, 14,
+     "detector param handedness: expected left, right or null, got 'rigth'"),
+    (GOOD + "  detector:\n    node: detector\n    params: {max_hands: two}\n", {"input": "x"}, 14,
+     "detector param max_hands: expected a number or null"),
     ("nodes: []\n", {}, 1, "'nodes:' must map"),
     ("nodez: {}\n", {}, 1, "unknown key 'nodez'"),
 ])
