@@ -85,6 +85,14 @@ class Message:
         return self.data["header"]["stamp_ns"]
 
 
+def check_file_param(node: str, key: str, value, keywords=(), made_by=None) -> None:
+    """A param that names a file, or one of `keywords`, or null (a default): ValueError naming
+    the node, the param, the path and (made_by) the command that makes such a file when no such
+    file exists (for a node's `check_params`, which the launcher calls before any process starts)."""
+    if value is not None and str(value) not in keywords and not Path(str(value)).is_file():
+        raise ValueError(f"{node} param {key}: no such file {value}" + (f"; make it with `{made_by}`" if made_by else ""))
+
+
 def parse_cli_params(argv: list[str]) -> dict:
     """`name:=value` pairs, values parsed as YAML scalars (so 2 is an int, true a bool)."""
     out = {}

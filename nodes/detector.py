@@ -45,7 +45,7 @@ import numpy as np
 
 from handmocap.detector import CROP, HandDetector, detnet_path
 from handmocap.frames import frame_bgr
-from handmocap.node import Message, Node, run, spin
+from handmocap.node import Message, Node, check_file_param, run, spin
 
 # HandDetector's settings, with its own defaults (one place for them: the class)
 TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "evict_margin",
@@ -75,8 +75,11 @@ def setting(name: str, value):
 
 
 def check_params(params: dict) -> None:
-    """The launcher's check of a graph's detector params before any process starts: each
-    HandDetector setting given must read as `setting` reads it (ValueError naming it)."""
+    """The launcher's check of a graph's detector params before any process starts: the model
+    files exist and each HandDetector setting given reads as `setting` reads it (ValueError
+    naming it)."""
+    check_file_param("detector", "detnet", params.get("detnet"), ("int8", "float32"), "handtrain detnet")
+    check_file_param("detector", "finder", params.get("finder"), ("none",), "handtrain finder")
     for name in TUNABLE:
         if name in params:
             setting(name, params[name])

@@ -27,10 +27,17 @@ import numpy as np
 from handmocap import camera_info
 from handmocap.hand_model import HandModel
 from handmocap.ik_solver import IKSolver
-from handmocap.node import Message, Node, run, spin
+from handmocap.node import Message, Node, check_file_param, run, spin
 from handmocap.pose import POSE_DEFAULTS, PoseEstimator, mesh_message
 
 PARAMS = {"model": None, "iknet": None, "threads": 1, **POSE_DEFAULTS}
+
+
+def check_params(params: dict) -> None:
+    """The launcher's check of a graph's ik params before any process starts: the model files
+    exist (ValueError naming the param and the path)."""
+    check_file_param("ik", "model", params.get("model"))
+    check_file_param("ik", "iknet", params.get("iknet"), ("int8", "float32"), "handtrain iknet")
 
 
 def start() -> tuple[Node, Callable[[Message], None]]:

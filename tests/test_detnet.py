@@ -310,6 +310,13 @@ def _demo_crops(n=24):
     return np.ascontiguousarray(np.stack(crops))
 
 
+def test_a_missing_detnet_file_is_one_error_naming_it_and_how_to_make_it(tmp_path):
+    """Outside a launch file (HandTracker, handeval, a node started by hand) the load itself says it."""
+    from handmocap.detector import DetNetRunner
+    with pytest.raises(FileNotFoundError, match=r"nope\.onnx not found; make it with `handtrain detnet`"):
+        DetNetRunner.load(tmp_path / "nope.onnx")
+
+
 def test_int8_detnet_is_close_to_float32_and_made_from_the_shipped_float32():
     from handmocap.detector import DETNET_INT8, DetNetRunner
     from handmocap.onnx_models import stale_quantization

@@ -126,8 +126,6 @@ BAD_INPUTS = {
                       "replay", ["bad.mp4", "cannot be opened"]),
     "video corrupt in the middle": (lambda d: {"source": corrupt_middle(d / "cut.mp4")},
                                     "replay", ["cut.mp4", "decoding stopped at frame", "of 90", "corrupt"]),
-    "missing DetNet": (lambda d: {"detector_params": f", detnet: {d / 'nope.onnx'}"},
-                       "detector", ["nope.onnx", "not found", "handtrain detnet"]),
     "corrupt DetNet": (lambda d: {"detector_params": f", detnet: {(d / 'bad.onnx').write_bytes(b'xx' * 99) and d / 'bad.onnx'}"},
                        "detector", ["bad.onnx", "cannot be loaded", "corrupt"]),
     "another network as DetNet": (lambda d: {"detector_params": f", detnet: {ROOT / 'models' / 'finder.onnx'}"},
@@ -140,6 +138,21 @@ BAD_INPUTS = {
     "K for another aspect ratio": (lambda d: {"replay_params": f", calibration: {write_yaml(d / 'K.yaml', K=[900.0, 900.0, 640.0, 360.0], width=1280, height=720)}"},
                                    "replay", ["K.yaml", "1280x720", "640x480", "aspect ratio"]),
 }
+
+
+def test_a_missing_model_stops_the_launch_before_any_process(tmp_path, run_dir):
+    """The launcher checks the detector's model files first (nodes/detector.check_params):
+    one error line with the file, line, path and the command that makes the model; no node
+    ran, so no bag was started."""
+    lf = tmp_path / "g.yaml"
+    bag = tmp_path / "out.mcap"
+    lf.write_text(chain_yaml(DEMO_CLIP, bag, rate=0, detector_params=f", detnet: {tmp_path / 'nope.onnx'}"))
+    r = handlaunch([lf], run_dir, timeout=60)
+    seen = (r.stdout + r.stderr).strip()
+    assert r.returncode == 2 and "Traceback" not in seen, seen
+    assert seen.splitlines() == [f"handlaunch: error: {lf}:4: node 'detector': detector param detnet: no such file "
+                                 f"{tmp_path / 'nope.onnx'}; make it with `handtrain detnet`"], seen
+    assert not bag.exists()
 
 
 def write_yaml(path, **doc):

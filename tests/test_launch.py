@@ -48,6 +48,10 @@ def test_good_file_substitutes_arguments_keeping_types(tmp_path):
      "detector param handedness: expected left, right or null, got 'rigth'"),
     (GOOD + "  detector:\n    node: detector\n    params: {max_hands: two}\n", {"input": "x"}, 14,
      "detector param max_hands: expected a number or null"),
+    (GOOD + "  detector:\n    node: detector\n    params: {detnet: models/nothere.onnx}\n", {"input": "x"}, 14,
+     "detector param detnet: no such file models/nothere.onnx"),
+    (GOOD + "  ik:\n    node: ik\n    params: {iknet: int8, model: MANO_RIGHT.pkl}\n", {"input": "x"}, 14,
+     "ik param model: no such file MANO_RIGHT.pkl"),
     ("nodes: []\n", {}, 1, "'nodes:' must map"),
     ("nodez: {}\n", {}, 1, "unknown key 'nodez'"),
 ])
