@@ -150,15 +150,23 @@ def test_killed_container_respawns_and_poses_resume(tmp_path, run_dir):
     assert len(kill_poses) >= 60
 
 
+def corrupt_model(tmp_path):
+    """A DetNet file that exists (the launcher's check passes) but cannot be loaded: the
+    detector node fails as it starts, inside its container."""
+    path = tmp_path / "bad.onnx"
+    path.write_bytes(b"xx" * 99)
+    return path
+
+
 def test_failed_required_node_in_a_container_is_one_clear_error(tmp_path, run_dir):
-    lf = write(tmp_path, chain(tmp_path / "o.mcap", detector=f", detnet: {tmp_path / 'nope.onnx'}"))
+    lf = write(tmp_path, chain(tmp_path / "o.mcap", detector=f", detnet: {corrupt_model(tmp_path)}"))
     r = handlaunch([lf], run_dir, timeout=120)
     seen = r.stdout + r.stderr
     assert r.returncode == 1, seen
     assert "Traceback" not in seen, seen
     errors = [line for line in seen.splitlines() if "ERROR" in line or "error" in line.lower()]
     assert len(errors) == 2, seen
-    assert errors[0].startswith("[detector] ERROR ") and "nope.onnx" in errors[0], seen
+    assert errors[0].startswith("[detector] ERROR ") and "bad.onnx" in errors[0], seen
     assert errors[1] == ("[handlaunch] error: required container perception (detector, shape, ik) failed "
                          "(exit code 2); stopping the graph"), seen
 
@@ -245,10 +253,10 @@ def test_camera_that_cannot_open_in_the_container(tmp_path, run_dir):
     one_error(r, "camera", ["/dev/video99", "no such device"])
 
 
-def test_missing_model_with_the_source_in_the_container(tmp_path, run_dir):
-    lf = write(tmp_path, chain(tmp_path / "o.mcap", source_inside=True, detector=f", detnet: {tmp_path / 'nope.onnx'}"))
+def test_unloadable_model_with_the_source_in_the_container(tmp_path, run_dir):
+    lf = write(tmp_path, chain(tmp_path / "o.mcap", source_inside=True, detector=f", detnet: {corrupt_model(tmp_path)}"))
     r = handlaunch([lf], run_dir, timeout=120)
-    seen = one_error(r, "detector", ["nope.onnx"])
+    seen = one_error(r, "detector", ["bad.onnx", "cannot be loaded"])
     assert "perception (replay, detector, shape, ik)" in seen
 
 
