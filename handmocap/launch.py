@@ -269,13 +269,6 @@ def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
                 if p not in known:
                     raise err(kp + ("params", p), f"node {name!r} ({entry['node']}) has no parameter {p!r}; "
                               f"known: {', '.join(sorted(known))}")
-        # a node module may check its params' values too (`check_params(params)`, ValueError)
-        check = getattr(node_module, "check_params", None)
-        if check is not None:
-            try:
-                check(params)
-            except ValueError as e:
-                raise err(kp + ("params",), f"node {name!r}: {e}") from None
         container = entry.get("container")
         if container is not None and (not isinstance(container, str)
                                       or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", container)):
@@ -285,6 +278,14 @@ def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
             raise err(kp + ("container",), f"node {name!r}: container {container!r} has the name of a node")
         if not is_true(entry.get("if", True)):
             continue   # switched off, after the same checks as a node that runs (a typo fails either way)
+        # a node module may check the values of its params too (`check_params(params)`, ValueError):
+        # model files and settings of a node that runs (a switched-off one needs no model file)
+        check = getattr(node_module, "check_params", None)
+        if check is not None:
+            try:
+                check(params)
+            except ValueError as e:
+                raise err(kp + ("params",), f"node {name!r}: {e}") from None
         specs.append(NodeSpec(name=name, module=module, params=params, remap=entry.get("remap") or {},
                               env={**common_env, **(entry.get("env") or {})},
                               respawn=bool(entry.get("respawn", False)),

@@ -103,6 +103,14 @@ def test_if_switches_a_node_on_and_off(tmp_path, args, names):
     assert [n.name for n in lf.nodes] == names
 
 
+def test_a_model_file_is_checked_only_for_a_node_that_runs(tmp_path):
+    text = GOOD + "  detector:\n    node: detector\n    if: $(var rate)\n    params: {detnet: nothere.onnx}\n"
+    assert [n.name for n in load_launch_file(write(tmp_path, text), {"input": "x", "rate": 0}).nodes] == \
+        ["replay", "recorder"]
+    with pytest.raises(LaunchError, match="detector param detnet: no such file nothere.onnx"):
+        load_launch_file(write(tmp_path, text), {"input": "x", "rate": 1})
+
+
 def test_a_switched_off_node_is_still_checked(tmp_path):
     path = write(tmp_path, OPTIONAL.replace("params: {output: $(var bag)}", "params: {outptu: x}"))
     with pytest.raises(LaunchError) as e:
