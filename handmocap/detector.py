@@ -305,23 +305,24 @@ class Track:
     confidence: float = 0.0           # running mean heatmap peak: how much DetNet believes it is a hand
     birth_confidence: float | None = None   # its own birth threshold (None: the detector's)
     fixed_side: bool = False          # the side was given (HandDetector `handedness`): readings are ignored
+    memory: int = 20                  # handedness readings the running mean is over (`handedness_memory`)
 
     @property
     def is_right(self) -> bool:
         return self.right_logit >= 0.0
 
-    def add_head_reading(self, p_right_seen, mirrored, memory=20):
+    def add_head_reading(self, p_right_seen, mirrored):
         """DetNet's handedness head p_right_seen (does the crop show a right hand) on a crop
         of this hand that was (mirrored) or was not flipped."""
-        self.add_handedness(1.0 - p_right_seen if mirrored else p_right_seen, memory=memory)
+        self.add_handedness(1.0 - p_right_seen if mirrored else p_right_seen)
 
-    def add_handedness(self, p_right, weight=1.0, memory=20):
+    def add_handedness(self, p_right, weight=1.0):
         """Running mean of logits over about the last `memory` observations."""
         if self.fixed_side:
             return
-        n = min(self.samples + weight, memory)
+        n = min(self.samples + weight, self.memory)
         self.right_logit += (float(np.clip(logit(p_right), -6, 6)) - self.right_logit) * weight / n
-        self.samples = min(self.samples + weight, memory)
+        self.samples = min(self.samples + weight, self.memory)
 
 
 class HandDetector:
@@ -496,7 +497,7 @@ class HandDetector:
                 t = covering[0]
                 owner[k] = t.track_id
                 if self.finder_handedness:
-                    t.add_handedness(right_prob, weight=0.5 * self.finder_handedness, memory=self.handedness_memory)
+                    t.add_handedness(right_prob, weight=0.5 * self.finder_handedness)
                 if t.uv is not None and overlap.get((k, t.track_id), 0.0) < self.reseed_iou and \
                         self._reseed_believed(image, box, right_prob, t):
                     # the track's joints no longer match the hand the finder sees in its crop
@@ -531,11 +532,12 @@ class HandDetector:
             self._found_peaks(image, [(box, right_prob)])[0] >= track.confidence - self.reseed_margin
 
     def _new_track(self, box, right_prob):
-        track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale))
+        track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale),
+                      memory=self.handedness_memory)
         if self.handedness is not None:
             track.right_logit, track.fixed_side = (1.0 if self.handedness == "right" else -1.0), True
         if self.finder_handedness:
-            track.add_handedness(right_prob, weight=self.finder_handedness, memory=self.handedness_memory)
+            track.add_handedness(right_prob, weight=self.finder_handedness)
         self.next_id += 1
         return track
 
@@ -600,7 +602,7 @@ class HandDetector:
             for i in idx:
                 t = self.tracks[i]
                 if out["presence"][i] >= self.presence_threshold:
-                    t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored, self.handedness_memory)
+                    t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
                     t.crop = crop_for_joints(t.crop.to_frame(out["uv"][i]), not t.is_right, self.crop_scale,
                                              self.upright_step)
             again = self._run_voting(image_bgr, [self.tracks[i] for i in idx])   # a new track votes again here
@@ -642,7 +644,7 @@ class HandDetector:
                 xyz = mirror_points(xyz)
             if t.crop.angle:
                 xyz = t.crop.to_frame_axes(xyz)
-            t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored, self.handedness_memory)
+            t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
             if t.uv is not None:
                 t.velocity = np.median(uv - t.uv, axis=0)
             t.uv, t.age = uv, t.age + 1
@@ -669,8 +671,7 @@ class HandDetector:
         out = self._run(image_bgr, [t.crop for t in tracks], due)
         n = len(tracks)
         for k, i in enumerate(due):     # the head on the crop mirrored the other way
-            tracks[i].add_head_reading(float(out["handedness"][n + k]), not tracks[i].crop.mirrored,
-                                        self.handedness_memory)
+            tracks[i].add_head_reading(float(out["handedness"][n + k]), not tracks[i].crop.mirrored)
         return {key: v[:n] for key, v in out.items()}
 
     def _turn_new_tracks(self, image_bgr, idx, out):

@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 
 from . import onnx_models
-from .joint_limits import euler_xyz_to_matrix
 from .kinematics import FRAME_BONE, PARENTS
 from .onnx_models import open_session
 from .rotations import matrix_to_quat, quat_left_matrix, quat_normalize, quat_to_matrix
@@ -245,21 +244,15 @@ def clamp_to_limits(quats, limits):
     q = quat_normalize(np.reshape(quats, (-1, NUM_JOINTS, 4)))               # (N,21,4)
     frames = quat_to_matrix(q[:, FRAME_BONE])                                 # (N,16,3,3) joint frames G
     n = len(q)
-    F = limits.frames.reshape(5, 3, 3, 3)                                     # [f a t] per finger and level
-    FT = np.swapaxes(F, -1, -2)
-    GF = frames[:, 1:].reshape(n, 5, 3, 3, 3) @ F                             # (N, finger, level, 3, 3) G F
-    rest_flexion = limits.rest_flexion.reshape(5, 3)
-    lo, hi = limits.limits[..., 0].reshape(5, 3, 3), limits.limits[..., 1].reshape(5, 3, 3)
+    G = frames[:, 1:].reshape(n, 5, 3, 3, 3)                                  # (N, finger, level, 3, 3)
     g, levels = frames[:, :1], []                                             # the wrist, for all five
     for level in range(3):                                                    # down the five chains at once
-        L = FT[:, level] @ (np.swapaxes(g, -1, -2) @ GF[:, :, level])         # (N,5,3,3) Fᵀ Gpᵀ G F
-        u = L[..., :, 2]                                                      # the bone's direction, locally
-        angles = np.stack([np.arctan2(-u[..., 1], u[..., 2]) + rest_flexion[:, level],
-                           np.arcsin(np.clip(u[..., 0], -1.0, 1.0)),
-                           np.arctan2(-L[..., 0, 1], L[..., 0, 0])], axis=-1)
-        angles = np.clip(angles, lo[:, level], hi[:, level])
-        angles[..., 0] -= rest_flexion[:, level]
-        g = g @ (F[:, level] @ euler_xyz_to_matrix(angles) @ FT[:, level])
+        joints = slice(level, None, 3)                                        # this level of each finger
+        rel = np.swapaxes(g, -1, -2) @ G[:, :, level]                         # (N,5,3,3) Gpᵀ G
+        # Rx(flexion) Ry(abduction) sends the bone (local e_z) where it points, Rz(twist) turns it
+        angles = limits.angles_from_relative(rel, joints)
+        angles = np.clip(angles, limits.limits[joints, :, 0], limits.limits[joints, :, 1])
+        g = g @ limits.relative_from_angles(angles, joints)
         levels.append(g)
     q[:, _FINGER_FRAME_BONES] = matrix_to_quat(np.stack(levels, axis=2).reshape(n, 15, 3, 3))
     q[:, PALM_JOINTS[1:]] = q[:, :1]

@@ -93,7 +93,7 @@ def local_frames(rest):
     return frames, rest_flexion
 
 
-def euler_xyz_to_matrix(angles):
+def _euler_xyz_to_matrix(angles):
     """(...,3) (x, y, z) angles -> (...,3,3) Rx(x) Ry(y) Rz(z), written out (one stack of
     nine products instead of three axis-angle -> quaternion -> matrix conversions)."""
     angles = np.asarray(angles, dtype=np.float64)
@@ -139,20 +139,22 @@ class JointLimits:
         """
         return self.angles_from_relative(_relative_matrices(pose)[..., 1:, :, :])
 
-    def angles_from_relative(self, rel):
+    def angles_from_relative(self, rel, joints=slice(None)):
         """(..., 15, 3, 3) relative rotations of the finger joints (model axes) -> (..., 15, 3)
-        anatomical angles: L = Fᵀ R F read as Rx(flexion) Ry(abduction) Rz(twist)."""
-        local = np.swapaxes(self.frames, -1, -2) @ rel @ self.frames
-        angles = _matrix_to_euler_xyz(local)
-        angles[..., 0] += self.rest_flexion
+        anatomical angles: L = Fᵀ R F read as Rx(flexion) Ry(abduction) Rz(twist). joints: an
+        index into the 15 (FINGER_JOINTS order) when rel holds only those joints."""
+        F = self.frames[joints]
+        angles = _matrix_to_euler_xyz(np.swapaxes(F, -1, -2) @ rel @ F)
+        angles[..., 0] += self.rest_flexion[joints]
         return angles
 
-    def relative_from_angles(self, angles):
+    def relative_from_angles(self, angles, joints=slice(None)):
         """(..., 15, 3) anatomical angles -> (..., 15, 3, 3) relative rotations R = F L Fᵀ of the
-        finger joints (model axes); the inverse of angles_from_relative."""
+        finger joints (model axes); the inverse of angles_from_relative (joints: as there)."""
         angles = np.array(angles, dtype=np.float64)
-        angles[..., 0] -= self.rest_flexion
-        return self.frames @ euler_xyz_to_matrix(angles) @ np.swapaxes(self.frames, -1, -2)
+        angles[..., 0] -= self.rest_flexion[joints]
+        F = self.frames[joints]
+        return F @ _euler_xyz_to_matrix(angles) @ np.swapaxes(F, -1, -2)
 
     def pose_from_angles(self, angles, wrist=None):
         """(..., 15, 3) anatomical angles (radians) -> (..., 16, 3) relative axis-angle pose.

@@ -259,16 +259,17 @@ def test_handedness_memory_sets_how_long_contrary_readings_take_to_turn_a_track(
     """After 40 sure "right" readings, sure "left" ones turn the running mean in about
     0.7 x memory readings (its first `memory` readings count alike, older ones then fade)."""
     def readings_to_turn(memory):
-        t = Track(0, CropTransform.around(np.array([300.0, 300.0]), 200.0))
+        t = Track(0, CropTransform.around(np.array([300.0, 300.0]), 200.0), memory=memory)
         for _ in range(40):
-            t.add_head_reading(0.95, mirrored=False, memory=memory)
+            t.add_head_reading(0.95, mirrored=False)
         for n in range(1, 200):
-            t.add_head_reading(0.05, mirrored=False, memory=memory)
+            t.add_head_reading(0.05, mirrored=False)
             if not t.is_right:
                 return n
     assert [readings_to_turn(m) for m in (10, 20, 60)] == [7, 14, 38]
     det = HandDetector(FakeDetNet(), FakeFinder(), handedness_memory=60)
-    assert det.handedness_memory == 60
+    det.process(draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160)))
+    assert det.handedness_memory == 60 and det.tracks[0].memory == 60
 
 
 def test_a_given_handedness_holds_against_the_head_and_the_finder_and_skips_the_vote():
