@@ -24,6 +24,7 @@ from __future__ import annotations
 import gc
 import json
 import logging
+import math
 import os
 import signal
 import sys
@@ -91,6 +92,28 @@ def check_file_param(node: str, key: str, value, keywords=(), made_by=None) -> N
     file exists (for a node's `check_params`, which the launcher calls before any process starts)."""
     if value is not None and str(value) not in keywords and not Path(str(value)).is_file():
         raise ValueError(f"{node} param {key}: no such file {value}" + (f"; make it with `{made_by}`" if made_by else ""))
+
+
+def check_number_param(node: str, key: str, value, minimum=None, positive=False, integer=False,
+                       null=False) -> None:
+    """A param that must be a number (an int with `integer`; at least `minimum`; above 0 with
+    `positive`; or null where `null`): ValueError naming the node, the param and the value
+    (for a node's `check_params`)."""
+    if value is None and null:
+        return
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (not integer or float(value).is_integer()) and (minimum is None or value >= minimum)
+    if not (ok and (not positive or value > 0)):
+        want = ("an integer" if integer else "a number") + (" > 0" if positive else "") + \
+            (f" >= {minimum}" if minimum is not None else "") + (" or null" if null else "")
+        raise ValueError(f"{node} param {key}: expected {want}, got {value!r}")
+
+
+def check_bool_param(node: str, key: str, value) -> None:
+    """A param that must be true or false (a word such as `maybe` is no bool: YAML reads it as a
+    string, which Python would take as true)."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{node} param {key}: expected true or false, got {value!r}")
 
 
 def parse_cli_params(argv: list[str]) -> dict:

@@ -34,8 +34,8 @@ from collections.abc import Iterator
 import cv2
 import numpy as np
 
-from handmocap.camera_info import Intrinsics, camera_info_message, intrinsics_for_frames
-from handmocap.node import Node, run
+from handmocap.camera_info import Intrinsics, camera_info_message, intrinsics_for_frames, load_calibration
+from handmocap.node import Node, check_bool_param, check_number_param, run
 
 PARAMS = {"device": 0, "width": 640, "height": 480, "fps": 30, "calibration": None, "frame_id": "camera",
           "mirror": False}
@@ -47,10 +47,26 @@ FIRST_FRAME_TIMEOUT_S = 5.0
 def parse_device(device) -> int | str:
     """An int index for ints and digit strings, else the path/URL string as given."""
     if isinstance(device, bool) or not isinstance(device, (int, str)):
-        raise ValueError(f"camera device must be an index or a path/URL, got {device!r}")
+        raise ValueError(f"camera param device: expected an index or a path/URL, got {device!r}")
     if isinstance(device, str) and device.strip().isdigit():
         return int(device)
     return device
+
+
+def check_params(params: dict) -> None:
+    """The launcher's check before any process starts (ValueError naming the param): the
+    device reads as an index or a path/URL, the format is numbers, the calibration file reads.
+    Whether the camera opens is known only when the node opens it."""
+    parse_device(params.get("device", PARAMS["device"]))
+    for key in ("width", "height"):
+        check_number_param("camera", key, params.get(key, PARAMS[key]), minimum=1, integer=True)
+    check_number_param("camera", "fps", params.get("fps", PARAMS["fps"]), positive=True)
+    check_bool_param("camera", "mirror", params.get("mirror", PARAMS["mirror"]))
+    if params.get("calibration") is not None:
+        try:
+            load_calibration(params["calibration"])
+        except ValueError as e:
+            raise ValueError(f"camera param calibration: {e}") from None
 
 
 def is_file(device: int | str) -> bool:

@@ -45,7 +45,7 @@ import numpy as np
 
 from handmocap.detector import CROP, HandDetector, detnet_path
 from handmocap.frames import frame_bgr
-from handmocap.node import Message, Node, check_file_param, run, spin
+from handmocap.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
 
 # HandDetector's settings, with its own defaults (one place for them: the class)
 TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "evict_margin",
@@ -83,6 +83,8 @@ def check_params(params: dict) -> None:
     for name in TUNABLE:
         if name in params:
             setting(name, params[name])
+    check_number_param("detector", "threads", params.get("threads", PARAMS["threads"]), minimum=1, integer=True)
+    check_bool_param("detector", "every_frame", params.get("every_frame", PARAMS["every_frame"]))
 
 
 def warm_up(detector: HandDetector, params: dict) -> None:

@@ -27,7 +27,7 @@ import numpy as np
 from handmocap import camera_info
 from handmocap.hand_model import HandModel
 from handmocap.ik_solver import IKSolver
-from handmocap.node import Message, Node, check_file_param, run, spin
+from handmocap.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
 from handmocap.pose import POSE_DEFAULTS, PoseEstimator, mesh_message
 
 PARAMS = {"model": None, "iknet": None, "threads": 1, **POSE_DEFAULTS}
@@ -35,9 +35,17 @@ PARAMS = {"model": None, "iknet": None, "threads": 1, **POSE_DEFAULTS}
 
 def check_params(params: dict) -> None:
     """The launcher's check of a graph's ik params before any process starts: the model files
-    exist (ValueError naming the param and the path)."""
+    exist, the switches are bools and the settings numbers (ValueError naming the param)."""
     check_file_param("ik", "model", params.get("model"))
     check_file_param("ik", "iknet", params.get("iknet"), ("int8", "float32"), "handtrain iknet")
+    check_number_param("ik", "threads", params.get("threads", PARAMS["threads"]), minimum=1, integer=True)
+    for key, default in POSE_DEFAULTS.items():
+        value = params.get(key, default)
+        if isinstance(default, bool):
+            check_bool_param("ik", key, value)
+        else:
+            check_number_param("ik", key, value, minimum=None if key.endswith("cutoff") else 0,
+                               positive=key.endswith("cutoff"))   # a 0 Hz cut-off divides by zero
 
 
 def start() -> tuple[Node, Callable[[Message], None]]:

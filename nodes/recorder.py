@@ -1,7 +1,9 @@
 """recorder: writes topics of the graph to an MCAP bag, payloads byte for byte as received.
 
 Params: `output` (bag path; parent folders are made; an existing file is an error unless
-`overwrite` is true), `topics` (list; empty = every topic of the graph). Subscriptions are
+`overwrite` is true, and is replaced only when the first message arrives: a graph that fails
+before sending anything leaves the earlier recording as it was), `topics` (list; empty =
+every topic of the graph). Subscriptions are
 keep-all. Each message is stored with its receive time as MCAP log time and its header
 stamp as publish time. The bag is finished properly (summary, footer) on SIGINT/SIGTERM and
 when every recorded input has ended; a one-line summary is logged at the end.
@@ -11,20 +13,37 @@ from __future__ import annotations
 from pathlib import Path
 
 from handmocap.bag import BagWriter
-from handmocap.node import Node, run
+from handmocap.node import Node, check_bool_param, run
 
 PARAMS = {"output": "out.mcap", "topics": [], "overwrite": False}
 IDLE_TICK_S = 0.5   # when nothing arrives this long, close the open chunk if it is old
 
 
-def open_output(output: str, overwrite: bool) -> BagWriter:
-    """A BagWriter on `output`; FileExistsError names the file if it exists and may not be replaced."""
+def output_path(output: str, overwrite: bool) -> Path:
+    """The bag path `output`; FileExistsError names the file if it exists and may not be replaced."""
     path = Path(output).expanduser()
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} already exists (remove it, choose another "
                               f"output, or set overwrite:=true)")
+    return path
+
+
+def open_output(output: str, overwrite: bool) -> BagWriter:
+    """A BagWriter on `output` (parent folders made); FileExistsError as output_path."""
+    path = output_path(output, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     return BagWriter(path)
+
+
+def check_params(params: dict) -> None:
+    """The launcher's check before any process starts: an existing output that may not be
+    replaced, or an overwrite that is no bool, is one error (nothing else has started)."""
+    overwrite = params.get("overwrite", PARAMS["overwrite"])
+    check_bool_param("recorder", "overwrite", overwrite)
+    try:
+        output_path(str(params.get("output", PARAMS["output"])), overwrite)
+    except FileExistsError as e:
+        raise ValueError(f"recorder param output: {e}") from None
 
 
 def summary_line(counts: dict, path: Path) -> str:
@@ -42,7 +61,10 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
     if isinstance(topics, str):
         topics = [topics]
     try:
-        bag = open_output(str(p["output"]), bool(p["overwrite"]))
+        path = output_path(str(p["output"]), bool(p["overwrite"]))
+        # an earlier recording is replaced by the first message, not at start: a graph whose
+        # source fails at once (a mistyped input) must not leave an empty bag in its place
+        bag = None if path.exists() else open_output(str(path), True)
     except Exception:
         node.close()
         raise
@@ -52,12 +74,16 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
                 node.subscribe(topic, None, mode="all")
         else:
             node.subscribe(None, None, mode="all")
-        node.log.info("recording %s to %s", ", ".join(topics) or "every topic", bag.path)
+        node.log.info("recording %s to %s%s", ", ".join(topics) or "every topic", path,
+                      " (replacing it once the first message arrives)" if bag is None else "")
         refused: set[str] = set()   # topics seen with a second message type (a graph bug)
         for msg in node.events(timeout=IDLE_TICK_S):
             if msg is None:
-                bag.tick()
+                if bag is not None:
+                    bag.tick()
                 continue
+            if bag is None:
+                bag = open_output(str(path), True)
             try:
                 bag.write(msg.topic, msg.type, msg.raw, msg.recv_ns, msg.stamp_ns)
             except ValueError as e:   # one channel holds one type: keep the first, skip the rest
@@ -65,8 +91,11 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
                     refused.add(msg.topic)
                     node.log.warning("not recording some messages: %s", e)
     finally:
-        bag.close()
-        node.log.info("%s", summary_line(bag.counts, bag.path))
+        if bag is None:
+            node.log.info("recorded nothing: %s left as it was", path)
+        else:
+            bag.close()
+            node.log.info("%s", summary_line(bag.counts, bag.path))
         node.close()
 
 

@@ -19,13 +19,33 @@ from pathlib import Path
 
 from handmocap import camera_info, codec
 from handmocap.frames import image_message, open_frames
-from handmocap.node import Node, run
+from handmocap.node import Node, check_bool_param, check_number_param, run
 
 JIT_MARGIN_S = 0.002   # decode the next frame this long plus twice its recent decoding time before it is due
 AHEAD = 3   # at rate 0, frames sent and not yet taken by every subscriber before the next is decoded
 
 PARAMS = {"source": None, "rate": 1.0, "fps": None, "start": 0.0, "loop": False,
           "calibration": None, "frame_id": "camera"}
+
+
+def check_params(params: dict) -> None:
+    """The launcher's check before any process starts (ValueError naming the param): a source
+    that exists, numbers that are numbers, a calibration file that reads (so a mistyped input
+    starts nothing, and the recorder's earlier bag stays as it was)."""
+    source = params.get("source")
+    if not source:
+        raise ValueError("replay param source: none given; a video file, an image folder or a .mcap bag")
+    if not Path(str(source)).expanduser().exists():
+        raise ValueError(f"replay param source: no such file or folder {source}")
+    check_number_param("replay", "rate", params.get("rate", PARAMS["rate"]), minimum=0)
+    check_number_param("replay", "fps", params.get("fps"), positive=True, null=True)
+    check_number_param("replay", "start", params.get("start", PARAMS["start"]), minimum=0)
+    check_bool_param("replay", "loop", params.get("loop", PARAMS["loop"]))
+    if params.get("calibration") is not None:
+        try:
+            camera_info.load_calibration(Path(str(params["calibration"])).expanduser())
+        except ValueError as e:
+            raise ValueError(f"replay param calibration: {e}") from None
 
 
 def bag_frames(path: Path, start_s: float):

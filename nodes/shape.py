@@ -15,10 +15,18 @@ import time
 from typing import Callable
 
 from handmocap.hand_model import HandModel
-from handmocap.node import Message, Node, run, spin
+from handmocap.node import Message, Node, check_file_param, check_number_param, run, spin
 from handmocap.shape import ShapeEstimator
 
 PARAMS = {"model": None, "forget_after_s": 2.0, "window": 600}
+
+
+def check_params(params: dict) -> None:
+    """The launcher's check before any process starts (ValueError naming the param)."""
+    check_file_param("shape", "model", params.get("model"))
+    check_number_param("shape", "forget_after_s", params.get("forget_after_s", PARAMS["forget_after_s"]),
+                       positive=True)
+    check_number_param("shape", "window", params.get("window", PARAMS["window"]), minimum=1, integer=True)
 
 
 def start() -> tuple[Node, Callable[[Message], None]]:

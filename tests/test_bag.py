@@ -278,6 +278,32 @@ def test_play_into_recorder_is_byte_identical(tmp_path, graph_env):
     assert not bag.bag_info(rec)["truncated"]
 
 
+def test_recorder_replaces_an_earlier_bag_only_when_a_message_arrives(tmp_path, graph_env):
+    """overwrite:=true keeps the earlier bag through a run that records nothing (a graph that
+    failed at start) and replaces it with the messages of a run that records some."""
+    src, rec = tmp_path / "src.mcap", tmp_path / "rec.mcap"
+    written = write_sample_bag(src)
+    rec.write_bytes(b"an earlier recording")
+    run_dir = Path(graph_env["HANDMOCAP_RUN_DIR"])
+    cmd = [sys.executable, "-m", "handmocap.nodes.recorder", f"output:={rec}", "overwrite:=true"]
+    recorder = subprocess.Popen(cmd, env=graph_env, stderr=subprocess.PIPE, text=True)
+    wait_ready(run_dir, "recorder", recorder)
+    recorder.send_signal(signal.SIGTERM)
+    _, err = recorder.communicate(timeout=10)
+    assert recorder.returncode == 0 and f"recorded nothing: {rec} left as it was" in err, err
+    assert rec.read_bytes() == b"an earlier recording"
+    recorder = subprocess.Popen(cmd, env=graph_env, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_ready(run_dir, "recorder", recorder)
+        assert run_handbag("play", str(src), "--rate", "0", env=graph_env).returncode == 0
+        _, err = recorder.communicate(timeout=30)
+    finally:
+        if recorder.poll() is None:
+            recorder.kill()
+    assert f"recorded {len(written)} message(s) to {rec}" in err, err
+    assert [(t, ty, p) for t, ty, p, _ in bag.iter_messages(rec)] == written
+
+
 def test_recorder_closes_bag_on_sigterm(tmp_path, graph_env):
     rec = tmp_path / "term.mcap"
     recorder = subprocess.Popen([sys.executable, "-m", "handmocap.nodes.recorder", f"output:={rec}",

@@ -173,7 +173,9 @@ def test_failed_required_node_in_a_container_is_one_clear_error(tmp_path, run_di
 
 def test_failed_optional_node_in_a_container_leaves_the_others_running(tmp_path, run_dir):
     bag = tmp_path / "o.mcap"
-    lf = write(tmp_path, chain(bag, shape=f", params: {{model: {tmp_path / 'nope.npz'}}}"))
+    bad = tmp_path / "bad.npz"        # loads only inside the node (a missing file: the launcher's error)
+    bad.write_bytes(b"not a hand model")
+    lf = write(tmp_path, chain(bag, shape=f", params: {{model: {bad}}}"))
     r = handlaunch([lf], run_dir, timeout=120)
     seen = r.stdout + r.stderr
     assert r.returncode == 0 and "all nodes finished" in seen, seen
@@ -188,7 +190,7 @@ def test_product_launch_files_compose_the_source_with_perception(name, source):
     """The frames reach the detector in-process; the recorder, visualizer and bridge are
     processes of their own and get /camera/image over ipc."""
     from conftest import ROOT
-    args = {"input": "x.mp4"} if name == "replay" else {}
+    args = {"input": str(ROOT / "data" / "demo" / "hand_clip.mp4")} if name == "replay" else {}
     procs = processes(load_launch_file(ROOT / "launch" / f"{name}.yaml", args).nodes)
     containers = [p for p in procs if isinstance(p, ContainerSpec)]
     assert len(containers) == 1 and containers[0].name == "perception"

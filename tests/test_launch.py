@@ -22,6 +22,15 @@ nodes:
 """
 
 
+@pytest.fixture(autouse=True)
+def in_tmp_with_sources(tmp_path, monkeypatch):
+    """Relative paths resolve in tmp_path, where the sources the files name exist (the replay
+    node's check_params wants its source to exist)."""
+    monkeypatch.chdir(tmp_path)
+    for name in ("x", "clip.mp4", "kept.mcap"):
+        (tmp_path / name).write_bytes(b"")
+
+
 def write(tmp_path, text):
     p = tmp_path / "g.yaml"
     p.write_text(text)
@@ -52,6 +61,20 @@ def test_good_file_substitutes_arguments_keeping_types(tmp_path):
      "detector param detnet: no such file models/nothere.onnx"),
     (GOOD + "  ik:\n    node: ik\n    params: {iknet: int8, model: MANO_RIGHT.pkl}\n", {"input": "x"}, 14,
      "ik param model: no such file MANO_RIGHT.pkl"),
+    (GOOD + "  ik:\n    node: ik\n    params: {smooth: maybe}\n", {"input": "x"}, 14,
+     "ik param smooth: expected true or false, got 'maybe'"),
+    (GOOD + "  ik:\n    node: ik\n    params: {rot_min_cutoff: 0}\n", {"input": "x"}, 14,
+     "ik param rot_min_cutoff: expected a number > 0, got 0"),
+    (GOOD + "  shape:\n    node: shape\n    params: {window: 0.5}\n", {"input": "x"}, 14,
+     "shape param window: expected an integer >= 1, got 0.5"),
+    (GOOD + "  camera:\n    node: camera\n    params: {fps: thirty}\n", {"input": "x"}, 14,
+     "camera param fps: expected a number > 0, got 'thirty'"),
+    (GOOD + "  camera:\n    node: camera\n    params: {calibration: nocalib.yaml}\n", {"input": "x"}, 14,
+     "camera param calibration: calibration file nocalib.yaml"),
+    (GOOD, {"input": "nothere.mp4"}, 7, "replay param source: no such file or folder nothere.mp4"),
+    (GOOD, {"input": "x", "rate": "fast"}, 7, "replay param rate: expected a number >= 0, got 'fast'"),
+    (GOOD.replace("out-$(var rate).mcap", "kept.mcap"), {"input": "x"}, 11,
+     "recorder param output: kept.mcap already exists"),
     ("nodes: []\n", {}, 1, "'nodes:' must map"),
     ("nodez: {}\n", {}, 1, "unknown key 'nodez'"),
 ])
@@ -122,9 +145,11 @@ def test_a_switched_off_node_is_still_checked(tmp_path):
 
 
 @pytest.mark.parametrize("name", ["demo", "replay", "webcam", "depthai"])
-def test_product_launch_files_are_valid(name):
-    """Every shipped graph passes the launcher's checks with its defaults (input for replay)."""
-    args = {"input": "clip.mp4"} if name == "replay" else {}
+def test_product_launch_files_are_valid(name, monkeypatch):
+    """Every shipped graph passes the launcher's checks with its defaults (input for replay),
+    run from the repository's root as the README runs them."""
+    monkeypatch.chdir(ROOT)
+    args = {"input": "data/demo/hand_clip.mp4", "bag": str(ROOT / "no-such-dir" / "r.mcap")} if name == "replay" else {}
     lf = load_launch_file(ROOT / "launch" / f"{name}.yaml", args)
     names = [n.name for n in lf.nodes]
     assert "visualizer" in names or name == "replay"
