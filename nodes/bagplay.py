@@ -7,11 +7,20 @@ recorded (a bag replays the past); use the `replay` node to re-stamp camera fram
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 from handmocap.bag_cli import CliError, play_messages, playable_topics
-from handmocap.node import Node, run
+from handmocap.node import Node, check_bool_param, check_number_param, run
 
 PARAMS = {"file": None, "rate": 1.0, "loop": False, "topics": []}
 
+
+def check_params(params: dict) -> None:
+    """The launcher's check before any process starts (ValueError naming the param)."""
+    if not params.get("file") or not Path(str(params["file"])).expanduser().is_file():
+        raise ValueError(f"bagplay param file: no such bag {params.get('file')}")
+    check_number_param("bagplay", "rate", params.get("rate", PARAMS["rate"]), minimum=0)
+    check_bool_param("bagplay", "loop", params.get("loop", PARAMS["loop"]))
 
 def main() -> None:
     node = Node("bagplay", params=PARAMS)

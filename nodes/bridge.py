@@ -16,11 +16,18 @@ from __future__ import annotations
 
 from handmocap import foxglove_live
 from handmocap.hand_model import HandModel
-from handmocap.node import Node, run
+from handmocap.node import Node, check_file_param, check_number_param, run
 
 PARAMS = {"host": "127.0.0.1", "port": 8765, "images": ["/camera/image"], "model": None,
           **foxglove_live.LIVE_DEFAULTS}
 
+
+def check_params(params: dict) -> None:
+    """The launcher's check before any process starts (ValueError naming the param)."""
+    check_file_param("bridge", "model", params.get("model"))
+    check_number_param("bridge", "port", params.get("port", PARAMS["port"]), minimum=0, integer=True)
+    for key in ("image_hz", "mesh_hz"):
+        check_number_param("bridge", key, params.get(key, PARAMS[key]), positive=True)
 
 def main() -> None:
     node = Node("bridge", params=PARAMS)

@@ -37,7 +37,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from handmocap.camera_info import as_distortion, as_K, camera_info_message, default_intrinsics
-from handmocap.node import Node, run
+from handmocap.node import Node, check_file_param, check_number_param, run
 
 PARAMS = {"device": None, "socket": "CAM_A", "width": 640, "height": 480, "fps": 30, "frame_id": "camera",
           "replay": None, "replay_calibration": None}
@@ -45,6 +45,15 @@ PARAMS = {"device": None, "socket": "CAM_A", "width": 640, "height": 480, "fps":
 POLL_S = 0.1               # how long one queue read waits before checking for shutdown
 FRAME_TIMEOUT_S = 5.0      # a running device without a frame this long has failed
 
+
+def check_params(params: dict) -> None:
+    """The launcher's check before any process starts (ValueError naming the param); whether
+    an OAK device is there is known only when the node opens it."""
+    for key in ("width", "height"):
+        check_number_param("depthai", key, params.get(key, PARAMS[key]), minimum=1, integer=True)
+    check_number_param("depthai", "fps", params.get("fps", PARAMS["fps"]), positive=True)
+    check_file_param("depthai", "replay", params.get("replay"))
+    check_file_param("depthai", "replay_calibration", params.get("replay_calibration"))
 
 def import_depthai():
     """The depthai module (v3), or RuntimeError saying how to install it. Its own console

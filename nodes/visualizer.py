@@ -35,13 +35,26 @@ from handmocap import camera_info
 from handmocap.frame_sync import FrameSync
 from handmocap.frames import frame_bgr, image_message
 from handmocap.hand_model import HandModel
-from handmocap.node import Node, run
+from handmocap.node import Node, check_bool_param, check_file_param, check_number_param, run
 from handmocap.overlay import Overlay
 
 PARAMS = {"video": None, "fps": 30.0, "every_frame": None, "publish": True, "mesh": True, "alpha": 0.6,
           "side": 0.33, "joints3d": True, "model": None, "timeout": None}
 TICK_S = 0.05           # wake-up period when nothing arrives: waiting frames may have expired
 SHUTDOWN_DRAW_S = 2.0   # on SIGINT/SIGTERM, frames still held are drawn this long, then written as they are
+
+
+def check_params(params: dict) -> None:
+    """The launcher's check before any process starts (ValueError naming the param)."""
+    check_file_param("visualizer", "model", params.get("model"))
+    check_number_param("visualizer", "fps", params.get("fps", PARAMS["fps"]), positive=True)
+    for key in ("publish", "mesh", "joints3d"):
+        check_bool_param("visualizer", key, params.get(key, PARAMS[key]))
+    if params.get("every_frame") is not None:
+        check_bool_param("visualizer", "every_frame", params["every_frame"])
+    check_number_param("visualizer", "alpha", params.get("alpha", PARAMS["alpha"]), minimum=0)
+    check_number_param("visualizer", "side", params.get("side", PARAMS["side"]), minimum=0)
+    check_number_param("visualizer", "timeout", params.get("timeout"), minimum=0, null=True)
 
 
 class VideoOut:
