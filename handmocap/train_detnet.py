@@ -85,6 +85,9 @@ def add_arguments(p):
                    help="turn each hand crop upright (wrist below the middle finger's base, from its 2D labels) "
                         "and then by +-DEG, as the detector's quarter-turned crops show hands (default: no "
                         "turning, +-90 deg about the crop as rendered or filmed)"),
+    p.add_argument("--hand-weight", type=float, default=LOSS_WEIGHTS["hand"], metavar="W",
+                   help="weight of the handedness loss (default %(default)s); higher asks the backbone itself "
+                        "for features that tell a right hand from a left one")
     p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
@@ -743,6 +746,7 @@ def main(args):
                     "args": {k: str(v) for k, v in vars(args).items()}}, tmp)
         os.replace(tmp, ckpt_path)
 
+    weights = {**LOSS_WEIGHTS, "hand": args.hand_weight}
     net.train()
     bar = tqdm(range(start, args.iters), initial=start, total=args.iters, desc=f"detnet-{args.backbone}",
                dynamic_ncols=True, mininterval=5)
@@ -759,7 +763,7 @@ def main(args):
         rng = np.random.default_rng([args.seed, it])
         b = to_torch(maker.make(args.batch, rng), rng)
         losses = detnet_losses(net(b["image"].contiguous(memory_format=torch.channels_last)), b, net.stride)
-        loss = sum(LOSS_WEIGHTS[k] * v for k, v in losses.items())
+        loss = sum(weights[k] * v for k, v in losses.items())
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
