@@ -5,6 +5,9 @@ Every message becomes JSON (message encoding `json`, schema encoding `jsonschema
   CameraInfo    -> foxglove.CameraCalibration (plumb_bob, K, R = I, P = [K | 0])
   HandKeypoints -> foxglove.ImageAnnotations (bones as a LINE_LIST, joints as POINTS, px)
   HandPose      -> foxglove.SceneUpdate (per hand: joint spheres and bone lines, metres)
+  HandMesh      -> foxglove.SceneUpdate (per hand: the posed mesh as triangles, metres) with
+                   the faces of the topic's first message that carries them; a topic that
+                   never carries faces, as any other message
   anything else -> the message itself as JSON, arrays as nested lists, with a JSON Schema
                    derived from its wire schema (named `handmocap.<Type>`).
 Topics keep their names; log times are kept, publish time is the header stamp.
@@ -28,6 +31,8 @@ from .skeleton import BONES
 
 JPEG_QUALITY = 90
 JOINT_SPHERE_M = 0.008          # diameter of a joint sphere in the 3D scene
+MESH_ALPHA = 0.6                # see the bones through the skin
+MESH_DECIMALS = 4               # vertices to 0.1 mm: a third of the JSON of full float precision
 HAND_COLORS = {"right": (0.15, 0.65, 1.0), "left": (1.0, 0.45, 0.15)}   # r, g, b
 
 
@@ -136,6 +141,32 @@ def pose_to_scene_update(msg: dict) -> dict:
             "entities": entities}
 
 
+def mesh_entity(t: dict, frame: str, track_id: int, handedness: str, vertices, faces) -> dict:
+    """A foxglove.SceneUpdate entity `hand/<track id>/mesh`: one indexed TriangleListPrimitive
+    of vertices (V,3) metres in `frame` and faces (F,3) (outward winding), half transparent in
+    the hand's colour; t: Foxglove time."""
+    points = [{"x": x, "y": y, "z": z} for x, y, z in np.round(np.asarray(vertices), MESH_DECIMALS).tolist()]
+    return {"timestamp": t, "frame_id": frame, "id": f"hand/{track_id}/mesh",
+            "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": False,
+            "metadata": [{"key": "handedness", "value": handedness}],
+            "triangles": [{"pose": IDENTITY_POSE, "points": points, "color": hand_color(handedness, MESH_ALPHA),
+                           "indices": np.asarray(faces).ravel().tolist()}]}
+
+
+def mesh_to_scene_update(msg: dict, faces) -> dict:
+    """HandMesh -> foxglove.SceneUpdate: deletes the previous meshes, then a `mesh_entity` per
+    hand. faces (F,3): the right hand's triangles (the message's, or its topic's first
+    message's); a left hand's are reversed, its vertices being mirrored. Hands with
+    non-finite vertices are left out."""
+    h = msg["header"]
+    t = foxglove_time(h["stamp_ns"])
+    faces = np.asarray(faces)
+    entities = [mesh_entity(t, h["frame_id"] or "camera", hand["track_id"], hand["handedness"], hand["vertices"],
+                            faces[:, ::-1] if hand["handedness"] == "left" else faces)
+                for hand in msg["hands"] if np.all(np.isfinite(hand["vertices"]))]
+    return {"deletions": [{"timestamp": t, "type": fs.DELETION_TYPE["ALL"], "id": ""}], "entities": entities}
+
+
 def _is_array_schema(node: dict) -> bool:
     props = node.get("properties")
     return isinstance(props, dict) and set(props) == {"dtype", "shape", "data"}
@@ -187,6 +218,23 @@ CONVERTERS = {
 }
 
 
+def first_mesh_faces(src: str | Path, topics=None) -> dict:
+    """{topic: faces (F,3)} of each HandMesh topic of bag `src` that carries faces at all (a
+    first pass: a Foxglove channel has one schema, so a topic's messages before its faces must
+    already be triangles too; the ik node sends them on a connection's first message)."""
+    faces = {}
+    for topic, type_name, payload, _ in iter_messages(src, topics):
+        if type_name != "HandMesh" or topic in faces:
+            continue
+        try:
+            msg = codec.decode(payload, type_name)
+        except codec.MalformedMessage:
+            continue
+        if msg.get("faces") is not None and len(msg["faces"]):
+            faces[topic] = np.asarray(msg["faces"]).reshape(-1, 3)
+    return faces
+
+
 def export_foxglove(src: str | Path, dst: str | Path, topics=None) -> dict:
     """Write the Foxglove copy of bag `src` to `dst`; returns {"topics": {topic: {"schema",
     "count"}}, "skipped": {topic: n}} (skipped: payloads that failed to decode)."""
@@ -195,6 +243,7 @@ def export_foxglove(src: str | Path, dst: str | Path, topics=None) -> dict:
     written: Counter[str] = Counter()
     skipped: Counter[str] = Counter()
     schema_names: dict[str, str] = {}
+    mesh_faces = first_mesh_faces(src, topics)
     with open(dst, "wb") as f:
         out = Writer(f, chunk_size=1024 * 1024, compression=CompressionType.NONE)
         out.start(profile="", library="handmocap foxglove export")
@@ -206,6 +255,8 @@ def export_foxglove(src: str | Path, dst: str | Path, topics=None) -> dict:
                     skipped[topic] += 1
                     continue
                 schema, convert = CONVERTERS.get(type_name, (None, None))
+                if type_name == "HandMesh" and topic in mesh_faces:
+                    schema, convert = fs.SCENE_UPDATE, lambda m: mesh_to_scene_update(m, mesh_faces[topic])
                 if schema is None:
                     schema, body = json_schema_for(type_name), to_jsonable(msg)
                 else:

@@ -29,8 +29,8 @@ import numpy as np
 
 from . import foxglove_schemas as fs
 from .foxglove_export import (
-    IDENTITY_POSE, camera_info_to_calibration, foxglove_time, hand_color, image_to_compressed,
-    json_schema_for, keypoints_to_annotations, pose_to_scene_update, to_jsonable,
+    camera_info_to_calibration, foxglove_time, image_to_compressed, json_schema_for, keypoints_to_annotations,
+    mesh_entity, pose_to_scene_update, to_jsonable,
 )
 from .pose import hand_mesh
 from .rotations import mirror_quat
@@ -38,8 +38,6 @@ from .rotations import mirror_quat
 # World from camera for a camera looking at the scene horizontally: camera x -> world x,
 # camera y (down) -> world -z, camera z (forward) -> world y. [x, y, z (m), qw, qx, qy, qz].
 CAMERA_IN_WORLD = [0.0, 0.0, 0.0, math.sqrt(0.5), -math.sqrt(0.5), 0.0, 0.0]
-MESH_ALPHA = 0.6          # see the bones through the skin
-MESH_DECIMALS = 4         # vertices to 0.1 mm: a third of the JSON of full float precision
 CALIBRATION_HZ = 2.0      # sources repeat CameraInfo with every frame; Foxglove needs it rarely
 
 LIVE_DEFAULTS = {"image_hz": 15.0, "mesh_hz": 15.0, "world_frame": "world", "camera_pose": CAMERA_IN_WORLD}
@@ -100,15 +98,8 @@ def pose_to_mesh_update(msg: dict, model) -> dict:
         if not all(np.all(np.isfinite(hand[k])) for k in ("quat", "beta", "root")):
             continue
         vertices, faces, _ = hand_mesh(model, hand)
-        points = [{"x": x, "y": y, "z": z} for x, y, z in np.round(vertices, MESH_DECIMALS).tolist()]
-        entities.append({
-            "timestamp": t, "frame_id": h["frame_id"] or "camera", "id": f"hand/{hand['track_id']}/mesh",
-            "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": False,
-            "metadata": [{"key": "handedness", "value": hand["handedness"]}],
-            "triangles": [{"pose": IDENTITY_POSE, "points": points,
-                           "color": hand_color(hand["handedness"], MESH_ALPHA),
-                           "indices": faces.ravel().tolist()}],
-        })
+        entities.append(mesh_entity(t, h["frame_id"] or "camera", hand["track_id"], hand["handedness"], vertices,
+                                    faces))
     return {"deletions": [{"timestamp": t, "type": fs.DELETION_TYPE["ALL"], "id": ""}], "entities": entities}
 
 

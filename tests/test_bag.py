@@ -236,6 +236,37 @@ def test_export_foxglove(tmp_path):
     assert blob["data"] == wire["data"].tolist()
 
 
+def test_export_foxglove_shows_hand_meshes_as_triangles(tmp_path):
+    """/hand/mesh becomes a SceneUpdate of triangles with the faces of the first message that
+    carries them, the messages before it too (a left hand's winding reversed)."""
+    from handmocap.foxglove_export import export_foxglove
+    src, dst = tmp_path / "m.mcap", tmp_path / "fox.mcap"
+    rng = np.random.default_rng(2)
+    faces = np.array([[0, 1, 2], [1, 3, 2]], np.int32)
+
+    def mesh(i, with_faces):
+        hands = [{"track_id": 1, "handedness": "right", "vertices": rng.random((4, 3)).astype(np.float32)},
+                 {"track_id": 2, "handedness": "left", "vertices": rng.random((4, 3)).astype(np.float32)}]
+        body = {"header": codec.header(i, stamp_ns=T0 + i), "hands": hands}
+        return codec.encode({**body, "faces": faces} if with_faces else body, "HandMesh"), hands
+
+    with bag.BagWriter(src) as w:
+        sent = [mesh(i, with_faces=(i == 1)) for i in range(3)]
+        for i, (payload, _) in enumerate(sent):
+            w.write("/hand/mesh", "HandMesh", payload, T0 + i, T0 + i)
+    export_foxglove(src, dst)
+    with open(dst, "rb") as f:
+        got = [(schema.name, json.loads(m.data)) for schema, _, m in make_reader(f).iter_messages()]
+    assert [name for name, _ in got] == ["foxglove.SceneUpdate"] * 3
+    for (_, scene), (_, hands) in zip(got, sent):
+        right, left = scene["entities"]
+        assert right["id"] == "hand/1/mesh" and left["id"] == "hand/2/mesh"
+        assert right["triangles"][0]["indices"] == faces.ravel().tolist()
+        assert left["triangles"][0]["indices"] == faces[:, ::-1].ravel().tolist()
+        assert right["triangles"][0]["points"][3] == pytest.approx(dict(zip("xyz", hands[0]["vertices"][3].tolist())),
+                                                                  abs=1e-4)
+
+
 # -- the recorder node and handbag play ----------------------------------------------------------
 @pytest.fixture
 def graph_env():
