@@ -603,6 +603,19 @@ def load_matching(net, state):
     return {k.rsplit(".", 2)[0] for k in own if k not in keep}
 
 
+def unpadded(w, shape):
+    """The exported conv weight `w` as DetNet's `shape`: itself, or with the zero channels that
+    onnx_models.pad_depthwise_convs appended (output or input channels) cut off; None when
+    it is neither."""
+    if tuple(w.shape) == tuple(shape):
+        return w
+    if w.dim() != len(shape) or any(a < b for a, b in zip(w.shape, shape)) or w.shape[2:] != shape[2:]:
+        return None
+    rest = w.clone()
+    rest[:shape[0], :shape[1]] = 0
+    return w[:shape[0], :shape[1]] if not rest.any() else None
+
+
 def state_from_onnx(path, images):
     """A trainable `DetNet` state dict recovered from an exported ONNX file (`path`), so the
     shipped model can seed training on a machine without its checkpoint.
@@ -638,11 +651,12 @@ def state_from_onnx(path, images):
     folded_bias = {}
     with torch.no_grad():
         for conv, node in zip(called, convs):
-            w = params[node.input[1]]
-            if w.shape != conv.weight.shape:
-                raise ValueError(f"{path}: conv weight {tuple(w.shape)} where DetNet has {tuple(conv.weight.shape)}")
+            w = unpadded(params[node.input[1]], conv.weight.shape)
+            if w is None:
+                raise ValueError(f"{path}: conv weight {tuple(params[node.input[1]].shape)} where DetNet has "
+                                 f"{tuple(conv.weight.shape)}")
             conv.weight.copy_(w)
-            b = params[node.input[2]] if len(node.input) > 2 else torch.zeros(w.shape[0])
+            b = params[node.input[2]][:w.shape[0]] if len(node.input) > 2 else torch.zeros(w.shape[0])
             if conv in bn_after:                        # an identity BN + b' until its statistics are known
                 bn = bn_after[conv]
                 folded_bias[bn] = b

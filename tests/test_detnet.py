@@ -65,6 +65,9 @@ def test_an_exported_net_becomes_trainable_again(tmp_path):
     path = tmp_path / "detnet.onnx"
     export_onnx(trained, path)
     images = np.random.default_rng(0).integers(0, 256, (32, 128, 128, 3), dtype=np.uint8)
+    import onnx
+    padded = [n for n in onnx.load(str(path)).graph.node if n.op_type == "Pad" and n.name.endswith("_channel_pad")]
+    assert len(padded) == 3          # the heads' depthwise convs (98, 119, 182 channels) are exported padded
     state, backbone = state_from_onnx(path, images)
     assert backbone == "fast"
     net = DetNet("fast")
@@ -76,7 +79,6 @@ def test_an_exported_net_becomes_trainable_again(tmp_path):
             torch.testing.assert_close(got[k], want[k], atol=1e-4, rtol=1e-4)
         batch_stats = net.train()(x)["heatmap"]
     torch.testing.assert_close(batch_stats, net.eval()(x)["heatmap"], atol=1e-3, rtol=0)
-    import onnx
     export_onnx(DetNet("fast-deep"), tmp_path / "deep.onnx")
     m = onnx.load(str(tmp_path / "deep.onnx"))
     m.doc_string = "DetNet backbone=fast refine=logquad"         # a file that lies about its backbone
@@ -374,3 +376,38 @@ def test_quarter_turned_held_out_crops_keep_labels_on_their_pixels_and_hands_upr
         np.testing.assert_allclose([xs[0], ys[0]], np.round(out["uv"][i, 4]), atol=0.5)
     np.testing.assert_allclose(out["xyz"][..., :2] * 50, out["uv"] - 63.5, atol=0.5 + 1e-6)  # turned like the 2D
     np.testing.assert_allclose(out["xyz"][..., 2], xyz[..., 2])
+
+
+def test_padding_depthwise_convs_keeps_the_function():
+    """pad_depthwise_convs: a depthwise conv of 119 channels and the 1x1 conv reading it become
+    120-channel ones with the same output; a conv already at a multiple of 8 is left alone."""
+    import onnx
+    import onnxruntime as ort
+    from onnx import TensorProto, helper, numpy_helper
+    from handmocap.onnx_models import pad_depthwise_convs
+    rng = np.random.default_rng(3)
+
+    def model(c):
+        w = {"w1": rng.normal(size=(c, 1, 3, 3)), "b1": rng.normal(size=c), "w2": rng.normal(size=(5, c, 1, 1))}
+        nodes = [helper.make_node("Conv", ["x", "w1", "b1"], ["h"], name="dw", group=c, kernel_shape=[3, 3],
+                                  pads=[1, 1, 1, 1]),
+                 helper.make_node("Relu", ["h"], ["r"]), helper.make_node("Conv", ["r", "w2"], ["y"], name="pw")]
+        g = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", c, 6, 6])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["N", 5, 6, 6])],
+                              [numpy_helper.from_array(v.astype(np.float32), k) for k, v in w.items()])
+        m = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
+        m.ir_version = 8
+        return m
+
+    def run(m, x):
+        return ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
+
+    m = model(119)
+    x = rng.random((2, 119, 6, 6), dtype=np.float32)
+    before = run(m, x)
+    assert pad_depthwise_convs(m) == 1
+    onnx.checker.check_model(m)
+    dw = next(n for n in m.graph.node if n.name == "dw")
+    assert next(a.i for a in dw.attribute if a.name == "group") == 120
+    np.testing.assert_allclose(run(m, x), before, rtol=1e-5, atol=1e-5)
+    assert pad_depthwise_convs(m) == 0 and pad_depthwise_convs(model(120)) == 0
