@@ -145,8 +145,14 @@ def background_crops(repo_root, exclude=VAL_VIDEOS):
 
 
 def shard_count(root):
-    """Number of shards in a handsynth output folder."""
-    return len(json.loads((root / "meta.json").read_text())["shards"])
+    """Number of shards in a handsynth output folder (SystemExit naming the folder and the
+    command that makes it when it holds none)."""
+    meta = Path(root) / "meta.json"
+    if not meta.is_file():
+        raise SystemExit(f"handtrain finder: no synthetic frames in {root} (no meta.json); make them with "
+                         f"`handsynth generate -n 6000 -o {root} --frames --size 160 --second-hand 0.3 --seed 11` "
+                         f"or pass --synth DIR")
+    return len(json.loads(meta.read_text())["shards"])
 
 
 def load_synth(root, shards):
