@@ -144,6 +144,16 @@ def as_distortion(values) -> np.ndarray:
     return d
 
 
+def check_calibration_param(node: str, value) -> None:
+    """A node's `calibration` param (for its `check_params`): null, or a file that
+    load_calibration reads as the node will; ValueError naming the node and the param."""
+    if value is not None:
+        try:
+            load_calibration(value)
+        except ValueError as e:
+            raise ValueError(f"{node} param calibration: {e}") from None
+
+
 def load_calibration(path: str | Path) -> Intrinsics:
     """Read a calibration file (formats: see the module docstring), source 'calibration'.
     Any problem raises one ValueError naming the file and the problem."""

@@ -26,7 +26,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from . import codec, foxglove_schemas as fs
-from .bag import iter_messages
+from .bag import bag_info, iter_messages
 from .skeleton import BONES
 
 JPEG_QUALITY = 90
@@ -222,9 +222,13 @@ def first_mesh_faces(src: str | Path, topics=None) -> dict:
     """{topic: faces (F,3)} of each HandMesh topic of bag `src` that carries faces at all (a
     first pass: a Foxglove channel has one schema, so a topic's messages before its faces must
     already be triangles too; the ik node sends them on a connection's first message)."""
+    mesh_topics = [t for t, v in bag_info(src)["topics"].items()
+                   if v["type"] == "HandMesh" and (topics is None or t in topics)]
     faces = {}
-    for topic, type_name, payload, _ in iter_messages(src, topics):
-        if type_name != "HandMesh" or topic in faces:
+    if not mesh_topics:                     # no pass over a bag of images for nothing
+        return faces
+    for topic, type_name, payload, _ in iter_messages(src, mesh_topics):
+        if topic in faces:
             continue
         try:
             msg = codec.decode(payload, type_name)
@@ -232,6 +236,8 @@ def first_mesh_faces(src: str | Path, topics=None) -> dict:
             continue
         if msg.get("faces") is not None and len(msg["faces"]):
             faces[topic] = np.asarray(msg["faces"]).reshape(-1, 3)
+            if len(faces) == len(mesh_topics):
+                break                       # every mesh topic's faces known: the rest need not be read
     return faces
 
 

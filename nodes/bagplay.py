@@ -17,10 +17,11 @@ PARAMS = {"file": None, "rate": 1.0, "loop": False, "topics": []}
 
 def check_params(params: dict) -> None:
     """The launcher's check before any process starts (ValueError naming the param)."""
-    if not params.get("file") or not Path(str(params["file"])).expanduser().is_file():
+    if not params.get("file") or not Path(str(params["file"])).is_file():     # as main() opens it
         raise ValueError(f"bagplay param file: no such bag {params.get('file')}")
     check_number_param("bagplay", "rate", params.get("rate", PARAMS["rate"]), minimum=0)
     check_bool_param("bagplay", "loop", params.get("loop", PARAMS["loop"]))
+
 
 def main() -> None:
     node = Node("bagplay", params=PARAMS)

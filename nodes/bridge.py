@@ -26,8 +26,9 @@ def check_params(params: dict) -> None:
     """The launcher's check before any process starts (ValueError naming the param)."""
     check_file_param("bridge", "model", params.get("model"))
     check_number_param("bridge", "port", params.get("port", PARAMS["port"]), minimum=0, integer=True)
-    for key in ("image_hz", "mesh_hz"):
-        check_number_param("bridge", key, params.get(key, PARAMS[key]), positive=True)
+    for key in ("image_hz", "mesh_hz"):                       # 0: off
+        check_number_param("bridge", key, params.get(key, PARAMS[key]), minimum=0)
+
 
 def main() -> None:
     node = Node("bridge", params=PARAMS)

@@ -34,7 +34,7 @@ from collections.abc import Iterator
 import cv2
 import numpy as np
 
-from handmocap.camera_info import Intrinsics, camera_info_message, intrinsics_for_frames, load_calibration
+from handmocap.camera_info import Intrinsics, camera_info_message, check_calibration_param, intrinsics_for_frames
 from handmocap.node import Node, check_bool_param, check_number_param, run
 
 PARAMS = {"device": 0, "width": 640, "height": 480, "fps": 30, "calibration": None, "frame_id": "camera",
@@ -62,11 +62,7 @@ def check_params(params: dict) -> None:
         check_number_param("camera", key, params.get(key, PARAMS[key]), minimum=1, integer=True)
     check_number_param("camera", "fps", params.get("fps", PARAMS["fps"]), positive=True)
     check_bool_param("camera", "mirror", params.get("mirror", PARAMS["mirror"]))
-    if params.get("calibration") is not None:
-        try:
-            load_calibration(params["calibration"])
-        except ValueError as e:
-            raise ValueError(f"camera param calibration: {e}") from None
+    check_calibration_param("camera", params.get("calibration"))
 
 
 def is_file(device: int | str) -> bool:

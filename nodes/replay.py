@@ -41,11 +41,7 @@ def check_params(params: dict) -> None:
     check_number_param("replay", "fps", params.get("fps"), positive=True, null=True)
     check_number_param("replay", "start", params.get("start", PARAMS["start"]), minimum=0)
     check_bool_param("replay", "loop", params.get("loop", PARAMS["loop"]))
-    if params.get("calibration") is not None:
-        try:
-            camera_info.load_calibration(Path(str(params["calibration"])).expanduser())
-        except ValueError as e:
-            raise ValueError(f"replay param calibration: {e}") from None
+    camera_info.check_calibration_param("replay", params.get("calibration"))
 
 
 def bag_frames(path: Path, start_s: float):

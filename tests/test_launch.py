@@ -140,6 +140,13 @@ def test_a_model_file_is_checked_only_for_a_node_that_runs(tmp_path):
         load_launch_file(write(tmp_path, text), {"input": "x", "rate": 1})
 
 
+def test_documented_off_values_pass_the_checks(tmp_path):
+    """A rate cap of 0 is the bridge's documented "off"; the checks must not refuse it."""
+    text = GOOD + "  bridge:\n    node: bridge\n    params: {image_hz: 0, mesh_hz: 0}\n"
+    assert [n.name for n in load_launch_file(write(tmp_path, text), {"input": "x"}).nodes] == \
+        ["replay", "recorder", "bridge"]
+
+
 def test_a_switched_off_node_is_still_checked(tmp_path):
     path = write(tmp_path, OPTIONAL.replace("params: {output: $(var bag)}", "params: {outptu: x}"))
     with pytest.raises(LaunchError) as e:
