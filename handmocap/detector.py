@@ -254,7 +254,9 @@ def crop_for_box(box, mirrored=False, scale=CROP_SCALE):
 class DetNetRunner:
     """DetNet on onnxruntime (by default models/detnet_int8.onnx, the static int8 copy of
     models/detnet.onnx): (N,128,128,3) uint8 RGB crops -> dict of arrays
-    uv (N,21,2) crop px, xyz (N,21,3), confidence (N,21), presence (N,), handedness (N,)."""
+    uv (N,21,2) crop px, xyz (N,21,3), confidence (N,21), presence (N,), handedness (N,),
+    uv_peak (N,21,2) crop px: the joints the detector tracks with (the heatmap peaks; files
+    exported before session 17 have none, and the detector then follows uv)."""
 
     def __init__(self, session):
         self.session = session
@@ -576,7 +578,10 @@ class HandDetector:
         if len(flipped):
             pixels = np.concatenate([pixels, pixels[list(flipped), :, ::-1]])
         self.stats["crops"] += len(pixels)
-        return self.detnet(np.ascontiguousarray(pixels[..., ::-1]))
+        out = self.detnet(np.ascontiguousarray(pixels[..., ::-1]))
+        if "uv_peak" not in out:            # a file exported before session 17
+            out["uv_peak"] = out["uv"].copy()
+        return out
 
     def process(self, image_bgr):
         """HandKeypoints hands of one BGR frame (H,W,3) uint8, sorted by track id."""
@@ -603,7 +608,7 @@ class HandDetector:
                 t = self.tracks[i]
                 if out["presence"][i] >= self.presence_threshold:
                     t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
-                    t.crop = crop_for_joints(t.crop.to_frame(out["uv"][i]), not t.is_right, self.crop_scale,
+                    t.crop = crop_for_joints(t.crop.to_frame(out["uv_peak"][i]), not t.is_right, self.crop_scale,
                                              self.upright_step)
             again = self._run_voting(image_bgr, [self.tracks[i] for i in idx])   # a new track votes again here
             for k, i in enumerate(idx):
@@ -615,7 +620,7 @@ class HandDetector:
         if self.tracked_test_time_crops and tracked:
             self._median_over_nearby_crops(image_bgr, tracked, out, self.tracked_test_time_crops)
         elif self.second_look and tracked:
-            jumped = [i for i in tracked if self._size_jumped(self.tracks[i], out["uv"][i])]
+            jumped = [i for i in tracked if self._size_jumped(self.tracks[i], out["uv_peak"][i])]
             if jumped:
                 self.stats["second_looks"] += len(jumped)
                 self._median_over_nearby_crops(image_bgr, jumped, out, SECOND_LOOK_CROPS)
@@ -630,8 +635,9 @@ class HandDetector:
             if presence < self.presence_threshold or confidence < self.min_confidence:
                 self.lost_last_frame = True
                 continue
-            uv = t.crop.to_frame(out["uv"][i])
-            if not self._plausible(uv, image_bgr.shape):
+            # the track follows the heatmap peaks; the hand published is read out finer (uv)
+            uv, followed = t.crop.to_frame(out["uv"][i]), t.crop.to_frame(out["uv_peak"][i])
+            if not self._plausible(followed, image_bgr.shape):
                 self.lost_last_frame = True
                 continue
             # the wire contract (messages/HandKeypoints.json): joint 9 at the origin, |0-9| = 1;
@@ -646,18 +652,18 @@ class HandDetector:
                 xyz = t.crop.to_frame_axes(xyz)
             t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
             if t.uv is not None:
-                t.velocity = np.median(uv - t.uv, axis=0)
-            t.uv, t.age = uv, t.age + 1
+                t.velocity = np.median(followed - t.uv, axis=0)
+            t.uv, t.age = followed, t.age + 1
             # a few frames of memory: one blurred frame must not let a desk object evict the hand
             t.confidence = confidence if t.age == 1 else t.confidence + 0.3 * (confidence - t.confidence)
             hands.append({"track_id": t.track_id, "handedness": "right" if t.is_right else "left",
                           "score": presence, "bbox": t.crop.box.astype(np.float32),
                           "uv": uv.astype(np.float32), "confidence": np.asarray(out["confidence"][i], np.float32),
                           "xyz_rel": xyz.astype(np.float32)})
-            t.crop = self._next_crop(t, uv)
+            t.crop = self._next_crop(t, followed)
             keep.append(t)
         self.tracks = keep
-        hands = self._drop_duplicates(hands)
+        hands = self._drop_duplicates(hands, {t.track_id: t.uv for t in keep})
         if self.opposite_hands is not None and self.handedness is None:
             self._one_left_one_right()
         return sorted(hands, key=lambda h: h["track_id"])
@@ -716,10 +722,10 @@ class HandDetector:
             own = self.tracks[i].crop
             views = [own] + crops[n * k:(n + 1) * k]
             rows = [(out, i)] + [(more, n * k + j) for j in range(k)]
-            uv = np.median([c.to_frame(o["uv"][r]) for c, (o, r) in zip(views, rows)], axis=0)
+            for key in ("uv", "uv_peak"):
+                out[key][i] = own.to_crop(np.median([c.to_frame(o[key][r]) for c, (o, r) in zip(views, rows)], axis=0))
             xyz = np.median([crop_to_frame_xyz(c, normalize_joints(o["xyz"][r])) for c, (o, r) in zip(views, rows)],
                             axis=0)
-            out["uv"][i] = own.to_crop(uv)
             out["xyz"][i] = frame_to_crop_xyz(own, xyz)
             out["handedness"][i] = sigmoid(np.mean(logit([o["handedness"][r] for o, r in rows])))
 
@@ -755,21 +761,24 @@ class HandDetector:
         centre = (lo + hi) / 2
         return bool(0 <= centre[0] < w and 0 <= centre[1] < h and np.max(hi - lo) <= 2 * max(h, w))
 
-    def _drop_duplicates(self, hands, iou=0.5, inside=0.7):
+    def _drop_duplicates(self, hands, followed=None, iou=0.5, inside=0.7):
         """Two tracks on one hand (joint boxes with IoU >= `iou`, or the smaller box at
         least `inside` covered by the other; with `duplicate_joints`, also joints that agree:
         median distance below that fraction of the hand's size): keep the higher score
-        (ties: the older track)."""
+        (ties: the older track). Judged on `followed` {track id: (21,2) joints the track
+        follows} where given, else on the hands' published uv."""
+        followed = followed or {h["track_id"]: h["uv"] for h in hands}
         order = sorted(hands, key=lambda h: (-h["score"], h["track_id"]))
         kept, kept_boxes = [], []
         for h in order:
-            box = np.concatenate([h["uv"].min(0), h["uv"].max(0)])
+            uv = followed[h["track_id"]]
+            box = np.concatenate([uv.min(0), uv.max(0)])
             if kept_boxes:
                 overlap = (box_iou(box, np.array(kept_boxes))[0] >= iou) | \
                           (box_overlap_of_smaller(box, np.array(kept_boxes)) >= inside)
                 if self.duplicate_joints:   # overlapping boxes, but two hands (clasped, clapping)?
                     size = np.max(box[2:] - box[:2])
-                    overlap &= np.array([np.median(np.linalg.norm(h["uv"] - k["uv"], axis=1))
+                    overlap &= np.array([np.median(np.linalg.norm(uv - followed[k["track_id"]], axis=1))
                                          < self.duplicate_joints * size for k in kept])
                 if overlap.any():
                     continue

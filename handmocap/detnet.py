@@ -179,17 +179,26 @@ class DetNet(nn.Module):
 
 
 # ------------------------------------------------------------------ read-out
-REFINE = ("none", "soft3", "logquad")
+REFINE = ("none", "soft3", "logquad", "softmax")
+# "softmax" read-out: sharper than the coordinate loss's softmax (1): the same mean error on
+# held-out crops, more joints within 4 px (models/README.md, "Read-out: a soft-argmax")
+SOFTMAX_TEMPERATURE = 0.75
 
 
-def read_out(heat, loc, stride, refine="logquad"):
+def read_out(heat, loc, stride, refine="logquad", logits=None):
     """Joints from maps.
 
-    heat (N,J,G,G) in (0,1); loc (N,J,3,G,G); stride: crop px per cell.
+    heat (N,J,G,G) in (0,1); loc (N,J,3,G,G); stride: crop px per cell; logits (N,J,G,G)
+    the heatmaps before their sigmoid (for "softmax"; recovered from heat when None).
     refine: "none" = integer argmax (paper); "soft3" = heatmap-weighted mean offset of the
     3x3 neighbourhood; "logquad" = peak of a parabola through log-heatmap at the argmax and
-    its two neighbours along x and along y (exact for a Gaussian peak), clamped to +-1 cell.
-    Returns uv (N,J,2) crop px, xyz (N,J,3) = loc at the argmax cell, confidence (N,J) = peak.
+    its two neighbours along x and along y (exact for a Gaussian peak), clamped to +-1 cell;
+    "softmax" = the expected cell under a softmax of the logits (/ SOFTMAX_TEMPERATURE)
+    over the whole map, the quantity training's coordinate loss (`soft_argmax_loss`) pulls
+    onto the label, and the location maps averaged under the same weights (a flat map,
+    no hand, gives the map's centre: the detector tracks with "logquad", see OUTPUTS).
+    Returns uv (N,J,2) crop px, xyz (N,J,3) = loc at the argmax cell (softmax: its expected
+    value), confidence (N,J) = peak.
     """
     n, j, g, _ = heat.shape
     flat = heat.reshape(n, j, g * g)
@@ -197,7 +206,14 @@ def read_out(heat, loc, stride, refine="logquad"):
     row, col = idx // g, idx % g
     xyz = torch.gather(loc.reshape(n, j, 3, g * g), 3, idx.view(n, j, 1, 1).expand(n, j, 3, 1))[..., 0]
     cell = torch.stack([col, row], -1).to(heat.dtype)
-    if refine != "none":
+    if refine == "softmax":
+        if logits is None:
+            logits = torch.logit(heat.clamp(1e-6, 1.0 - 1e-6))
+        prob = torch.softmax(logits.reshape(n, j, g * g) / SOFTMAX_TEMPERATURE, -1).reshape(n, j, g, g)
+        cells = torch.arange(g, dtype=prob.dtype, device=prob.device)
+        cell = torch.stack([(prob.sum(2) * cells).sum(-1), (prob.sum(3) * cells).sum(-1)], -1)
+        xyz = (loc.reshape(n, j, 3, g * g) * prob.reshape(n, j, 1, g * g)).sum(-1)
+    elif refine != "none":
         pad = F.pad(heat, (1, 1, 1, 1), mode="replicate").reshape(n, j, (g + 2) ** 2)
         d = torch.tensor([-1, 0, 1], device=heat.device)
         dy, dx = torch.meshgrid(d, d, indexing="ij")
@@ -237,17 +253,23 @@ class DetNetExport(nn.Module):
 
     def forward(self, image):
         out = self.net(image)
-        uv, xyz, conf = read_out(out["heatmap"], out["location"], self.net.stride, self.refine)
-        return uv, xyz, conf, torch.sigmoid(out["presence"]), torch.sigmoid(out["handedness"])
+        uv, xyz, conf = read_out(out["heatmap"], out["location"], self.net.stride, self.refine, out["heat_logits"])
+        uv_peak = read_out(out["heatmap"], out["location"], self.net.stride, "logquad")[0]
+        return uv, xyz, conf, torch.sigmoid(out["presence"]), torch.sigmoid(out["handedness"]), uv_peak
 
 
-OUTPUTS = ("uv", "xyz", "confidence", "presence", "handedness")
+# uv_peak: the heatmap peaks (parabola read-out), which the detector follows from frame to
+# frame: where the maps are flat (no hand) they scatter and the track ends, where the
+# soft-argmax gathers them into a tidy hand that kept a track on a face (models/README.md,
+# "Read-out: a soft-argmax")
+OUTPUTS = ("uv", "xyz", "confidence", "presence", "handedness", "uv_peak")
 
 
 def export_onnx(net, path, refine="logquad", opset=17):
     """Write models/detnet.onnx: input `image` (N,3,128,128) float32 RGB [0,1]; outputs
     uv (N,21,2) crop px, xyz (N,21,3) root-relative normalized (right hand), confidence
-    (N,21), presence (N,), handedness (N,) = P(crop shows a right hand as it appears)."""
+    (N,21), presence (N,), handedness (N,) = P(crop shows a right hand as it appears),
+    uv_peak (N,21,2) crop px, the "logquad" read-out (what the detector tracks with)."""
     import onnx
     was_training = net.training
     net.eval()

@@ -517,7 +517,7 @@ def real_val_set(real):
     return out
 
 
-def predict(net, images, refines=("logquad",), batch=128):
+def predict(net, images, refines=("softmax",), batch=128):
     """Torch DetNet (eval) on uint8 crops (N,128,128,3), one pass -> {refine: (uv, xyz, conf)},
     presence (N,), right (N,) probabilities (numpy). `net` may also be an exported file
     (quantize_detnet.OnnxNet): its one read-out then stands for every refine asked."""
@@ -535,7 +535,8 @@ def predict(net, images, refines=("logquad",), batch=128):
             x = torch.from_numpy(np.ascontiguousarray(images[i:i + batch])).permute(0, 3, 1, 2).float() / 255.0
             out = net(x.contiguous(memory_format=torch.channels_last))
             for r in refines:
-                reads[r].append([t.numpy() for t in read_out(out["heatmap"], out["location"], net.stride, r)])
+                reads[r].append([t.numpy() for t in read_out(out["heatmap"], out["location"], net.stride, r,
+                                                                         out["heat_logits"])])
             pres.append(torch.sigmoid(out["presence"]).numpy())
             right.append(torch.sigmoid(out["handedness"]).numpy())
     net.train(was_training)
@@ -550,7 +551,7 @@ def pck_auc(err_mm, lo=20.0, hi=50.0, steps=15):
     return float(np.trapezoid(pck, th) / (hi - lo))
 
 
-def validate(net, sval, rval, refines=("logquad",)):
+def validate(net, sval, rval, refines=("softmax",)):
     """Held-out metrics; syn_px_<refine> for each read-out (2D px over in-crop joints)."""
     m = {}
     if sval is not None:
@@ -703,7 +704,7 @@ def main(args):
     net = DetNet(args.backbone).to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     ckpt_path = run_dir / "last.pt"
-    start, history, refine = 0, [], "logquad"
+    start, history, refine = 0, [], "softmax"
     if args.resume or args.export_only:
         if not ckpt_path.exists():
             raise SystemExit(f"no checkpoint at {ckpt_path}: train from scratch with `handtrain detnet`")
@@ -785,9 +786,9 @@ def main(args):
             bar.set_postfix({k: f"{v.item():.4f}" for k, v in losses.items()})
         done = it + 1
         if done % args.val_every == 0 or done == args.iters:
-            metrics = validate(net, sval, rval, refines=("logquad", "soft3", "none"))
+            metrics = validate(net, sval, rval, refines=("softmax", "logquad", "soft3", "none"))
             if sval is not None:                        # the read-out that measures best on held-out synthetic
-                refine = min(("logquad", "soft3", "none"), key=lambda r: metrics[f"syn_px_{r}"])
+                refine = min(("softmax", "logquad", "soft3", "none"), key=lambda r: metrics[f"syn_px_{r}"])
             history.append({"iteration": done, "seconds": time.monotonic() - t0, "refine": refine,
                             "synthetic_crops": len(synth["image"]), **metrics})
             bar.write(f"iter {done}: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v

@@ -327,6 +327,31 @@ def test_track_ids_are_stable_over_a_two_hand_sequence_and_never_reused():
     assert det.stats["finder_runs"] <= 1 + 1 + 2
 
 
+def test_the_track_follows_the_heatmap_peaks_and_publishes_the_finer_read_out():
+    """DetNet's `uv_peak` (the heatmap peaks) cuts the next crop and judges the track; `uv`
+    (the soft-argmax read-out) is what the hand publishes. A read-out that gathers every
+    joint at the crop's centre must neither steer nor shrink the track."""
+    class CentredDetNet(FakeDetNet):
+        def __call__(self, crops_rgb):
+            out = super().__call__(crops_rgb)
+            out["uv_peak"] = out["uv"].copy()
+            out["uv"] = np.full_like(out["uv"], 63.5)
+            return out
+
+    det = HandDetector(CentredDetNet(), FakeFinder(), redetect_every=1000)
+    for i in range(20):
+        truth = canonical_hand((200 + 8 * i, 260 - 3 * i), 150)
+        hands = det.process(draw(np.zeros((H, W, 3), np.uint8), truth))
+        assert len(hands) == 1, i
+        centre = (hands[0]["bbox"][:2] + hands[0]["bbox"][2:]) / 2
+        # published: one point, the crop's centre; the crop stays on the moving hand, its size too
+        assert np.ptp(hands[0]["uv"], axis=0).max() < 1e-3
+        np.testing.assert_allclose(hands[0]["uv"][0], centre, atol=1.0)
+        assert np.linalg.norm(centre - (truth.min(0) + truth.max(0)) / 2) < 10, i
+        assert np.ptp(hands[0]["bbox"].reshape(2, 2), axis=0).max() > 150, i
+    assert det.finder.calls == 1
+
+
 def test_tracked_hands_do_not_run_the_finder_unless_it_checks_the_tracks():
     det = detector(redetect_every=5, reseed_iou=0.0)
     frames, _ = two_hand_frames(30)

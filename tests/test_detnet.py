@@ -116,6 +116,31 @@ def test_read_out_argmax_and_subpixel():
     assert err["soft"] < err["none"]
 
 
+def test_read_out_softmax_is_the_expected_cell():
+    """"softmax": the mean cell under softmax(logits / T) over the whole map, and the
+    location maps averaged with the same weights."""
+    torch = _torch()
+    from handmocap.detnet import SOFTMAX_TEMPERATURE, read_out
+    rng = np.random.default_rng(1)
+    grid, stride = 16, 8
+    logits = rng.normal(0.0, 2.0, (2, 21, grid, grid)).astype(np.float32)
+    loc = rng.normal(size=(2, 21, 3, grid, grid)).astype(np.float32)
+    uv, xyz, conf = read_out(torch.sigmoid(torch.from_numpy(logits)), torch.from_numpy(loc), stride, "softmax",
+                             torch.from_numpy(logits))
+    for n in range(2):
+        for j in range(21):
+            rows, cols = np.mgrid[:grid, :grid]
+            p = np.exp((logits[n, j] - logits[n, j].max()) / SOFTMAX_TEMPERATURE)
+            p /= p.sum()
+            cell = np.array([(p * cols).sum(), (p * rows).sum()])
+            assert np.allclose(uv[n, j].numpy(), cell * stride + (stride - 1) / 2, atol=1e-3)
+            assert np.allclose(xyz[n, j].numpy(), (loc[n, j] * p).sum((1, 2)), atol=1e-5)
+    assert np.allclose(conf.numpy(), 1 / (1 + np.exp(-logits.max((2, 3)))), atol=1e-6)
+    # without the logits they are recovered from the sigmoid maps
+    assert np.allclose(read_out(torch.sigmoid(torch.from_numpy(logits)), torch.from_numpy(loc), stride,
+                                "softmax")[0].numpy(), uv.numpy(), atol=1e-2)
+
+
 def test_onnx_export_matches_torch(tmp_path):
     torch = _torch()
     ort = pytest.importorskip("onnxruntime")
