@@ -88,6 +88,9 @@ def add_arguments(p):
     p.add_argument("--hand-weight", type=float, default=LOSS_WEIGHTS["hand"], metavar="W",
                    help="weight of the handedness loss (default %(default)s); higher asks the backbone itself "
                         "for features that tell a right hand from a left one")
+    p.add_argument("--coord-weight", type=float, default=LOSS_WEIGHTS["coord"], metavar="W",
+                   help="weight of the soft-argmax coordinate loss (default %(default)s); since session 17 the "
+                        "exported read-out is that soft-argmax")
     p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
@@ -761,7 +764,7 @@ def main(args):
                     "args": {k: str(v) for k, v in vars(args).items()}}, tmp)
         os.replace(tmp, ckpt_path)
 
-    weights = {**LOSS_WEIGHTS, "hand": args.hand_weight}
+    weights = {**LOSS_WEIGHTS, "hand": args.hand_weight, "coord": args.coord_weight}
     net.train()
     bar = tqdm(range(start, args.iters), initial=start, total=args.iters, desc=f"detnet-{args.backbone}",
                dynamic_ncols=True, mininterval=5)
