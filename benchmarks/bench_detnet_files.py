@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from handmocap.frames import read_video
 from handmocap.tracker import HandTracker
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -25,13 +26,10 @@ def main():
     p.add_argument("--video", default=str(ROOT / "data" / "demo" / "hand_clip.mp4"))
     p.add_argument("--passes", type=int, default=8)
     args = p.parse_args()
-    cap = cv2.VideoCapture(args.video)
-    frames = []
-    while True:
-        ok, frame = cap.read()
-        if not ok:
-            break
-        frames.append(cv2.resize(frame, (640, 480)))
+    try:
+        frames = [cv2.resize(f, (640, 480)) for f in read_video(args.video)]
+    except ValueError as e:                     # missing, unreadable or cut short: one line
+        raise SystemExit(str(e)) from None
     if not frames:
         raise SystemExit(f"{args.video}: no frames could be read")
     trackers = [HandTracker(max_hands=1, threads=1, detnet=f) for f in args.files]

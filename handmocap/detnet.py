@@ -203,9 +203,6 @@ def read_out(heat, loc, stride, refine="logquad", logits=None):
     n, j, g, _ = heat.shape
     flat = heat.reshape(n, j, g * g)
     conf, idx = flat.max(-1)
-    row, col = idx // g, idx % g
-    xyz = torch.gather(loc.reshape(n, j, 3, g * g), 3, idx.view(n, j, 1, 1).expand(n, j, 3, 1))[..., 0]
-    cell = torch.stack([col, row], -1).to(heat.dtype)
     if refine == "softmax":
         if logits is None:
             logits = torch.logit(heat.clamp(1e-6, 1.0 - 1e-6))
@@ -213,30 +210,41 @@ def read_out(heat, loc, stride, refine="logquad", logits=None):
         cells = torch.arange(g, dtype=prob.dtype, device=prob.device)
         cell = torch.stack([(prob.sum(2) * cells).sum(-1), (prob.sum(3) * cells).sum(-1)], -1)
         xyz = (loc.reshape(n, j, 3, g * g) * prob.reshape(n, j, 1, g * g)).sum(-1)
-    elif refine != "none":
-        pad = F.pad(heat, (1, 1, 1, 1), mode="replicate").reshape(n, j, (g + 2) ** 2)
-        d = torch.tensor([-1, 0, 1], device=heat.device)
-        dy, dx = torch.meshgrid(d, d, indexing="ij")
-        nb_idx = (row[..., None] + 1 + dy.reshape(1, 1, 9)) * (g + 2) + col[..., None] + 1 + dx.reshape(1, 1, 9)
-        nb = torch.gather(pad, 2, nb_idx).clamp_min(1e-6)            # (N,J,9): row-major 3x3
-        if refine == "soft3":
-            w = nb / nb.sum(-1, keepdim=True)
-            offset = torch.stack([(w * dx.reshape(1, 1, 9).to(w.dtype)).sum(-1),
-                                  (w * dy.reshape(1, 1, 9).to(w.dtype)).sum(-1)], -1)
-        elif refine == "logquad":
-            lg = torch.log(nb)
-            left, right, up, down, centre = lg[..., 3], lg[..., 5], lg[..., 1], lg[..., 7], lg[..., 4]
-
-            def vertex(a, b):                                       # parabola through (-1,a),(0,c),(1,b)
-                curv = a + b - 2.0 * centre
-                return torch.where(curv < -1e-6, 0.5 * (a - b) / torch.where(curv < -1e-6, curv, -1.0),
-                                   torch.zeros_like(curv)).clamp(-1.0, 1.0)
-            offset = torch.stack([vertex(left, right), vertex(up, down)], -1)
-        else:
-            raise ValueError(f"refine must be one of {REFINE}, got {refine!r}")
-        cell = cell + offset
+    else:
+        row, col = idx // g, idx % g
+        xyz = torch.gather(loc.reshape(n, j, 3, g * g), 3, idx.view(n, j, 1, 1).expand(n, j, 3, 1))[..., 0]
+        cell = torch.stack([col, row], -1).to(heat.dtype)
+        if refine != "none":
+            cell = cell + _sub_cell_offset(heat, row, col, refine)
     uv = cell * stride + (stride - 1) / 2.0
     return uv, xyz, conf
+
+
+def _sub_cell_offset(heat, row, col, refine):
+    """(N,J,2) x, y offset in cells from the argmax cell (row, col (N,J)) for the "soft3" and
+    "logquad" read-outs (read_out)."""
+    n, j, g, _ = heat.shape
+    pad = F.pad(heat, (1, 1, 1, 1), mode="replicate").reshape(n, j, (g + 2) ** 2)
+    d = torch.tensor([-1, 0, 1], device=heat.device)
+    dy, dx = torch.meshgrid(d, d, indexing="ij")
+    nb_idx = (row[..., None] + 1 + dy.reshape(1, 1, 9)) * (g + 2) + col[..., None] + 1 + dx.reshape(1, 1, 9)
+    nb = torch.gather(pad, 2, nb_idx).clamp_min(1e-6)            # (N,J,9): row-major 3x3
+    if refine == "soft3":
+        w = nb / nb.sum(-1, keepdim=True)
+        offset = torch.stack([(w * dx.reshape(1, 1, 9).to(w.dtype)).sum(-1),
+                              (w * dy.reshape(1, 1, 9).to(w.dtype)).sum(-1)], -1)
+    elif refine == "logquad":
+        lg = torch.log(nb)
+        left, right, up, down, centre = lg[..., 3], lg[..., 5], lg[..., 1], lg[..., 7], lg[..., 4]
+
+        def vertex(a, b):                                       # parabola through (-1,a),(0,c),(1,b)
+            curv = a + b - 2.0 * centre
+            return torch.where(curv < -1e-6, 0.5 * (a - b) / torch.where(curv < -1e-6, curv, -1.0),
+                               torch.zeros_like(curv)).clamp(-1.0, 1.0)
+        offset = torch.stack([vertex(left, right), vertex(up, down)], -1)
+    else:
+        raise ValueError(f"refine must be one of {REFINE}, got {refine!r}")
+    return offset
 
 
 def uv_to_cell(uv, stride):
@@ -245,7 +253,8 @@ def uv_to_cell(uv, stride):
 
 
 class DetNetExport(nn.Module):
-    """image (N,3,128,128) -> uv, xyz, confidence, presence, handedness (the ONNX interface)."""
+    """image (N,3,128,128) -> uv, xyz, confidence, presence, handedness, uv_peak (the ONNX
+    interface)."""
 
     def __init__(self, net, refine="logquad"):
         super().__init__()

@@ -469,6 +469,9 @@ def soft_argmax_loss(heat_logits, uv, weight, stride):
     return (err * inside).sum() / inside.sum().clamp_min(1e-6)
 
 
+# read-outs measured at each validation; the one best on held-out synthetic crops is exported
+# (the first wins a tie, and is the one the real held-out sets are scored with)
+READ_OUTS = ("softmax", "logquad", "soft3", "none")
 LOSS_WEIGHTS = {"heat": 100.0, "coord": 0.5, "loc": 10.0, "delta": 1.0, "presence": 1.0, "hand": 1.0}
 
 
@@ -789,9 +792,9 @@ def main(args):
             bar.set_postfix({k: f"{v.item():.4f}" for k, v in losses.items()})
         done = it + 1
         if done % args.val_every == 0 or done == args.iters:
-            metrics = validate(net, sval, rval, refines=("softmax", "logquad", "soft3", "none"))
+            metrics = validate(net, sval, rval, refines=READ_OUTS)
             if sval is not None:                        # the read-out that measures best on held-out synthetic
-                refine = min(("softmax", "logquad", "soft3", "none"), key=lambda r: metrics[f"syn_px_{r}"])
+                refine = min(READ_OUTS, key=lambda r: metrics[f"syn_px_{r}"])
             history.append({"iteration": done, "seconds": time.monotonic() - t0, "refine": refine,
                             "synthetic_crops": len(synth["image"]), **metrics})
             bar.write(f"iter {done}: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v
