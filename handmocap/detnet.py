@@ -100,9 +100,14 @@ class FastBackbone(nn.Module):
         self.channels = w3
 
     def forward(self, x):
-        x16 = self.s16(self.s32(self.stem(x)))
+        return self.features(x)[0]
+
+    def features(self, x):
+        """-> the fused 16 px map (N,C,16,16) and the 32 px map (N,w1,32,32) (`FineHeatmaps`)."""
+        x32 = self.s32(self.stem(x))
+        x16 = self.s16(x32)
         x8 = self.s8(x16)
-        return self.neck(self.fuse(self.lateral(x16) + F.interpolate(x8, scale_factor=2.0, mode="nearest")))
+        return self.neck(self.fuse(self.lateral(x16) + F.interpolate(x8, scale_factor=2.0, mode="nearest"))), x32
 
 
 def fast_backbone(widths=(24, 48, 96), depth=(1, 3, 2), neck=0):
@@ -140,13 +145,42 @@ class Head(nn.Module):
         return self.net(x)
 
 
-class DetNet(nn.Module):
-    """Backbone + heatmap, delta, location heads (paper) + presence, handedness (ours)."""
+class FineHeatmaps(nn.Module):
+    """Heatmap logits at twice the grid (32x32, 4 px cells, for the fast backbones) for a
+    finer 2D read-out: the 16 px heatmaps' cells are 8 px, and on held-out crops most of the
+    2D error lay within a cell of the peak (models/README.md, "Fine heatmaps").
 
-    def __init__(self, backbone="fast"):
+    The coarse logits upsampled (bilinear: cell c of the fine grid is centred on pixel
+    4c + 1.5, as the grid convention asks) plus a correction read from the fused 16 px
+    features and the backbone's 32 px map (edges, skin borders: where a fingertip ends). The
+    correction's last conv starts at zero, so an added head first computes what the coarse
+    maps did. fine (N,C,16,16), fine32 (N,C32,32,32), coarse_logits (N,21,16,16) -> (N,21,32,32).
+    """
+
+    def __init__(self, c, c32, mid=32):
+        super().__init__()
+        self.coarse = conv_bn(c, mid, 1)
+        self.skip = conv_bn(c32, mid, 1)
+        self.mix = nn.Sequential(conv_bn(mid, mid, 3, groups=mid), conv_bn(mid, mid, 1),
+                                 conv_bn(mid, mid, 3, groups=mid), conv_bn(mid, mid, 1))
+        self.out = nn.Conv2d(mid, NUM_JOINTS, 1)
+        nn.init.zeros_(self.out.weight), nn.init.zeros_(self.out.bias)
+
+    def forward(self, feat, feat32, coarse_logits):
+        up = lambda t: F.interpolate(t, scale_factor=2.0, mode="bilinear", align_corners=False)  # noqa: E731
+        return up(coarse_logits) + self.out(self.mix(up(self.coarse(feat)) + self.skip(feat32)))
+
+
+class DetNet(nn.Module):
+    """Backbone + heatmap, delta, location heads (paper) + presence, handedness (ours);
+    fine=True adds FineHeatmaps (fast backbones), out["fine_logits"]."""
+
+    def __init__(self, backbone="fast", fine=False):
         super().__init__()
         if backbone not in BACKBONES:
             raise ValueError(f"backbone must be one of {sorted(BACKBONES)}, got {backbone!r}")
+        if fine and backbone == "paper":
+            raise ValueError("the fine heatmaps need a fast backbone's 32 px map (the paper's grid is 32 already)")
         self.backbone_name = backbone
         self.backbone, c, self.stride = BACKBONES[backbone]()
         self.grid = CROP // self.stride
@@ -162,10 +196,14 @@ class DetNet(nn.Module):
         # a coarse 4x4 map of a few channels instead.
         self.chirality = conv_bn(c, 8, 1)
         self.handedness_head = nn.Sequential(nn.Linear(8 * 16, 64), nn.ReLU(inplace=True), nn.Linear(64, 1))
+        self.fine = FineHeatmaps(c, self.backbone.stem[0].out_channels) if fine else None
 
     def forward(self, image):
         """image (N,3,128,128) RGB [0,1] -> dict of maps (see module docstring)."""
-        feat = self.backbone(image * 2.0 - 1.0)
+        if self.fine is not None:
+            feat, feat32 = self.backbone.features(image * 2.0 - 1.0)
+        else:
+            feat = self.backbone(image * 2.0 - 1.0)
         n, _, g, _ = feat.shape
         x = torch.cat([feat, coord_channels(n, g, feat.device, feat.dtype)], 1)
         heat_logits = self.heat_head(x)
@@ -174,42 +212,59 @@ class DetNet(nn.Module):
         loc = self.loc_head(torch.cat([x, heat, delta], 1))
         presence = self.presence_head(feat.mean((2, 3)))[:, 0]
         handedness = self.handedness_head(F.adaptive_avg_pool2d(self.chirality(feat), 4).flatten(1))[:, 0]
-        return {"heatmap": heat, "heat_logits": heat_logits, "delta": delta.view(n, NUM_JOINTS, 3, g, g),
-                "location": loc.view(n, NUM_JOINTS, 3, g, g), "presence": presence, "handedness": handedness}
+        out = {"heatmap": heat, "heat_logits": heat_logits, "delta": delta.view(n, NUM_JOINTS, 3, g, g),
+               "location": loc.view(n, NUM_JOINTS, 3, g, g), "presence": presence, "handedness": handedness}
+        if self.fine is not None:       # last, so the exported graph's convs keep the order state_from_onnx expects
+            out["fine_logits"] = self.fine(feat, feat32, heat_logits)
+        return out
 
 
 # ------------------------------------------------------------------ read-out
-REFINE = ("none", "soft3", "logquad", "softmax")
+REFINE = ("none", "soft3", "logquad", "softmax", "fine")
 # "softmax" read-out: sharper than the coordinate loss's softmax (1): the same mean error on
 # held-out crops, more joints within 4 px (models/README.md, "Read-out: a soft-argmax")
 SOFTMAX_TEMPERATURE = 0.75
 
 
-def read_out(heat, loc, stride, refine="logquad", logits=None):
+def soft_argmax(logits, temperature=1.0):
+    """logits (N,J,G,G) -> the expected cell (N,J,2) x, y under softmax(logits / temperature)
+    over the whole map, and those weights (N,J,G,G)."""
+    n, j, g, _ = logits.shape
+    prob = torch.softmax(logits.reshape(n, j, g * g) / temperature, -1).reshape(n, j, g, g)
+    cells = torch.arange(g, dtype=prob.dtype, device=prob.device)
+    return torch.stack([(prob.sum(2) * cells).sum(-1), (prob.sum(3) * cells).sum(-1)], -1), prob
+
+
+def read_out(heat, loc, stride, refine="logquad", logits=None, fine_logits=None):
     """Joints from maps.
 
     heat (N,J,G,G) in (0,1); loc (N,J,3,G,G); stride: crop px per cell; logits (N,J,G,G)
-    the heatmaps before their sigmoid (for "softmax"; recovered from heat when None).
+    the heatmaps before their sigmoid (for "softmax"; recovered from heat when None);
+    fine_logits (N,J,2G,2G) (for "fine": DetNet(fine=True)'s out["fine_logits"]).
     refine: "none" = integer argmax (paper); "soft3" = heatmap-weighted mean offset of the
     3x3 neighbourhood; "logquad" = peak of a parabola through log-heatmap at the argmax and
     its two neighbours along x and along y (exact for a Gaussian peak), clamped to +-1 cell;
     "softmax" = the expected cell under a softmax of the logits (/ SOFTMAX_TEMPERATURE)
     over the whole map, the quantity training's coordinate loss (`soft_argmax_loss`) pulls
     onto the label, and the location maps averaged under the same weights (a flat map,
-    no hand, gives the map's centre: the detector tracks with "logquad", see OUTPUTS).
+    no hand, gives the map's centre: the detector tracks with "logquad", see OUTPUTS);
+    "fine" = "softmax" with uv from the fine heatmaps (cells of stride / 2) instead.
     Returns uv (N,J,2) crop px, xyz (N,J,3) = loc at the argmax cell (softmax: its expected
     value), confidence (N,J) = peak.
     """
     n, j, g, _ = heat.shape
     flat = heat.reshape(n, j, g * g)
     conf, idx = flat.max(-1)
-    if refine == "softmax":
+    if refine in ("softmax", "fine"):
         if logits is None:
             logits = torch.logit(heat.clamp(1e-6, 1.0 - 1e-6))
-        prob = torch.softmax(logits.reshape(n, j, g * g) / SOFTMAX_TEMPERATURE, -1).reshape(n, j, g, g)
-        cells = torch.arange(g, dtype=prob.dtype, device=prob.device)
-        cell = torch.stack([(prob.sum(2) * cells).sum(-1), (prob.sum(3) * cells).sum(-1)], -1)
+        cell, prob = soft_argmax(logits, SOFTMAX_TEMPERATURE)
         xyz = (loc.reshape(n, j, 3, g * g) * prob.reshape(n, j, 1, g * g)).sum(-1)
+        if refine == "fine":
+            if fine_logits is None:
+                raise ValueError('refine="fine" needs fine_logits: a DetNet(fine=True)')
+            stride = stride / 2
+            cell = soft_argmax(fine_logits, SOFTMAX_TEMPERATURE)[0]
     else:
         row, col = idx // g, idx % g
         xyz = torch.gather(loc.reshape(n, j, 3, g * g), 3, idx.view(n, j, 1, 1).expand(n, j, 3, 1))[..., 0]
@@ -262,7 +317,8 @@ class DetNetExport(nn.Module):
 
     def forward(self, image):
         out = self.net(image)
-        uv, xyz, conf = read_out(out["heatmap"], out["location"], self.net.stride, self.refine, out["heat_logits"])
+        uv, xyz, conf = read_out(out["heatmap"], out["location"], self.net.stride, self.refine, out["heat_logits"],
+                                 out.get("fine_logits"))
         uv_peak = read_out(out["heatmap"], out["location"], self.net.stride, "logquad")[0]
         return uv, xyz, conf, torch.sigmoid(out["presence"]), torch.sigmoid(out["handedness"]), uv_peak
 
@@ -289,7 +345,8 @@ def export_onnx(net, path, refine="logquad", opset=17):
                       opset_version=opset, dynamo=False)
     model = onnx.load(str(path))
     model.producer_name = "handmocap.detnet"
-    model.doc_string = f"DetNet backbone={net.backbone_name} refine={refine}; see models/README.md"
+    model.doc_string = (f"DetNet backbone={net.backbone_name} fine={int(net.fine is not None)} refine={refine}; "
+                        f"see models/README.md")
     from .onnx_models import pad_depthwise_convs
     pad_depthwise_convs(model)          # the same function, ~20% faster on onnxruntime's CPU kernels
     onnx.checker.check_model(model)

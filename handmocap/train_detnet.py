@@ -91,6 +91,12 @@ def add_arguments(p):
     p.add_argument("--coord-weight", type=float, default=LOSS_WEIGHTS["coord"], metavar="W",
                    help="weight of the soft-argmax coordinate loss (default %(default)s); since session 17 the "
                         "exported read-out is that soft-argmax")
+    p.add_argument("--fine-head", action="store_true",
+                   help="add the fine (32x32) heatmaps (detnet.FineHeatmaps) and export their read-out if it "
+                        "measures best on held-out synthetic crops")
+    p.add_argument("--train-only", nargs="+", default=None, metavar="MODULE",
+                   help="train only these modules (e.g. `fine`); the rest stays as loaded, BatchNorm "
+                        "statistics included")
     p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
@@ -408,15 +414,15 @@ def to_torch(batch, rng=None):
 
 
 # ------------------------------------------------------------------ losses
-def gaussian_heatmaps(uv, grid, stride):
-    """(B,21,2) crop px -> (B,21,G,G) Gaussians of sigma 1 cell, peak 1."""
+def gaussian_heatmaps(uv, grid, stride, sigma=1.0):
+    """(B,21,2) crop px -> (B,21,G,G) Gaussians of `sigma` cells, peak 1."""
     import torch
     from .detnet import uv_to_cell
     cell = uv_to_cell(uv, stride)
     g = torch.arange(grid, dtype=uv.dtype)
     dx2 = (g.view(1, 1, 1, grid) - cell[..., 0, None, None]) ** 2
     dy2 = (g.view(1, 1, grid, 1) - cell[..., 1, None, None]) ** 2
-    return torch.exp(-0.5 * (dx2 + dy2))
+    return torch.exp(-0.5 * (dx2 + dy2) / sigma ** 2)
 
 
 def detnet_losses(out, b, stride):
@@ -441,12 +447,18 @@ def detnet_losses(out, b, stride):
     l_loc = map_loss(out["location"], b["xyz"])
     l_delta = map_loss(out["delta"], bone_vectors(b["xyz"]))
     l_coord = soft_argmax_loss(out["heat_logits"], b["uv"], b["presence"] * w2d, stride)
+    fine = {}
+    if "fine_logits" in out:        # the same two 2D losses on the fine grid (stride / 2; the same 8 px Gaussians)
+        fine_heat = torch.sigmoid(out["fine_logits"])
+        l_fine = ((fine_heat - gaussian_heatmaps(b["uv"], 2 * grid, stride / 2, sigma=2.0)) ** 2).mean((1, 2, 3))
+        fine = {"fine_heat": (l_fine * w2d).sum() / w2d.sum().clamp_min(1e-6),
+                "fine_coord": soft_argmax_loss(out["fine_logits"], b["uv"], b["presence"] * w2d, stride / 2)}
     l_presence = F.binary_cross_entropy_with_logits(out["presence"], b["presence"])
     wh = b["w_hand"] * torch.where(b["right"] > 0.5, 1.0, 1.0 / 0.6)        # ~balance the left share
     l_hand = (F.binary_cross_entropy_with_logits(out["handedness"], b["right"], reduction="none") * wh).sum() \
         / wh.sum().clamp_min(1e-6)
     return {"heat": l_heat, "coord": l_coord, "loc": l_loc, "delta": l_delta, "presence": l_presence,
-            "hand": l_hand}
+            "hand": l_hand, **fine}
 
 
 def soft_argmax_loss(heat_logits, uv, weight, stride):
@@ -457,14 +469,11 @@ def soft_argmax_loss(heat_logits, uv, weight, stride):
     iterations (26 px error at 1,200 on 128 px crops): this term gives every joint a
     gradient towards its label from the first step. Joints outside the crop are skipped.
     """
-    import torch
-    from .detnet import uv_to_cell
-    b, j, g, _ = heat_logits.shape
-    prob = torch.softmax(heat_logits.reshape(b, j, g * g), -1).reshape(b, j, g, g)
-    cells = torch.arange(g, dtype=prob.dtype)
-    expected = torch.stack([(prob.sum(2) * cells).sum(-1), (prob.sum(3) * cells).sum(-1)], -1)   # (B,21,2) x, y
+    from .detnet import soft_argmax, uv_to_cell
+    g = heat_logits.shape[-1]
+    expected = soft_argmax(heat_logits)[0]                                        # (B,21,2) x, y
     target = uv_to_cell(uv, stride)
-    inside = ((target >= -0.5) & (target <= g - 0.5)).all(-1).to(prob.dtype) * weight[:, None]
+    inside = ((target >= -0.5) & (target <= g - 0.5)).all(-1).to(expected.dtype) * weight[:, None]
     err = (expected - target).abs().sum(-1)
     return (err * inside).sum() / inside.sum().clamp_min(1e-6)
 
@@ -472,7 +481,13 @@ def soft_argmax_loss(heat_logits, uv, weight, stride):
 # read-outs measured at each validation; the one best on held-out synthetic crops is exported
 # (the first wins a tie, and is the one the real held-out sets are scored with)
 READ_OUTS = ("softmax", "logquad", "soft3", "none")
-LOSS_WEIGHTS = {"heat": 100.0, "coord": 0.5, "loc": 10.0, "delta": 1.0, "presence": 1.0, "hand": 1.0}
+LOSS_WEIGHTS = {"heat": 100.0, "coord": 0.5, "loc": 10.0, "delta": 1.0, "presence": 1.0, "hand": 1.0,
+                "fine_heat": 100.0, "fine_coord": 0.25}     # fine cells are half as long: the same weight per px
+
+
+def read_outs(net):
+    """The read-outs `net` offers (READ_OUTS, and "fine" first with a fine head)."""
+    return (("fine",) if getattr(net, "fine", None) is not None else ()) + READ_OUTS
 
 
 # ------------------------------------------------------------------ validation
@@ -542,7 +557,7 @@ def predict(net, images, refines=("softmax",), batch=128):
             out = net(x.contiguous(memory_format=torch.channels_last))
             for r in refines:
                 reads[r].append([t.numpy() for t in read_out(out["heatmap"], out["location"], net.stride, r,
-                                                                         out["heat_logits"])])
+                                                                         out["heat_logits"], out.get("fine_logits"))])
             pres.append(torch.sigmoid(out["presence"]).numpy())
             right.append(torch.sigmoid(out["handedness"]).numpy())
     net.train(was_training)
@@ -640,9 +655,13 @@ def state_from_onnx(path, images):
 
     from .detnet import DetNet
     model = onnx.load(str(path))
-    backbone = dict(p.split("=", 1) for p in model.doc_string.split() if "=" in p).get("backbone", "fast")
+    doc = dict(p.split("=", 1) for p in model.doc_string.split() if "=" in p)
+    backbone, fine = doc.get("backbone", "fast"), doc.get("fine", "0") == "1"
     params = {t.name: torch.from_numpy(numpy_helper.to_array(t).copy()) for t in model.graph.initializer}
-    net = DetNet(backbone).eval()
+    for node in model.graph.node:       # the exporter shares equal tensors (e.g. untrained biases) via Identity
+        if node.op_type == "Identity" and node.input[0] in params:
+            params[node.output[0]] = params[node.input[0]]
+    net = DetNet(backbone, fine).eval()
     called = []                                         # convs in the order the forward pass calls them
     hooks = [m.register_forward_hook(lambda m, i, o: called.append(m))
              for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
@@ -707,8 +726,16 @@ def main(args):
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     run_dir = args.run_dir or RUN_DIR / args.backbone
-    net = DetNet(args.backbone).to(memory_format=torch.channels_last)
-    opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+    net = DetNet(args.backbone, fine=args.fine_head).to(memory_format=torch.channels_last)
+    trained = dict(net.named_parameters())
+    if args.train_only:
+        trained = {k: v for k, v in trained.items() if k.split(".")[0] in args.train_only}
+        if not trained:
+            raise SystemExit(f"--train-only {' '.join(args.train_only)}: no such module in a {args.backbone} "
+                             f"DetNet (its modules: {', '.join(n for n, _ in net.named_children())})")
+        for k, v in net.named_parameters():
+            v.requires_grad_(k in trained)
+    opt = torch.optim.AdamW(trained.values(), lr=args.lr, weight_decay=args.weight_decay)
     ckpt_path = run_dir / "last.pt"
     start, history, refine = 0, [], "softmax"
     if args.resume or args.export_only:
@@ -763,12 +790,17 @@ def main(args):
     def save(it):
         tmp = ckpt_path.with_suffix(".tmp")
         torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "iteration": it, "refine": refine,
-                    "history": history, "backbone": args.backbone,
+                    "history": history, "backbone": args.backbone, "fine": args.fine_head,
                     "args": {k: str(v) for k, v in vars(args).items()}}, tmp)
         os.replace(tmp, ckpt_path)
 
     weights = {**LOSS_WEIGHTS, "hand": args.hand_weight, "coord": args.coord_weight}
-    net.train()
+
+    def train_mode():
+        net.train()
+        if args.train_only:             # frozen modules keep their BatchNorm statistics too
+            for name, m in net.named_children():
+                m.train(name in args.train_only)
     bar = tqdm(range(start, args.iters), initial=start, total=args.iters, desc=f"detnet-{args.backbone}",
                dynamic_ncols=True, mininterval=5)
     t0 = time.monotonic()
@@ -783,6 +815,7 @@ def main(args):
             group["lr"] = warmup_cosine_lr(it, args.lr, args.iters, warmup=300, floor=0.02)
         rng = np.random.default_rng([args.seed, it])
         b = to_torch(maker.make(args.batch, rng), rng)
+        train_mode()                    # validation and export leave every module in training mode
         losses = detnet_losses(net(b["image"].contiguous(memory_format=torch.channels_last)), b, net.stride)
         loss = sum(weights[k] * v for k, v in losses.items())
         opt.zero_grad(set_to_none=True)
@@ -792,9 +825,9 @@ def main(args):
             bar.set_postfix({k: f"{v.item():.4f}" for k, v in losses.items()})
         done = it + 1
         if done % args.val_every == 0 or done == args.iters:
-            metrics = validate(net, sval, rval, refines=READ_OUTS)
+            metrics = validate(net, sval, rval, refines=read_outs(net))
             if sval is not None:                        # the read-out that measures best on held-out synthetic
-                refine = min(READ_OUTS, key=lambda r: metrics[f"syn_px_{r}"])
+                refine = min(read_outs(net), key=lambda r: metrics[f"syn_px_{r}"])
             history.append({"iteration": done, "seconds": time.monotonic() - t0, "refine": refine,
                             "synthetic_crops": len(synth["image"]), **metrics})
             bar.write(f"iter {done}: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v

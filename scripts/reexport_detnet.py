@@ -36,7 +36,7 @@ def main():
     out = args.out or args.src
     images = crops()
     state, backbone = state_from_onnx(args.src, images)
-    net = DetNet(backbone)
+    net = DetNet(backbone, fine=any(k.startswith("fine.") for k in state))
     net.load_state_dict(state)
     with tempfile.TemporaryDirectory() as tmp:
         new = Path(tmp) / "detnet.onnx"

@@ -87,6 +87,66 @@ def test_an_exported_net_becomes_trainable_again(tmp_path):
         state_from_onnx(tmp_path / "deep.onnx", images)
 
 
+def test_a_fine_head_starts_as_the_coarse_read_out_and_trains_alone_on_a_frozen_net(tmp_path):
+    """--fine-head --train-only fine: the added 32x32 heatmaps first read out what the 16x16
+    soft-argmax did; training them moves nothing else (BatchNorm statistics included), and
+    the exported file becomes a trainable fine net again."""
+    torch = _torch()
+    from handmocap.detnet import DetNet, export_onnx, read_out
+    from handmocap.train_detnet import LOSS_WEIGHTS, detnet_losses, state_from_onnx
+    torch.manual_seed(0)
+    net = DetNet("fast", fine=True)
+    x = torch.rand(4, 3, 128, 128)
+    with torch.no_grad():
+        out = net.eval()(x)
+    assert out["fine_logits"].shape == (4, 21, 32, 32)
+    coarse = read_out(out["heatmap"], out["location"], 8, "softmax", out["heat_logits"])
+    fine = read_out(out["heatmap"], out["location"], 8, "fine", out["heat_logits"], out["fine_logits"])
+    assert (coarse[0] - fine[0]).abs().max() < 0.02            # crop px
+    torch.testing.assert_close(coarse[1], fine[1])              # 3D and confidence stay the coarse maps'
+    with pytest.raises(ValueError, match="fine_logits"):
+        read_out(out["heatmap"], out["location"], 8, "fine", out["heat_logits"])
+
+    for name, p in net.named_parameters():
+        p.requires_grad_(name.startswith("fine."))
+    frozen = {k: v.clone() for k, v in net.state_dict().items() if not k.startswith("fine.")}
+    net.train()
+    for name, m in net.named_children():
+        m.train(name == "fine")
+    rng = np.random.default_rng(0)
+    batch = {"image": x, "uv": torch.from_numpy(rng.uniform(20, 108, (4, 21, 2))).float(),
+             "xyz": torch.zeros(4, 21, 3), "w2d": torch.ones(4), "w3d": torch.zeros(4),
+             "presence": torch.ones(4), "right": torch.ones(4), "w_hand": torch.ones(4)}
+    opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=1e-2)
+
+    def fine_loss():
+        losses = detnet_losses(net(x), batch, net.stride)
+        return losses, sum(LOSS_WEIGHTS[k] * v for k, v in losses.items() if k.startswith("fine"))
+    losses, first = fine_loss()
+    assert {"fine_heat", "fine_coord"} <= set(losses)
+    for _ in range(10):
+        loss = fine_loss()[1]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert fine_loss()[1].item() < 0.8 * first.item()
+    for k, v in net.state_dict().items():
+        if k in frozen:
+            assert torch.equal(v, frozen[k]), k
+
+    export_onnx(net, tmp_path / "fine.onnx", "fine")
+    images = rng.integers(0, 256, (16, 128, 128, 3), dtype=np.uint8)
+    state, backbone = state_from_onnx(tmp_path / "fine.onnx", images)
+    again = DetNet(backbone, fine=True)
+    again.load_state_dict(state)
+    xi = torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255.0
+    with torch.no_grad():
+        torch.testing.assert_close(again.eval()(xi)["fine_logits"], net.eval()(xi)["fine_logits"],
+                                   atol=1e-4, rtol=1e-4)
+    with pytest.raises(ValueError, match="fast backbone"):
+        DetNet("paper", fine=True)
+
+
 def _gaussian_maps(cells, grid):
     """(N,21,2) continuous cells -> (N,21,G,G) sigma-1 Gaussians."""
     g = np.arange(grid)
