@@ -348,7 +348,7 @@ class HandDetector:
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
                  opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3,
                  test_time_crops=0, reseed_margin=0.2, tracked_test_time_crops=0, second_look=0.1,
-                 handedness_memory=20, handedness=None):
+                 handedness_memory=20, handedness=None, settle_side=True):
         self.detnet, self.finder = detnet, finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
@@ -403,6 +403,13 @@ class HandDetector:
         if handedness not in (None, "left", "right"):
             raise ValueError(f"handedness must be 'left', 'right' or None, got {handedness!r}")
         self.handedness = handedness
+        # a track whose side turns on this frame's readings (a new track's first ones outvote the
+        # finder's guess its crop was mirrored for; a tracked hand's running mean crosses over)
+        # is read again, mirrored for the side it now has: otherwise the hand published as
+        # left was read as a right one (or the reverse), its 2D 2-3x worse and its 3D the
+        # other hand's, which the ik node then mirrors the wrong way; a photo has no next
+        # frame to mend it. One crop more per turn
+        self.settle_side = settle_side
         # a new track's reading is the per-coordinate median over its crop and this many
         # more (TEST_TIME_VARIANTS: a little larger, smaller, turned): for photos, where each
         # hand is read once and a crop's chance placement otherwise stays in the result
@@ -434,7 +441,7 @@ class HandDetector:
         self.frames_since_find = 0
         self.lost_last_frame = False
         self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
-                      "evictions": 0, "handedness_turns": 0, "second_looks": 0}
+                      "evictions": 0, "handedness_turns": 0, "second_looks": 0, "side_rereads": 0}
 
     @classmethod
     def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, **kwargs):
@@ -624,6 +631,10 @@ class HandDetector:
             if jumped:
                 self.stats["second_looks"] += len(jumped)
                 self._median_over_nearby_crops(image_bgr, jumped, out, SECOND_LOOK_CROPS)
+        counted = set()
+        if self.settle_side:
+            counted = self._settle_sides(image_bgr, idx, out, self.test_time_crops) | \
+                self._settle_sides(image_bgr, tracked, out, self.tracked_test_time_crops)
         hands, keep = [], []
         for i, t in enumerate(self.tracks):
             presence, confidence = float(out["presence"][i]), float(np.mean(out["confidence"][i]))
@@ -650,7 +661,8 @@ class HandDetector:
                 xyz = mirror_points(xyz)
             if t.crop.angle:
                 xyz = t.crop.to_frame_axes(xyz)
-            t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
+            if i not in counted:
+                t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
             if t.uv is not None:
                 t.velocity = np.median(followed - t.uv, axis=0)
             t.uv, t.age = followed, t.age + 1
@@ -679,6 +691,28 @@ class HandDetector:
         for k, i in enumerate(due):     # the head on the crop mirrored the other way
             tracks[i].add_head_reading(float(out["handedness"][n + k]), not tracks[i].crop.mirrored)
         return {key: v[:n] for key, v in out.items()}
+
+    def _settle_sides(self, image_bgr, idx, out, test_time_crops=0):
+        """Tracks (indices `idx`; `out` DetNet's outputs, replaced in place) take this frame's
+        last handedness reading now; those whose side is then no longer the one their crop was
+        mirrored for are read again, mirrored for their side (and on `test_time_crops`
+        variants), and the re-read casts no vote: the hand published is read as the side it
+        is published as. -> the indices whose reading is counted."""
+        idx = [i for i in idx if out["presence"][i] >= self.presence_threshold]    # the rest are dropped
+        for i in idx:
+            self.tracks[i].add_head_reading(float(out["handedness"][i]), self.tracks[i].crop.mirrored)
+        turned = [i for i in idx if self.tracks[i].crop.mirrored == self.tracks[i].is_right]
+        self.stats["side_rereads"] += len(turned)
+        if turned:
+            for i in turned:
+                self.tracks[i].crop = replace(self.tracks[i].crop, mirrored=not self.tracks[i].is_right)
+            again = self._run(image_bgr, [self.tracks[i].crop for i in turned])
+            for k, i in enumerate(turned):
+                for key in out:
+                    out[key][i] = again[key][k]
+            if test_time_crops:
+                self._median_over_nearby_crops(image_bgr, turned, out, test_time_crops)
+        return set(idx)
 
     def _turn_new_tracks(self, image_bgr, idx, out):
         """New tracks (indices `idx` into self.tracks, `out` DetNet's outputs on their crops)

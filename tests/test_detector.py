@@ -197,8 +197,10 @@ def test_a_new_track_takes_the_quarter_turn_detnet_believes_most():
         if step is not None:
             assert abs(abs(det.tracks[0].crop.angle) - abs(angle)) < 0.05, det.tracks[0].crop.angle
             # first look, three more turns, the refinement; the first look and the refinement
-            # also flipped for the mirror vote
-            assert det.stats["crops"] == 1 + 3 + 1 + 2
+            # also flipped for the mirror vote; and one re-read (settle_side): the upside-down
+            # first look read the hand as left, so the refinement was cut mirrored, and the
+            # readings on it turned the side back to right
+            assert det.stats["crops"] == 1 + 3 + 1 + 2 + 1 and det.stats["side_rereads"] == 1
             np.testing.assert_allclose(out[0]["uv"], np.round(uv_true), atol=DOT_TOL)
 
 
@@ -233,6 +235,25 @@ def test_detnets_handedness_overrides_a_wrong_finder_at_once():
     hands = det.process(frame)
     assert [h["handedness"] for h in hands] == ["left"]
     np.testing.assert_allclose(hands[0]["uv"], np.round(canonical_hand((250, 300), 160, right=False)), atol=DOT_TOL)
+
+
+def test_a_new_hand_whose_side_turns_on_its_first_frame_is_read_again_as_that_side():
+    """The finder calls a left hand right, so its first crop is cut unmirrored; DetNet's
+    readings then turn the track left. Read as it was cut, the published left hand would
+    carry a right hand's 3D (a photo has no next frame to mend it); settled, the crop is
+    mirrored and read again: the 3D is the mirror image of the right hand DetNet sees."""
+    xyz_right = normalize_joints(np.concatenate([canonical_hand((0, 0), 1.0), np.zeros((21, 1))], 1))
+    frame = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160, right=False))
+    got = {}
+    for settle in (False, True):
+        det = HandDetector(FakeDetNet(xyz_right=xyz_right), FakeFinder(wrong_handedness=True), refine_passes=0,
+                           upright_step=None, settle_side=settle)
+        (hand,) = det.process(frame)
+        assert hand["handedness"] == "left"
+        got[settle] = (hand["xyz_rel"], det.stats["side_rereads"], det.stats["crops"])
+    np.testing.assert_allclose(got[True][0], mirror_points(xyz_right), atol=1e-5)
+    assert np.abs(got[False][0] - mirror_points(xyz_right)).max() > 0.1
+    assert got[True][1:] == (1, 3) and got[False][1:] == (0, 2)      # one crop more: the re-read
 
 
 def test_the_mirror_vote_cancels_a_handedness_head_biased_to_one_side():
