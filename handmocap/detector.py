@@ -63,7 +63,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .hand_finder import HandFinder, box_iou, sigmoid, square
+from .hand_finder import GREY_PATH, HandFinder, box_iou, is_grey, sigmoid, square
 from .onnx_models import open_session, stale_quantization
 from .rotations import mirror_points
 from .skeleton import normalize_joints
@@ -348,8 +348,10 @@ class HandDetector:
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
                  opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3,
                  test_time_crops=0, reseed_margin=0.2, tracked_test_time_crops=0, second_look=0.1,
-                 handedness_memory=20, handedness=None, settle_side=True):
+                 handedness_memory=20, handedness=None, settle_side=True, grey_finder=None):
         self.detnet, self.finder = detnet, finder
+        # the finder for grey frames (hand_finder.is_grey; None: `finder` on every frame)
+        self.grey_finder = grey_finder
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
         # photo whose hand fills the frame, which the finder, trained on hands in scenes,
@@ -441,19 +443,27 @@ class HandDetector:
         self.frames_since_find = 0
         self.lost_last_frame = False
         self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
-                      "evictions": 0, "handedness_turns": 0, "second_looks": 0, "side_rereads": 0}
+                      "evictions": 0, "handedness_turns": 0, "second_looks": 0, "side_rereads": 0,
+                      "grey_finder_runs": 0}
 
     @classmethod
-    def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, **kwargs):
-        """Networks from files (None: the bundled ones). threads: onnxruntime intra-op threads
+    def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, grey_finder_path=None,
+             **kwargs):
+        """Networks from files (None: the bundled ones; grey_finder_path "none": the one
+        finder on grey frames too, and no grey finder where finder_path is "none" or another
+        file than the bundled one, unless given). threads: onnxruntime intra-op threads
         per network, and OpenCV's thread count, which is process-wide: the crops and the
         finder's resize are too small to gain from threads, whose hand-offs cost ~0.6 ms of
         CPU per frame with OpenCV's default (one per core) here."""
         cv2.setNumThreads(threads)
         finder = HandFinder.load(finder_path, threads=threads) if finder_path != "none" else None
+        if grey_finder_path is None and finder_path is None:
+            grey_finder_path = GREY_PATH
+        grey = HandFinder.load(grey_finder_path, threads=threads) if grey_finder_path not in (None, "none") else None
         fallback = HandFinder.load(fallback_path, threads=threads) if fallback_path not in (None, CENTRE) \
             else fallback_path
-        return cls(DetNetRunner.load(detnet_path, threads=threads), finder, fallback=fallback, **kwargs)
+        return cls(DetNetRunner.load(detnet_path, threads=threads), finder, fallback=fallback, grey_finder=grey,
+                   **kwargs)
 
     def reset(self):
         self.tracks.clear()
@@ -472,6 +482,9 @@ class HandDetector:
         self.stats["finder_runs"] += 1
         self.frames_since_find = 0
         h, w = image.shape[:2]
+        if finder is None and self.grey_finder is not None and is_grey(image):
+            finder = self.grey_finder
+            self.stats["grey_finder_runs"] += 1
         finder = finder or self.finder
         centre = finder is None or finder == CENTRE
         if centre:

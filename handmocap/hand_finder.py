@@ -30,6 +30,9 @@ STRIDE = 8
 GRID = INPUT_SIZE // STRIDE
 BORDER_VALUE = 114
 DEFAULT_PATH = Path(__file__).resolve().parent.parent / "models" / "finder.onnx"
+# trained with a fifth of its frames in grey: the detector runs it on grey frames (is_grey),
+# where the colour-trained finder finds about a quarter of the hands (models/README.md)
+GREY_PATH = DEFAULT_PATH.with_name("finder_grey.onnx")
 
 
 @dataclass
@@ -117,6 +120,16 @@ def decode(maps, threshold=0.3, max_hands=2, nms_iou=0.3):
         if len(found) == max_hands:
             break
     return found
+
+
+def is_grey(image_bgr, tolerance=8, step=7):
+    """Whether a BGR frame (H,W,3) uint8 is grey (a mono or IR camera, a black-and-white
+    video): its channels differ by at most `tolerance` on every `step`-th pixel of every
+    `step`-th row (a colour camera's frames are never that close; video chroma and JPEG
+    rounding keep a grey frame's within a few levels)."""
+    sample = image_bgr[::step, ::step].astype(np.int16)
+    return bool(np.abs(sample[..., 0] - sample[..., 1]).max() <= tolerance
+                and np.abs(sample[..., 1] - sample[..., 2]).max() <= tolerance)
 
 
 def to_input_tensor(images_rgb):

@@ -97,6 +97,8 @@ def add_arguments(p):
     p.add_argument("--train-only", nargs="+", default=None, metavar="MODULE",
                    help="train only these modules (e.g. `fine`); the rest stays as loaded, BatchNorm "
                         "statistics included")
+    p.add_argument("--grey", type=float, default=0.0, metavar="P",
+                   help="share of crops shown in grey (a mono or IR camera; default %(default)s)")
     p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
@@ -389,16 +391,17 @@ class BatchMaker:
                 "w2d": np.ones(n, np.float32), "w3d": zeros, "presence": zeros, "right": zeros, "w_hand": zeros}
 
 
-def to_torch(batch, rng=None):
-    """Tensors; images (B,3,128,128) float [0,1], with colour jitter and light blur when rng."""
+def to_torch(batch, rng=None, grey=0.0):
+    """Tensors; images (B,3,128,128) float [0,1], with colour jitter and light blur when rng,
+    and that share `grey` of them in grey (three equal channels: a mono or IR camera)."""
     import torch
     t = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in batch.items()}
     img = t["image"].permute(0, 3, 1, 2).float() / 255.0
     if rng is not None:
         n = img.shape[0]
         r = lambda lo, hi, *shape: torch.from_numpy(rng.uniform(lo, hi, (n, *shape)).astype(np.float32))  # noqa: E731
-        grey = img.mean(1, keepdim=True)
-        img = grey + (img - grey) * r(0.5, 1.5, 1, 1, 1)                          # saturation
+        mono = img.mean(1, keepdim=True)
+        img = mono + (img - mono) * r(0.5, 1.5, 1, 1, 1)                          # saturation
         mean = img.mean((1, 2, 3), keepdim=True)
         img = mean + (img - mean) * r(0.6, 1.4, 1, 1, 1)                          # contrast
         img = img * r(0.6, 1.4, 1, 1, 1) * r(0.85, 1.15, 3, 1, 1)                 # brightness, white balance
@@ -409,6 +412,9 @@ def to_torch(batch, rng=None):
             img[blur] = torch.nn.functional.conv2d(torch.nn.functional.pad(img[blur], (1, 1, 1, 1), mode="replicate"),
                                                    k2, groups=3)
         img = img.clamp(0.0, 1.0)
+        if grey:
+            luma = (img * torch.tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)).sum(1, keepdim=True)
+            img = torch.where(torch.from_numpy(rng.random(n) < grey).view(n, 1, 1, 1), luma.expand_as(img), img)
     t["image"] = img.contiguous()
     return t
 
@@ -814,7 +820,7 @@ def main(args):
         for group in opt.param_groups:
             group["lr"] = warmup_cosine_lr(it, args.lr, args.iters, warmup=300, floor=0.02)
         rng = np.random.default_rng([args.seed, it])
-        b = to_torch(maker.make(args.batch, rng), rng)
+        b = to_torch(maker.make(args.batch, rng), rng, args.grey)
         train_mode()                    # validation and export leave every module in training mode
         losses = detnet_losses(net(b["image"].contiguous(memory_format=torch.channels_last)), b, net.stride)
         loss = sum(weights[k] * v for k, v in losses.items())

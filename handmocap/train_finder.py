@@ -20,11 +20,14 @@ Data (each batch half real, half synthetic):
 * 10% hand-free real background crops (the synth engine's cache, held-out videos excluded).
 Augmentation: random zoom/shift of the letterboxed frame, horizontal flip (handedness
 flips with it), a quarter, half or three-quarter turn for half the frames (`--rot90`; the
-real videos show upright hands only), brightness/contrast. Losses (CenterNet): focal loss on the centre heatmap,
-L1 on offset and log size, BCE on handedness at the centre cells.
+real videos show upright hands only), brightness/contrast, grey for a share of the frames
+(`--grey`; every real training frame is in colour, and a finder trained without grey found
+a quarter of the held-out hands in grey). Losses (CenterNet): focal loss on the centre
+heatmap, L1 on offset and log size, BCE on handedness at the centre cells.
 Validation: recall of hands (a peak whose box has IoU >= 0.3 with the true box) and false
 peaks per frame at the default threshold, every --val-every iterations, on each held-out
-set and on the real ones turned (`*_turned`; val_history.jsonl in the run folder).
+set and on the real ones turned (`*_turned`) and in grey (`*_grey`); val_history.jsonl in
+the run folder.
 """
 import json
 import time
@@ -59,6 +62,8 @@ def add_arguments(p):
                         "border (default %(default)s)")
     p.add_argument("--rot90", type=float, default=0.5,
                    help="share of training frames turned by a quarter, half or three-quarter turn (default %(default)s)")
+    p.add_argument("--grey", type=float, default=0.0,
+                   help="share of training frames shown in grey (a mono or IR camera; default %(default)s)")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=3e-3, help="AdamW, cosine decay to lr/50")
     p.add_argument("--threads", type=int, default=2)
@@ -181,10 +186,11 @@ def rotate90(image, boxes, k):
     return np.ascontiguousarray(np.rot90(image, k)), boxes
 
 
-def augment(rng, image, boxes, right, zoom=(0.55, 1.0), rot90=0.0):
+def augment(rng, image, boxes, right, zoom=(0.55, 1.0), rot90=0.0, grey=0.0):
     """Random zoom window of a square image into INPUT_SIZE, flip, a quarter, half or
     three-quarter turn with probability `rot90` (the real videos show upright hands; a camera
-    above a desk, or a hand hanging down, shows them turned), photometric jitter.
+    above a desk, or a hand hanging down, shows them turned), photometric jitter, and grey
+    with probability `grey` (every real training frame is in colour; a mono camera is not).
     boxes (2,4) in image px (NaN rows: none). Returns image, boxes, right in input px."""
     s = image.shape[0]
     side = s * rng.uniform(*zoom)
@@ -203,7 +209,16 @@ def augment(rng, image, boxes, right, zoom=(0.55, 1.0), rot90=0.0):
         out, b = rotate90(out, b, int(rng.integers(1, 4)))
     gain, bias = rng.uniform(0.6, 1.4), rng.uniform(-30, 30)
     out = np.clip(out.astype(np.float32) * gain + bias, 0, 255).astype(np.uint8)
+    if grey and rng.random() < grey:
+        out = greyed(out)
     return out, b, right
+
+
+def greyed(image):
+    """(...,H,W,3) uint8 -> the same in grey, three equal channels (OpenCV's luma weights)."""
+    flat = image.reshape(-1, *image.shape[-3:])
+    g = np.stack([cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_BGR2GRAY) for f in flat])
+    return np.repeat(g[..., None], 3, -1).reshape(image.shape)
 
 
 def targets(boxes, right):
@@ -232,10 +247,10 @@ def targets(boxes, right):
 class Batches:
     """Training batches from real frames, synthetic frames and background crops."""
 
-    def __init__(self, real, synth, negatives, real_zoom=(0.5, 1.0), rot90=0.0):
+    def __init__(self, real, synth, negatives, real_zoom=(0.5, 1.0), rot90=0.0, grey=0.0):
         self.real, self.synth, self.negatives = real, synth, negatives
         self.real_zoom = tuple(real_zoom)
-        self.rot90 = rot90
+        self.rot90, self.grey = rot90, grey
 
     def make(self, rng, n):
         images, heats, regs, masks = [], [], [], []
@@ -247,10 +262,10 @@ class Batches:
                 [(None, i) for i in rng.integers(max(len(self.negatives), 1), size=n_neg)]
         for source, i in picks:
             if source is None:
-                img, b, r = augment(rng, self.negatives[i], *none, zoom=(0.6, 1.0))
+                img, b, r = augment(rng, self.negatives[i], *none, zoom=(0.6, 1.0), grey=self.grey)
             else:
                 zoom = self.real_zoom if source is self.real else (0.8, 1.0)
-                img, b, r = augment(rng, source[0][i], source[1][i], source[2][i], zoom, self.rot90)
+                img, b, r = augment(rng, source[0][i], source[1][i], source[2][i], zoom, self.rot90, self.grey)
             h, g, m = targets(b, r)
             images.append(img)
             heats.append(h)
@@ -386,6 +401,9 @@ def main(args):
         # half the story for a camera above a desk or a hand that hangs down
         for name in [k for k in ("real", "tails", "howiema") if k in val_sets]:
             val_sets[f"{name}_turned"] = turned(*val_sets[name])
+        # and in grey (a mono or IR camera), upright
+        for name in [k for k in ("real", "tails", "howiema") if k in val_sets]:
+            val_sets[f"{name}_grey"] = (greyed(val_sets[name][0]),) + tuple(val_sets[name][1:])
     if args.val_only:
         if args.onnx:
             maps_of = onnx_maps(args.onnx)
@@ -404,7 +422,7 @@ def main(args):
     negatives = background_crops(Path(__file__).resolve().parent.parent)
     print(f"synthetic {len(synth[0])} (+{len(val_sets['synth'][0])} val), real {len(real[0])}, "
           f"negatives {len(negatives)}")
-    batches = Batches(real, synth, negatives, args.real_zoom, args.rot90)
+    batches = Batches(real, synth, negatives, args.real_zoom, args.rot90, args.grey)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     start = 0
     if args.resume and ckpt.is_file():

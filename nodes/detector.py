@@ -9,7 +9,9 @@ HandKeypoints per processed image with its stamp; `hands` may be empty.
 
 Params: detnet (ONNX path, or "int8" (default, models/detnet_int8.onnx) / "float32"
 (models/detnet.onnx)), finder (ONNX path, default
-models/finder.onnx; "none": try the centre square of the frame), threads (onnxruntime
+models/finder.onnx; "none": try the centre square of the frame), grey_finder (the finder run on
+grey frames, a mono or IR camera's: ONNX path, default models/finder_grey.onnx with the bundled
+finder; "none": `finder` on every frame), threads (onnxruntime
 intra-op threads per network), max_hands, presence_threshold (a track ends below it),
 min_confidence (a track ends below this mean heatmap peak; 0 = off), birth_confidence (a found
 hand becomes a track only from this mean heatmap peak on; see models/README.md),
@@ -53,7 +55,7 @@ TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidenc
            "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops", "second_look",
            "handedness_memory", "handedness")
 _DEFAULTS = inspect.signature(HandDetector).parameters
-PARAMS = {"detnet": None, "finder": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
+PARAMS = {"detnet": None, "finder": None, "grey_finder": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
           "every_frame": False}
 
 
@@ -80,6 +82,7 @@ def check_params(params: dict) -> None:
     naming it)."""
     check_file_param("detector", "detnet", params.get("detnet"), ("int8", "float32"), "handtrain detnet")
     check_file_param("detector", "finder", params.get("finder"), ("none",), "handtrain finder")
+    check_file_param("detector", "grey_finder", params.get("grey_finder"), ("none",), "handtrain finder --grey 0.2")
     for name in TUNABLE:
         if name in params:
             setting(name, params[name])
@@ -97,11 +100,14 @@ def warm_up(detector: HandDetector, params: dict) -> None:
     except Exception as e:   # onnxruntime's errors (wrong input name or shape) are no ValueError
         raise ValueError(f"DetNet model {detnet_path(params['detnet'])} does not take (N,128,128,3) crops: "
                          f"{str(e).splitlines()[0][:200]}") from None
-    if detector.finder is not None:
+    for finder, name, default in ((detector.finder, "finder", "models/finder.onnx"),
+                                  (detector.grey_finder, "grey_finder", "models/finder_grey.onnx")):
+        if finder is None:
+            continue
         try:
-            detector.finder.find(np.zeros((480, 640, 3), np.uint8))
+            finder.find(np.zeros((480, 640, 3), np.uint8))
         except Exception as e:
-            raise ValueError(f"hand finder model {params['finder'] or 'models/finder.onnx'} does not take a "
+            raise ValueError(f"hand finder model {params.get(name) or default} does not take a "
                              f"frame: {str(e).splitlines()[0][:200]}") from None
 
 
@@ -113,7 +119,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     # load and are connected when the first frame comes (else the first publish waits for them)
     node.subscribe("/camera/image", "Image", mode="all" if p["every_frame"] else "latest")
     node.advertise("/hand/keypoints", "HandKeypoints")
-    detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]),
+    detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]), grey_finder_path=p["grey_finder"],
                                  **{k: setting(k, p[k]) for k in TUNABLE})
     warm_up(detector, p)
     node.at_close(lambda: node.log.info("%d frames, %d finder runs, %d crops", detector.stats["frames"],

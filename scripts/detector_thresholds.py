@@ -26,6 +26,7 @@ and the share of output hands on a labelled hand whose handedness is the label's
 handedness turns (HandDetector.stats).
 --turn K: every frame (and its labels) turned K quarter turns counter-clockwise first: the
 same hands seen from a camera above a desk (K=2: hanging down) or held sideways.
+--grey: every frame in grey (three equal channels): the same hands seen by a mono camera.
 """
 import argparse
 from pathlib import Path
@@ -135,8 +136,12 @@ def main():
                          "right, DetNet crops per frame, evictions and handedness turns")
     ap.add_argument("--turn", type=int, default=0, metavar="K",
                     help="turn every frame and its labels K quarter turns counter-clockwise first")
+    ap.add_argument("--grey", action="store_true", help="every frame in grey (a mono camera)")
     args = ap.parse_args()
     data = [(name, turned(frames, args.turn)) for name, frames in clips(args.shared)]
+    if args.grey:
+        from handmocap.train_finder import greyed
+        data = [(name, [(greyed(image), labels, sides) for image, labels, sides in frames]) for name, frames in data]
     if args.compare is not None:    # `--compare` alone: the defaults' row only
         settings = [("defaults", {})] + [(c, parse_setting(c)) for c in args.compare]
         print("| setting | clips: labelled hands found | false hands | stills: labelled hands found "

@@ -256,6 +256,25 @@ def test_a_new_hand_whose_side_turns_on_its_first_frame_is_read_again_as_that_si
     assert got[True][1:] == (1, 3) and got[False][1:] == (0, 2)      # one crop more: the re-read
 
 
+def test_grey_frames_go_to_the_grey_finder_and_colour_frames_to_the_other():
+    """A mono camera's frames (three equal channels, give or take a few levels of video
+    chroma) are searched by `grey_finder`; colour frames by `finder`, as before."""
+    from handmocap.hand_finder import is_grey
+    rng = np.random.default_rng(0)
+    colour = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160))
+    grey = np.repeat(cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY)[..., None], 3, -1)
+    noisy = np.clip(grey.astype(int) + rng.integers(-3, 4, grey.shape), 0, 255).astype(np.uint8)
+    assert is_grey(grey) and is_grey(noisy) and not is_grey(colour)
+    finder, grey_finder = FakeFinder(), FakeFinder()
+    det = HandDetector(FakeDetNet(), finder, grey_finder=grey_finder)
+    det.process(colour)
+    assert (finder.calls, grey_finder.calls) == (1, 0)
+    det.reset()
+    det.process(noisy)
+    assert (finder.calls, grey_finder.calls) == (1, 1) and det.stats["grey_finder_runs"] == 1
+    assert HandDetector(FakeDetNet(), finder).grey_finder is None      # none given: one finder for all
+
+
 def test_the_mirror_vote_cancels_a_handedness_head_biased_to_one_side():
     """A head that leans 3 logits towards "right" calls a left hand right on its crop
     (-2 + 3 > 0); on the crop flipped, which shows a right hand, it says right all the more
@@ -494,6 +513,27 @@ def test_real_models_follow_the_rendered_clip():
             errors.append(np.linalg.norm(hands[0]["uv"] - truth["uv"][i], axis=-1).mean())
     assert found >= 0.9 * len(truth["uv"]), found
     assert np.median(errors) < 16.0, np.median(errors)   # 16,000-iteration DetNet: about 12 px
+
+
+@needs_models
+def test_real_models_find_the_rendered_hand_in_grey_with_the_grey_finder():
+    """The rendered clip in grey, read as stills: the bundled grey finder is loaded, searches
+    every frame, and the hand is found where it is drawn."""
+    truth = np.load(ROOT / "data" / "demo" / "hand_clip.npz")
+    det = HandDetector.load()
+    assert det.grey_finder is not None
+    cap = cv2.VideoCapture(str(CLIP))
+    found, stills = 0, 0
+    for i in range(0, len(truth["uv"]), 6):
+        cap.set(cv2.CAP_PROP_POS_FRAMES, i)
+        ok, frame = cap.read()
+        grey = np.repeat(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)[..., None], 3, -1)
+        det.reset()
+        hands = det.process(grey)
+        stills += 1
+        found += bool(hands) and np.linalg.norm(hands[0]["uv"] - truth["uv"][i], axis=-1).mean() < 30
+    assert det.stats["grey_finder_runs"] >= stills
+    assert found >= 0.8 * stills, (found, stills)
 
 
 @needs_models

@@ -268,6 +268,24 @@ def test_augmentation_keeps_2d_and_3d_consistent():
         assert np.allclose(rotated[:, 2], xyz[:, 2])
 
 
+def test_grey_batches_grey_the_asked_share_of_crops_and_nothing_else():
+    """handtrain detnet --grey P: about P of the crops come out with three equal channels
+    (luma); the labels are untouched."""
+    _torch()
+    from handmocap.train_detnet import to_torch
+    rng = np.random.default_rng(0)
+    n = 400
+    image = np.zeros((n, 128, 128, 3), np.uint8)
+    image[:, 40:90, 30:100] = (200, 120, 60)                 # an RGB skin-like patch
+    batch = {"image": image, "uv": np.zeros((n, 21, 2), np.float32)}
+    grey = to_torch(batch, np.random.default_rng(1), grey=0.25)["image"]
+    is_grey = (grey.amax(1) - grey.amin(1)).flatten(1).amax(1) == 0
+    assert 0.18 < float(is_grey.float().mean()) < 0.32
+    assert not bool(((to_torch(batch, rng)["image"].amax(1) - to_torch(batch, rng)["image"].amin(1))
+                     .flatten(1).amax(1) == 0).any())
+    np.testing.assert_array_equal(to_torch(batch, rng, grey=1.0)["uv"].numpy(), batch["uv"])
+
+
 def test_upright_batches_show_every_hand_upright_within_the_spread():
     """--upright D: each synthetic crop is turned so its hand's wrist is below its middle
     finger's base, then by at most D degrees (mirrored crops too)."""

@@ -36,3 +36,19 @@ def test_augment_with_turns_keeps_boxes_on_the_hand_and_turns_some_frames():
         heat, reg, mask = targets(b, right)
         assert mask.sum() == 1
     assert tall > 5 and wide > 5                       # upright and quarter-turned frames both came
+
+
+def test_grey_frames_are_luma_in_three_equal_channels_and_only_the_asked_share_is_grey():
+    from handmocap.train_finder import greyed
+    rng = np.random.default_rng(0)
+    image = np.zeros((160, 160, 3), np.uint8)
+    image[30:71, 100:141] = (40, 120, 220)            # a skin-like BGR patch
+    g = greyed(image[None])[0]
+    assert g.shape == image.shape and (g[..., 0] == g[..., 1]).all() and (g[..., 1] == g[..., 2]).all()
+    assert abs(int(g[50, 120, 0]) - round(0.114 * 40 + 0.587 * 120 + 0.299 * 220)) <= 1
+    boxes = np.array([[100.0, 30.0, 140.0, 70.0], [np.nan] * 4])
+    grey = [np.ptp(augment(rng, image, boxes, np.array([True, False]), zoom=(0.9, 1.0), grey=0.3)[0], axis=-1).max() == 0
+            for _ in range(400)]
+    assert 0.22 < np.mean(grey) < 0.38
+    assert not any(np.ptp(augment(rng, image, boxes, np.array([True, False]), zoom=(0.9, 1.0))[0], axis=-1).max() == 0
+                   for _ in range(50))
