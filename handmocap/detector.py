@@ -75,6 +75,8 @@ DETNET_FLOAT32 = Path(__file__).resolve().parent.parent / "models" / "detnet.onn
 DETNET_INT8 = DETNET_FLOAT32.with_name("detnet_int8.onnx")     # `python -m handmocap.quantize_detnet` makes it
 DETNET_PATH = DETNET_INT8                                       # what runs by default
 DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32}  # short names for the detnet param
+# DetNet fine-tuned on grey crops (`handtrain detnet --grey 1`), its int8 copy: run on grey frames
+DETNET_GREY = DETNET_FLOAT32.with_name("detnet_grey_int8.onnx")
 CENTRE = "centre"           # the fallback that tries the centre square of the frame
 # HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
 # so no birth threshold; a close-up the finder misses is tried on the centre square; each
@@ -348,10 +350,12 @@ class HandDetector:
                  duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
                  opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3,
                  test_time_crops=0, reseed_margin=0.2, tracked_test_time_crops=0, second_look=0.1,
-                 handedness_memory=20, handedness=None, settle_side=True, grey_finder=None):
+                 handedness_memory=20, handedness=None, settle_side=True, grey_finder=None, grey_detnet=None):
         self.detnet, self.finder = detnet, finder
-        # the finder for grey frames (hand_finder.is_grey; None: `finder` on every frame)
-        self.grey_finder = grey_finder
+        # the finder and the DetNet for grey frames (a mono or IR camera: hand_finder.is_grey,
+        # checked whenever the finder runs; None: `finder` / `detnet` on every frame)
+        self.grey_finder, self.grey_detnet = grey_finder, grey_detnet
+        self.grey_frames = False
         # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
         # CENTRE (the centre square of the frame, as the paper's release did: a close-up
         # photo whose hand fills the frame, which the finder, trained on hands in scenes,
@@ -448,10 +452,11 @@ class HandDetector:
 
     @classmethod
     def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, grey_finder_path=None,
-             **kwargs):
-        """Networks from files (None: the bundled ones; grey_finder_path "none": the one
-        finder on grey frames too, and no grey finder where finder_path is "none" or another
-        file than the bundled one, unless given). threads: onnxruntime intra-op threads
+             grey_detnet_path=None, **kwargs):
+        """Networks from files (None: the bundled ones; grey_finder_path / grey_detnet_path
+        "none": the one finder / DetNet on grey frames too, and none for grey frames where
+        finder_path / detnet_path names another file than the bundled one, unless given).
+        threads: onnxruntime intra-op threads
         per network, and OpenCV's thread count, which is process-wide: the crops and the
         finder's resize are too small to gain from threads, whose hand-offs cost ~0.6 ms of
         CPU per frame with OpenCV's default (one per core) here."""
@@ -460,10 +465,14 @@ class HandDetector:
         if grey_finder_path is None and finder_path is None:
             grey_finder_path = GREY_PATH
         grey = HandFinder.load(grey_finder_path, threads=threads) if grey_finder_path not in (None, "none") else None
+        if grey_detnet_path is None and detnet_path in (None, "int8"):
+            grey_detnet_path = DETNET_GREY
+        grey_detnet = DetNetRunner.load(grey_detnet_path, threads=threads) \
+            if grey_detnet_path not in (None, "none") else None
         fallback = HandFinder.load(fallback_path, threads=threads) if fallback_path not in (None, CENTRE) \
             else fallback_path
         return cls(DetNetRunner.load(detnet_path, threads=threads), finder, fallback=fallback, grey_finder=grey,
-                   **kwargs)
+                   grey_detnet=grey_detnet, **kwargs)
 
     def reset(self):
         self.tracks.clear()
@@ -482,7 +491,7 @@ class HandDetector:
         self.stats["finder_runs"] += 1
         self.frames_since_find = 0
         h, w = image.shape[:2]
-        if finder is None and self.grey_finder is not None and is_grey(image):
+        if finder is None and self.grey_finder is not None and self.grey_frames:
             finder = self.grey_finder
             self.stats["grey_finder_runs"] += 1
         finder = finder or self.finder
@@ -598,7 +607,8 @@ class HandDetector:
         if len(flipped):
             pixels = np.concatenate([pixels, pixels[list(flipped), :, ::-1]])
         self.stats["crops"] += len(pixels)
-        out = self.detnet(np.ascontiguousarray(pixels[..., ::-1]))
+        detnet = self.grey_detnet if self.grey_frames and self.grey_detnet is not None else self.detnet
+        out = detnet(np.ascontiguousarray(pixels[..., ::-1]))
         if "uv_peak" not in out:            # a file exported before session 17
             out["uv_peak"] = out["uv"].copy()
         return out
@@ -608,6 +618,8 @@ class HandDetector:
         self.stats["frames"] += 1
         self.frames_since_find += 1
         searched = self._should_find()
+        if searched and (self.grey_finder is not None or self.grey_detnet is not None):
+            self.grey_frames = is_grey(image_bgr)       # a camera's frames do not turn grey between finder runs
         hands = self._track(image_bgr, self._find(image_bgr) if searched else [])
         if searched and not self.tracks and self.fallback is not None:   # nothing became a track
             self.stats["fallback_runs"] += 1

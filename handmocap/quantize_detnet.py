@@ -3,6 +3,7 @@
     python -m handmocap.quantize_detnet [--src models/detnet.onnx] [--out models/detnet_int8.onnx]
                                         [--n 1024] [--data 'runs/detnet_data/synth_train_*']
     python -m handmocap.quantize_detnet --compare models/detnet.onnx models/detnet_int8.onnx
+    python -m handmocap.quantize_detnet --src runs/detnet/grey/final.onnx --out models/detnet_grey_int8.onnx --grey
 
 Why: DetNet is the largest cost of a tracked frame. With its convolutions in int8
 (onnxruntime's QLinearConv / VNNI kernels) the fast-deep network takes about 1.4 ms per
@@ -43,8 +44,9 @@ QUANTIZED_OPS = ["Conv", "Add", "Relu"]
 KEEP_FLOAT = ("delta_head", "loc_head")
 
 
-def calibration_crops(n, data="runs/detnet_data/synth_train_*", shared=None, seed=CALIB_SEED):
-    """(n,128,128,3) uint8 RGB crops mixed as training batches are (no colour jitter)."""
+def calibration_crops(n, data="runs/detnet_data/synth_train_*", shared=None, seed=CALIB_SEED, grey=False):
+    """(n,128,128,3) uint8 RGB crops mixed as training batches are (no colour jitter); grey:
+    in grey (for a network that runs on grey frames)."""
     from .pose_data import SHARED_DATA
     from .train_detnet import BatchMaker, load_real, load_synth, synth_dirs
     synth = load_synth(synth_dirs([data]), 8192)
@@ -53,8 +55,15 @@ def calibration_crops(n, data="runs/detnet_data/synth_train_*", shared=None, see
                          f"-o runs/detnet_data/synth_train_0 --seed 1000`")
     real = load_real(SHARED_DATA if shared is None else shared)
     maker = BatchMaker(synth, real, share_real=0.3, share_neg=0.15, share_left=0.3)
-    return np.concatenate([maker.make(64, np.random.default_rng([seed, i]))["image"]
-                           for i in range(-(-n // 64))])[:n]
+    crops = np.concatenate([maker.make(64, np.random.default_rng([seed, i]))["image"]
+                            for i in range(-(-n // 64))])[:n]
+    return greyed_rgb(crops) if grey else crops
+
+
+def greyed_rgb(images):
+    """(...,H,W,3) uint8 RGB -> grey (luma), three equal channels."""
+    luma = images.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+    return np.repeat(np.round(luma).astype(np.uint8)[..., None], 3, -1)
 
 
 def quantize(src, out, crops, keep_float=KEEP_FLOAT):
@@ -80,15 +89,19 @@ class OnnxNet:
         return (cat["uv"], cat["xyz"], cat["confidence"]), cat["presence"], cat["handedness"]
 
 
-def heldout_sets(shared=None, val="runs/detnet_data/synth_val", upright=False):
+def heldout_sets(shared=None, val="runs/detnet_data/synth_val", upright=False, grey=False):
     """The training run's held-out synthetic and real sets (train_detnet.validate's inputs);
-    upright: each crop turned by the quarter turn the detector would give it (quarter_turned)."""
+    upright: each crop turned by the quarter turn the detector would give it (quarter_turned);
+    grey: every crop in grey."""
     from .pose_data import SHARED_DATA
     from .train_detnet import load_real, real_val_set, synth_val_set
     sval = synth_val_set(val) if (Path(val) / "meta.json").exists() else None
     rval = real_val_set(load_real(SHARED_DATA if shared is None else shared))
     if upright:
         sval, rval = (quarter_turned(v) if v is not None else None for v in (sval, rval))
+    if grey:
+        sval, rval = ({k: greyed_rgb(v) if k in ("image", "raw", "neg") else v for k, v in s.items()}
+                      if s is not None else None for s in (sval, rval))
     return sval, rval
 
 
@@ -133,14 +146,16 @@ def main(argv=None):
                    help="print the held-out metrics of these files instead of quantizing")
     p.add_argument("--upright", action="store_true",
                    help="with --compare: each held-out crop turned by quarter turns as the detector turns it")
+    p.add_argument("--grey", action="store_true",
+                   help="calibrate on grey crops (a network for grey frames); with --compare: grey held-out crops")
     args = p.parse_args(argv)
     if args.compare:
-        sets = heldout_sets(upright=args.upright)
+        sets = heldout_sets(upright=args.upright, grey=args.grey)
         for path in args.compare:
             metrics = heldout_metrics(path, sets)
             print(json.dumps({"model": str(path), **{k: round(v, 4) for k, v in metrics.items()}}))
         return
-    quantize(args.src, args.out, calibration_crops(args.n, args.data))
+    quantize(args.src, args.out, calibration_crops(args.n, args.data, grey=args.grey))
     print(f"wrote {args.out} ({args.out.stat().st_size / 1e6:.2f} MB) from {args.src}; {args.n} calibration crops")
 
 

@@ -11,7 +11,9 @@ Params: detnet (ONNX path, or "int8" (default, models/detnet_int8.onnx) / "float
 (models/detnet.onnx)), finder (ONNX path, default
 models/finder.onnx; "none": try the centre square of the frame), grey_finder (the finder run on
 grey frames, a mono or IR camera's: ONNX path, default models/finder_grey.onnx with the bundled
-finder; "none": `finder` on every frame), threads (onnxruntime
+finder; "none": `finder` on every frame), grey_detnet (the DetNet run on grey frames: ONNX path,
+default models/detnet_grey_int8.onnx with the bundled int8 DetNet; "none": `detnet` on every
+frame), threads (onnxruntime
 intra-op threads per network), max_hands, presence_threshold (a track ends below it),
 min_confidence (a track ends below this mean heatmap peak; 0 = off), birth_confidence (a found
 hand becomes a track only from this mean heatmap peak on; see models/README.md),
@@ -55,7 +57,7 @@ TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidenc
            "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops", "second_look",
            "handedness_memory", "handedness")
 _DEFAULTS = inspect.signature(HandDetector).parameters
-PARAMS = {"detnet": None, "finder": None, "grey_finder": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
+PARAMS = {"detnet": None, "finder": None, "grey_finder": None, "grey_detnet": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
           "every_frame": False}
 
 
@@ -83,6 +85,7 @@ def check_params(params: dict) -> None:
     check_file_param("detector", "detnet", params.get("detnet"), ("int8", "float32"), "handtrain detnet")
     check_file_param("detector", "finder", params.get("finder"), ("none",), "handtrain finder")
     check_file_param("detector", "grey_finder", params.get("grey_finder"), ("none",), "handtrain finder --grey 0.2")
+    check_file_param("detector", "grey_detnet", params.get("grey_detnet"), ("none",), "handtrain detnet --grey 1")
     for name in TUNABLE:
         if name in params:
             setting(name, params[name])
@@ -95,11 +98,15 @@ def warm_up(detector: HandDetector, params: dict) -> None:
     buffers on a session's first run (tens of ms here), which would otherwise hold up the
     first frames. A file that loads but is not the network it should be fails here, as one
     error line naming it."""
-    try:
-        detector.detnet(np.zeros((1, CROP, CROP, 3), np.uint8))
-    except Exception as e:   # onnxruntime's errors (wrong input name or shape) are no ValueError
-        raise ValueError(f"DetNet model {detnet_path(params['detnet'])} does not take (N,128,128,3) crops: "
-                         f"{str(e).splitlines()[0][:200]}") from None
+    for detnet, name in ((detector.detnet, detnet_path(params.get("detnet"))),
+                         (detector.grey_detnet, params.get("grey_detnet") or "models/detnet_grey_int8.onnx")):
+        if detnet is None:
+            continue
+        try:
+            detnet(np.zeros((1, CROP, CROP, 3), np.uint8))
+        except Exception as e:   # onnxruntime's errors (wrong input name or shape) are no ValueError
+            raise ValueError(f"DetNet model {name} does not take (N,128,128,3) crops: "
+                             f"{str(e).splitlines()[0][:200]}") from None
     for finder, name, default in ((detector.finder, "finder", "models/finder.onnx"),
                                   (detector.grey_finder, "grey_finder", "models/finder_grey.onnx")):
         if finder is None:
@@ -120,6 +127,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     node.subscribe("/camera/image", "Image", mode="all" if p["every_frame"] else "latest")
     node.advertise("/hand/keypoints", "HandKeypoints")
     detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]), grey_finder_path=p["grey_finder"],
+                                 grey_detnet_path=p["grey_detnet"],
                                  **{k: setting(k, p[k]) for k in TUNABLE})
     warm_up(detector, p)
     node.at_close(lambda: node.log.info("%d frames, %d finder runs, %d crops", detector.stats["frames"],

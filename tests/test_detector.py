@@ -273,6 +273,16 @@ def test_grey_frames_go_to_the_grey_finder_and_colour_frames_to_the_other():
     det.process(noisy)
     assert (finder.calls, grey_finder.calls) == (1, 1) and det.stats["grey_finder_runs"] == 1
     assert HandDetector(FakeDetNet(), finder).grey_finder is None      # none given: one finder for all
+    # the DetNet for grey frames reads every crop of a grey frame, the other every colour one
+    net, grey_net = FakeDetNet(), FakeDetNet()
+    det = HandDetector(net, FakeFinder(), grey_detnet=grey_net)
+    det.process(colour)
+    assert net.calls > 0 and grey_net.calls == 0
+    det.reset()
+    det.process(noisy)                      # the fake finder sees no coloured dots: no track here
+    assert det.grey_frames and grey_net.calls == 0
+    det._run(noisy, [CropTransform.around(np.array([250.0, 250.0]), 200.0)])
+    assert grey_net.calls == 1
 
 
 def test_the_mirror_vote_cancels_a_handedness_head_biased_to_one_side():
