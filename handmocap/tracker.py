@@ -1,6 +1,7 @@
 """HandTracker: the whole image-to-pose pipeline in one process, like MediaPipe's HandLandmarker.
 
     tracker = HandTracker()                          # models/detnet_int8.onnx, finder.onnx, iknet_int8.onnx
+                                                     # (grey frames: finder_grey.onnx, detnet_grey_int8.onnx)
     for frame in frames:
         hands = tracker.process(frame_bgr, K=None, stamp_ns=None)
         # each hand: track_id, handedness, score, xyz (21,3) m camera frame, root (3,),
