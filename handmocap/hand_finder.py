@@ -132,6 +132,16 @@ def is_grey(image_bgr, tolerance=8, step=7):
                 and np.abs(sample[..., 1] - sample[..., 2]).max() <= tolerance)
 
 
+def greyed(image_bgr):
+    """(...,H,W,3) uint8 BGR -> the same in grey, three equal channels (OpenCV's luma; pass
+    RGB images reversed, `greyed(rgb[..., ::-1])`): a mono camera's view, for training and
+    checks on grey frames."""
+    flat = image_bgr.reshape(-1, *image_bgr.shape[-3:])
+    g = np.stack([cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_BGR2GRAY) for f in flat]) if len(flat) \
+        else np.zeros(flat.shape[:-1], np.uint8)
+    return np.repeat(g[..., None], 3, -1).reshape(image_bgr.shape)
+
+
 def to_input_tensor(images_rgb):
     """(N,S,S,3) uint8 RGB -> (N,3,S,S) float32 in [0,1]."""
     return np.ascontiguousarray(np.asarray(images_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0

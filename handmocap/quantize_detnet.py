@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from .detector import DETNET_FLOAT32, DETNET_INT8, DetNetRunner
+from .hand_finder import greyed
 from .onnx_models import quantize_static_int8
 
 CALIB_SEED = 27_182_818          # own seed: not training ([seed, it]), validation or evaluation
@@ -57,13 +58,7 @@ def calibration_crops(n, data="runs/detnet_data/synth_train_*", shared=None, see
     maker = BatchMaker(synth, real, share_real=0.3, share_neg=0.15, share_left=0.3)
     crops = np.concatenate([maker.make(64, np.random.default_rng([seed, i]))["image"]
                             for i in range(-(-n // 64))])[:n]
-    return greyed_rgb(crops) if grey else crops
-
-
-def greyed_rgb(images):
-    """(...,H,W,3) uint8 RGB -> grey (luma), three equal channels."""
-    luma = images.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
-    return np.repeat(np.round(luma).astype(np.uint8)[..., None], 3, -1)
+    return greyed(crops[..., ::-1]) if grey else crops
 
 
 def quantize(src, out, crops, keep_float=KEEP_FLOAT):
@@ -100,7 +95,7 @@ def heldout_sets(shared=None, val="runs/detnet_data/synth_val", upright=False, g
     if upright:
         sval, rval = (quarter_turned(v) if v is not None else None for v in (sval, rval))
     if grey:
-        sval, rval = ({k: greyed_rgb(v) if k in ("image", "raw", "neg") else v for k, v in s.items()}
+        sval, rval = ({k: greyed(v[..., ::-1]) if k in ("image", "raw", "neg") else v for k, v in s.items()}
                       if s is not None else None for s in (sval, rval))
     return sval, rval
 

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from . import real_data
-from .hand_finder import BORDER_VALUE, GRID, INPUT_SIZE, STRIDE, box_iou, decode, letterbox, square
+from .hand_finder import BORDER_VALUE, GRID, INPUT_SIZE, STRIDE, box_iou, decode, greyed, letterbox, square
 from .training import warmup_cosine_lr
 
 RUN_DIR = Path("runs/finder")
@@ -212,13 +212,6 @@ def augment(rng, image, boxes, right, zoom=(0.55, 1.0), rot90=0.0, grey=0.0):
     if grey and rng.random() < grey:
         out = greyed(out)
     return out, b, right
-
-
-def greyed(image):
-    """(...,H,W,3) uint8 -> the same in grey, three equal channels (OpenCV's luma weights)."""
-    flat = image.reshape(-1, *image.shape[-3:])
-    g = np.stack([cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_BGR2GRAY) for f in flat])
-    return np.repeat(g[..., None], 3, -1).reshape(image.shape)
 
 
 def targets(boxes, right):
@@ -398,12 +391,12 @@ def main(args):
             val_sets["tails"] = load_real_frames(args.data, TRAIN_VIDEOS, stride=1, size=INPUT_SIZE, part="tail")
         val_sets["howiema"] = load_howiema_frames(args.data, held_out=True, size=INPUT_SIZE)
         # the same hands turned (a quarter turn each way and a half): upright hands only tell
-        # half the story for a camera above a desk or a hand that hangs down
+        # half the story for a camera above a desk or a hand that hangs down; and upright in
+        # grey (a mono or IR camera)
         for name in [k for k in ("real", "tails", "howiema") if k in val_sets]:
-            val_sets[f"{name}_turned"] = turned(*val_sets[name])
-        # and in grey (a mono or IR camera), upright
-        for name in [k for k in ("real", "tails", "howiema") if k in val_sets]:
-            val_sets[f"{name}_grey"] = (greyed(val_sets[name][0]),) + tuple(val_sets[name][1:])
+            images, boxes, right = val_sets[name]
+            val_sets[f"{name}_turned"] = turned(images, boxes, right)
+            val_sets[f"{name}_grey"] = (greyed(images), boxes, right)
     if args.val_only:
         if args.onnx:
             maps_of = onnx_maps(args.onnx)

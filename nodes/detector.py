@@ -57,8 +57,8 @@ TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidenc
            "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops", "second_look",
            "handedness_memory", "handedness")
 _DEFAULTS = inspect.signature(HandDetector).parameters
-PARAMS = {"detnet": None, "finder": None, "grey_finder": None, "grey_detnet": None, "threads": 1, **{k: _DEFAULTS[k].default for k in TUNABLE},
-          "every_frame": False}
+PARAMS = {"detnet": None, "finder": None, "grey_finder": None, "grey_detnet": None, "threads": 1,
+          **{k: _DEFAULTS[k].default for k in TUNABLE}, "every_frame": False}
 
 
 def setting(name: str, value):
@@ -126,8 +126,8 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     # load and are connected when the first frame comes (else the first publish waits for them)
     node.subscribe("/camera/image", "Image", mode="all" if p["every_frame"] else "latest")
     node.advertise("/hand/keypoints", "HandKeypoints")
-    detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]), grey_finder_path=p["grey_finder"],
-                                 grey_detnet_path=p["grey_detnet"],
+    detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]),
+                                 grey_finder_path=p["grey_finder"], grey_detnet_path=p["grey_detnet"],
                                  **{k: setting(k, p[k]) for k in TUNABLE})
     warm_up(detector, p)
     node.at_close(lambda: node.log.info("%d frames, %d finder runs, %d crops", detector.stats["frames"],

@@ -140,7 +140,7 @@ def main():
     args = ap.parse_args()
     data = [(name, turned(frames, args.turn)) for name, frames in clips(args.shared)]
     if args.grey:
-        from handmocap.train_finder import greyed
+        from handmocap.hand_finder import greyed
         data = [(name, [(greyed(image), labels, sides) for image, labels, sides in frames]) for name, frames in data]
     if args.compare is not None:    # `--compare` alone: the defaults' row only
         settings = [("defaults", {})] + [(c, parse_setting(c)) for c in args.compare]
