@@ -28,7 +28,9 @@ those train presence and handedness only, every other hand crop is presented as 
 hand and trains all heads. So the keypoint heads see right hands only, and the detector
 asks for handedness on the unmirrored crop.
 Augmentation (NOTES.md): centre jitter 0.1, scale 0.9-1.1 (real crops; synthetic crops
-come jittered), rotation +-90 deg applied to 2D and 3D, colour jitter, light blur.
+come jittered), rotation +-90 deg applied to 2D and 3D, colour jitter, light blur; with
+--degrade P a share P of the hand crops also gets a patch of another crop over it, a lower
+resolution or sensor noise (`degrade`).
 Losses: heatmap 100 (per-cell MSE, sigma = 1 cell Gaussians), location 10, delta 1
 (squared error weighted by H_gt + 0.1, normalised by the weight sum, so every joint's
 map also learns its value away from the peak), presence and handedness BCE 1, AdamW
@@ -99,6 +101,10 @@ def add_arguments(p):
                         "statistics included")
     p.add_argument("--grey", type=float, default=0.0, metavar="P",
                    help="share of crops shown in grey (a mono or IR camera; default %(default)s)")
+    p.add_argument("--degrade", type=float, default=0.0, metavar="P",
+                   help="share of hand crops degraded as real cameras and scenes degrade them: a patch of "
+                        "another crop in front of the hand, the crop at a lower resolution, or sensor noise "
+                        "(one of the three each; default %(default)s)")
     p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
@@ -389,6 +395,27 @@ class BatchMaker:
         zeros = np.zeros(n, np.float32)
         return {"image": images, "uv": np.full((n, 21, 2), -1000.0, np.float32), "xyz": np.zeros((n, 21, 3), np.float32),
                 "w2d": np.ones(n, np.float32), "w3d": zeros, "presence": zeros, "right": zeros, "w_hand": zeros}
+
+
+def degrade(images, hand, share, rng):
+    """Degrade a `share` of the crops `images` (B,128,128,3) uint8 where `hand` (B,) bool, in
+    place, each one of three ways: a patch (15-45% of the side) of another crop of the batch
+    pasted over it (an object, the other hand; its joints stay labelled, as the synthetic
+    occluders' do), shrunk to 25-60% and blown up again (a small hand far from the camera),
+    or Gaussian noise of 2-8 levels (a dark room's sensor)."""
+    for i in np.flatnonzero(hand & (rng.random(len(images)) < share)):
+        kind = rng.integers(3)
+        if kind == 0:
+            side = int(128 * rng.uniform(0.15, 0.45))
+            x, y, sx, sy = rng.integers(0, 128 - side, 4)
+            images[i, y:y + side, x:x + side] = images[rng.integers(len(images)), sy:sy + side, sx:sx + side]
+        elif kind == 1:
+            small = max(8, int(128 * rng.uniform(0.25, 0.6)))
+            images[i] = cv2.resize(cv2.resize(images[i], (small, small), interpolation=cv2.INTER_AREA), (128, 128),
+                                   interpolation=cv2.INTER_LINEAR)
+        else:
+            images[i] = np.clip(images[i] + rng.normal(0, rng.uniform(2, 8), images[i].shape), 0, 255).astype(np.uint8)
+    return images
 
 
 def to_torch(batch, rng=None, grey=0.0):
@@ -820,7 +847,10 @@ def main(args):
         for group in opt.param_groups:
             group["lr"] = warmup_cosine_lr(it, args.lr, args.iters, warmup=300, floor=0.02)
         rng = np.random.default_rng([args.seed, it])
-        b = to_torch(maker.make(args.batch, rng), rng, args.grey)
+        batch = maker.make(args.batch, rng)
+        if args.degrade:
+            degrade(batch["image"], batch["presence"] > 0, args.degrade, rng)
+        b = to_torch(batch, rng, args.grey)
         train_mode()                    # validation and export leave every module in training mode
         losses = detnet_losses(net(b["image"].contiguous(memory_format=torch.channels_last)), b, net.stride)
         loss = sum(weights[k] * v for k, v in losses.items())

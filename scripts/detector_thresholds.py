@@ -27,6 +27,8 @@ handedness turns (HandDetector.stats).
 --turn K: every frame (and its labels) turned K quarter turns counter-clockwise first: the
 same hands seen from a camera above a desk (K=2: hanging down) or held sideways.
 --grey: every frame in grey (three equal channels): the same hands seen by a mono camera.
+--shrink F: every frame (and its labels) scaled by F < 1 first: the same hands further away.
+--noise S: Gaussian noise of S levels added to every frame (fixed seed): a dark room's sensor.
 """
 import argparse
 from pathlib import Path
@@ -79,6 +81,17 @@ def turned(frames, k):
             labels = [np.stack([uv[:, 1], w - 1 - uv[:, 0]], 1) for uv in labels]
             image = np.rot90(image)
         out.append((np.ascontiguousarray(image), labels, sides))
+    return out
+
+
+def shrunk(frames, f):
+    """Frames scaled by f (INTER_AREA), their labels with them (pixel centres: u' = (u + 0.5) f - 0.5)."""
+    import cv2
+    out = []
+    for image, labels, sides in frames:
+        h, w = image.shape[:2]
+        small = cv2.resize(image, (round(w * f), round(h * f)), interpolation=cv2.INTER_AREA)
+        out.append((small, [(uv + 0.5) * f - 0.5 for uv in labels], sides))
     return out
 
 
@@ -137,8 +150,18 @@ def main():
     ap.add_argument("--turn", type=int, default=0, metavar="K",
                     help="turn every frame and its labels K quarter turns counter-clockwise first")
     ap.add_argument("--grey", action="store_true", help="every frame in grey (a mono camera)")
+    ap.add_argument("--shrink", type=float, default=None, metavar="F",
+                    help="scale every frame and its labels by F first (the hands further away)")
+    ap.add_argument("--noise", type=float, default=None, metavar="S",
+                    help="add Gaussian noise of S levels to every frame (a dark room's sensor)")
     args = ap.parse_args()
     data = [(name, turned(frames, args.turn)) for name, frames in clips(args.shared)]
+    if args.shrink:
+        data = [(name, shrunk(frames, args.shrink)) for name, frames in data]
+    if args.noise:
+        rng = np.random.default_rng(0)
+        data = [(name, [(np.clip(image + rng.normal(0, args.noise, image.shape), 0, 255).astype(np.uint8), labels, sides)
+                        for image, labels, sides in frames]) for name, frames in data]
     if args.grey:
         from handmocap.hand_finder import greyed
         data = [(name, [(greyed(image), labels, sides) for image, labels, sides in frames]) for name, frames in data]

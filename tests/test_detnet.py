@@ -286,6 +286,22 @@ def test_grey_batches_grey_the_asked_share_of_crops_and_nothing_else():
     np.testing.assert_array_equal(to_torch(batch, rng, grey=1.0)["uv"].numpy(), batch["uv"])
 
 
+def test_degraded_batches_change_the_asked_share_of_hand_crops_and_no_negative():
+    """handtrain detnet --degrade P: about P of the hand crops come out changed (a pasted
+    patch, a lower resolution or noise), the same ones for the same generator; negatives and
+    the other hand crops are untouched."""
+    from handmocap.train_detnet import degrade
+    rng = np.random.default_rng(0)
+    n = 400
+    image = rng.integers(0, 256, (n, 128, 128, 3), dtype=np.uint8)
+    hand = np.arange(n) % 4 != 0                              # every 4th crop a negative
+    out = degrade(image.copy(), hand, 0.3, np.random.default_rng(1))
+    changed = np.any(out != image, axis=(1, 2, 3))
+    assert not changed[~hand].any()
+    assert 0.22 < changed[hand].mean() < 0.38
+    np.testing.assert_array_equal(out, degrade(image.copy(), hand, 0.3, np.random.default_rng(1)))
+
+
 def test_upright_batches_show_every_hand_upright_within_the_spread():
     """--upright D: each synthetic crop is turned so its hand's wrist is below its middle
     finger's base, then by at most D degrees (mirrored crops too)."""
