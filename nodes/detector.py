@@ -14,7 +14,9 @@ grey frames, a mono or IR camera's: ONNX path, default models/finder_grey.onnx w
 finder; "none": `finder` on every frame), grey_detnet (the DetNet run on grey frames: ONNX path,
 default models/detnet_grey_int8.onnx with the bundled int8 DetNet; "none": `detnet` on every
 frame), threads (onnxruntime
-intra-op threads per network), max_hands, presence_threshold (a track ends below it),
+intra-op threads per network), max_hands, finder_threshold (the hand finder's boxes from this
+score on are proposed; lower it for a dim or distant camera: models/README.md), presence_threshold
+(a track ends below it),
 min_confidence (a track ends below this mean heatmap peak; 0 = off), birth_confidence (a found
 hand becomes a track only from this mean heatmap peak on; see models/README.md),
 unborn_retry (frames until the finder looks again after a hand was refused), evict_margin
@@ -52,19 +54,24 @@ from handmocap.frames import frame_bgr
 from handmocap.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
 
 # HandDetector's settings, with its own defaults (one place for them: the class)
-TUNABLE = ("max_hands", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "evict_margin",
+TUNABLE = ("max_hands", "finder_threshold", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "evict_margin",
            "opposite_hands", "upright_step", "finder_handedness", "mirror_vote_every", "redetect_every", "reseed_iou",
            "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops", "second_look",
            "handedness_memory", "handedness")
+# the settings that null turns off (HandDetector takes None for them); null for any other is an error
+NULLABLE = {"evict_margin", "opposite_hands", "upright_step", "mirror_vote_every", "test_time_crops", "reseed_margin",
+            "tracked_test_time_crops", "second_look", "handedness"}
 _DEFAULTS = inspect.signature(HandDetector).parameters
 PARAMS = {"detnet": None, "finder": None, "grey_finder": None, "grey_detnet": None, "threads": 1,
           **{k: _DEFAULTS[k].default for k in TUNABLE}, "every_frame": False}
 
 
 def setting(name: str, value):
-    """A TUNABLE param as HandDetector takes it: null stays None (off, where the class allows
-    it), a number the default's type (int or float), handedness "left" or "right"."""
+    """A TUNABLE param as HandDetector takes it: null stays None (off) where the class allows
+    it (NULLABLE), a number the default's type (int or float), handedness "left" or "right"."""
     if value is None:
+        if name not in NULLABLE:
+            raise ValueError(f"detector param {name}: expected a number, got null")
         return None
     if name == "handedness":                      # the one setting that is a word
         if value not in ("left", "right"):

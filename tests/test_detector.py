@@ -377,6 +377,18 @@ def test_track_ids_are_stable_over_a_two_hand_sequence_and_never_reused():
     assert det.stats["finder_runs"] <= 1 + 1 + 2
 
 
+@pytest.mark.parametrize("name", sorted(__import__("handmocap.nodes.detector", fromlist=["NULLABLE"]).NULLABLE))
+def test_every_setting_the_detector_node_lets_be_null_runs_as_null(name):
+    """The node passes null through as None for its NULLABLE params only: each of them must
+    run as None (off) on a two-hand sequence and still follow both hands."""
+    det = detector(**{name: None})
+    frames, truth = two_hand_frames(6)
+    for frame, (r, _) in zip(frames, truth):
+        hands = {h["handedness"]: h for h in det.process(frame)}
+    assert set(hands) == {"right", "left"}
+    np.testing.assert_allclose(hands["right"]["uv"], r, atol=DOT_TOL)
+
+
 def test_the_track_follows_the_heatmap_peaks_and_publishes_the_finer_read_out():
     """DetNet's `uv_peak` (the heatmap peaks) cuts the next crop and judges the track; `uv`
     (the soft-argmax read-out) is what the hand publishes. A read-out that gathers every
@@ -855,6 +867,9 @@ def test_detector_node_params_take_null_and_booleans_as_the_class_does():
     assert isinstance(PARAMS["upright_step"], float)
     with pytest.raises(ValueError, match="max_hands"):
         setting("max_hands", "two")
+    with pytest.raises(ValueError, match="finder_threshold: expected a number, got null"):
+        setting("finder_threshold", None)             # the class has no "off" for it
+    assert setting("finder_threshold", 0.2) == 0.2
     assert setting("handedness", "right") == "right" and setting("handedness", None) is None
     with pytest.raises(ValueError, match="handedness"):
         setting("handedness", "Rigth")
