@@ -16,8 +16,9 @@ else "false" (a desk object, a face, the forearm; or a hand MediaPipe missed, su
 half out of the frame). Prints the presence and mean heatmap peak (`confidence`) of both
 kinds with every track kept, then for each (birth_confidence, min_confidence) pair the
 labelled hands found and the false hands output, the detector run again with them: on the
-clips in order (tracking), and on every 4th frame of them as a still image (the detector
-reset before each, as `handeval predict` treats a folder of photos: one birth per hand).
+clips in order (tracking), and on every 4th frame of them (--stills-every N) as a still
+image (the detector reset before each, as `handeval predict` treats a folder of photos: one
+birth per hand).
 --compare K=V[,K=V] ...: the same table for any HandDetector settings against the defaults
 (HandDetector.load's keywords: candidates=4,finder_threshold=0.15; fallback_path=F.onnx;
 refine_passes=2; duplicate_joints=0.3), with the found hands' median and mean 2D error / hand size
@@ -29,6 +30,8 @@ same hands seen from a camera above a desk (K=2: hanging down) or held sideways.
 --grey: every frame in grey (three equal channels): the same hands seen by a mono camera.
 --shrink F: every frame (and its labels) scaled by F < 1 first: the same hands further away.
 --noise S: Gaussian noise of S levels added to every frame (fixed seed): a dark room's sensor.
+--stills-every N: every Nth frame as a still (default 4; 1 gives 4x the stills and half the
+noise of their figures: models/README.md, "How much of a tracked figure is noise").
 """
 import argparse
 from pathlib import Path
@@ -154,6 +157,7 @@ def main():
                     help="scale every frame and its labels by F first (the hands further away)")
     ap.add_argument("--noise", type=float, default=None, metavar="S",
                     help="add Gaussian noise of S levels to every frame (a dark room's sensor)")
+    ap.add_argument("--stills-every", type=int, default=4, metavar="N", help="every Nth frame as a still (default 4)")
     args = ap.parse_args()
     data = [(name, turned(frames, args.turn)) for name, frames in clips(args.shared)]
     if args.shrink:
@@ -183,7 +187,7 @@ def main():
             start = dict(detector.stats)
             for name, frames in data:
                 before = dict(detector.stats)
-                r, f, n = score_hands(detector, frames[::4] if stills else frames, stills)
+                r, f, n = score_hands(detector, frames[::args.stills_every] if stills else frames, stills)
                 rows += r
                 found, labelled = found + f, labelled + n
                 if not stills:
