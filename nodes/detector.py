@@ -49,15 +49,16 @@ from typing import Callable
 
 import numpy as np
 
-from handmocap.detector import CROP, HandDetector, detnet_path
+from handmocap.detector import CROP, DETNET_GREY, HandDetector, detnet_path
 from handmocap.frames import frame_bgr
+from handmocap.hand_finder import DEFAULT_PATH as FINDER_PATH, GREY_PATH as GREY_FINDER_PATH
 from handmocap.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
 
 # HandDetector's settings, with its own defaults (one place for them: the class)
-TUNABLE = ("max_hands", "finder_threshold", "presence_threshold", "min_confidence", "birth_confidence", "unborn_retry", "evict_margin",
-           "opposite_hands", "upright_step", "finder_handedness", "mirror_vote_every", "redetect_every", "reseed_iou",
-           "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops", "second_look",
-           "handedness_memory", "handedness")
+TUNABLE = ("max_hands", "finder_threshold", "presence_threshold", "min_confidence", "birth_confidence",
+           "unborn_retry", "evict_margin", "opposite_hands", "upright_step", "finder_handedness", "mirror_vote_every",
+           "redetect_every", "reseed_iou", "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops",
+           "second_look", "handedness_memory", "handedness")
 # the settings that null turns off (HandDetector takes None for them); null for any other is an error
 NULLABLE = {"evict_margin", "opposite_hands", "upright_step", "mirror_vote_every", "test_time_crops", "reseed_margin",
             "tracked_test_time_crops", "second_look", "handedness"}
@@ -106,7 +107,7 @@ def warm_up(detector: HandDetector, params: dict) -> None:
     first frames. A file that loads but is not the network it should be fails here, as one
     error line naming it."""
     for detnet, name in ((detector.detnet, detnet_path(params.get("detnet"))),
-                         (detector.grey_detnet, params.get("grey_detnet") or "models/detnet_grey_int8.onnx")):
+                         (detector.grey_detnet, params.get("grey_detnet") or DETNET_GREY)):
         if detnet is None:
             continue
         try:
@@ -114,8 +115,8 @@ def warm_up(detector: HandDetector, params: dict) -> None:
         except Exception as e:   # onnxruntime's errors (wrong input name or shape) are no ValueError
             raise ValueError(f"DetNet model {name} does not take (N,128,128,3) crops: "
                              f"{str(e).splitlines()[0][:200]}") from None
-    for finder, name, default in ((detector.finder, "finder", "models/finder.onnx"),
-                                  (detector.grey_finder, "grey_finder", "models/finder_grey.onnx")):
+    for finder, name, default in ((detector.finder, "finder", FINDER_PATH),
+                                  (detector.grey_finder, "grey_finder", GREY_FINDER_PATH)):
         if finder is None:
             continue
         try:

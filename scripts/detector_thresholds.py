@@ -98,6 +98,12 @@ def shrunk(frames, f):
     return out
 
 
+def noisy(frames, sigma, rng):
+    """Frames with Gaussian noise of `sigma` levels added (uint8, clipped), labels as they are."""
+    return [(np.clip(image + rng.normal(0, sigma, image.shape), 0, 255).astype(np.uint8), labels, sides)
+            for image, labels, sides in frames]
+
+
 def labels_near(centre, labels):
     """Indices of the labelled hands (each (21,2) px) whose joint centre lies within half
     their joint-box side of `centre` (2,): the hands an output centred there counts as."""
@@ -164,8 +170,7 @@ def main():
         data = [(name, shrunk(frames, args.shrink)) for name, frames in data]
     if args.noise:
         rng = np.random.default_rng(0)
-        data = [(name, [(np.clip(image + rng.normal(0, args.noise, image.shape), 0, 255).astype(np.uint8), labels, sides)
-                        for image, labels, sides in frames]) for name, frames in data]
+        data = [(name, noisy(frames, args.noise, rng)) for name, frames in data]
     if args.grey:
         from handmocap.hand_finder import greyed
         data = [(name, [(greyed(image), labels, sides) for image, labels, sides in frames]) for name, frames in data]
