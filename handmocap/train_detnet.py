@@ -60,6 +60,7 @@ CTX = 176                    # real hand context crops: px, covering CTX_SCALE x
 CTX_SCALE = 2.4
 REAL_CACHE = "real_v4.npz"          # v2: + arm-only negatives; v3: frame edges repeated as the detector repeats them;
                                     # v4: + MediaPipe world landmarks of the video hands (xyz, has_3d)
+PART_CACHE = "parts_v1.npz"         # close-ups of part of a hand (build_part_cache), negatives for --part-neg
 PALM_M = 0.093               # |wrist - middle MCP| that real held-out 3D errors are quoted at (temugeb's median)
 
 
@@ -105,6 +106,10 @@ def add_arguments(p):
                    help="share of hand crops degraded as real cameras and scenes degrade them: a patch of "
                         "another crop in front of the hand, the crop at a lower resolution, or sensor noise "
                         "(one of the three each; default %(default)s)")
+    p.add_argument("--part-neg", type=float, default=0.0, metavar="P",
+                   help="share of the no-hand crops that are close-ups of part of a real hand (a fingertip, "
+                        "knuckles: the crop of a finder box on a hand that fills a photo), taught as no hand "
+                        "(default %(default)s)")
     p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
@@ -254,6 +259,62 @@ def arm_box(M, size=128):
     return np.r_[corners.min(0), corners.max(0)]
 
 
+def part_crop(uv, rng, scale=1.3, min_side=40.0):
+    """The (2,3) affine of a 128 px close-up of part of a hand with keypoints uv (21,2): a
+    square 0.25-0.5 of the hand's crop side (keypoint box x `scale`) around a joint other
+    than the wrist, turned at random. It is what DetNet is shown when the finder's box is
+    on a fingertip or the knuckles of a hand that fills a photo, where it read a tiny hand.
+    None where that square would be under `min_side` frame px (blown up to 128 px it would
+    be a blur, which tiny far-away hands are too)."""
+    side = float(np.max(uv.max(0) - uv.min(0))) * scale * rng.uniform(0.25, 0.5)
+    if side < min_side:
+        return None
+    c = uv[rng.integers(1, 21)] + rng.uniform(-0.25, 0.25, 2) * side
+    return real_data.crop_affine(c[0], c[1], side, 128, angle_deg=rng.uniform(-180, 180))
+
+
+def build_part_cache(shared, path, seed=0, log=print):
+    """Close-ups of part of a hand (`part_crop`) cut from the training videos' full frames,
+    one per labelled hand on every 3rd frame, and from howiema subject 001: part
+    (m,128,128,3) uint8, part_held (m,) bool (the frames the real cache holds out)."""
+    rng = np.random.default_rng([seed, 7])
+    parts, held_out = [], []
+
+    def add(image, uv, held):
+        M = part_crop(uv, rng)
+        if M is not None:
+            parts.append(real_data.warp(image, M, 128, replicate=True))
+            held_out.append(held)
+
+    for seq in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, shared):
+        add(seq["image"], seq["uv"], seq["name"].split("/")[1] in real_data.HOWIEMA_HELD_OUT)
+    for rel in real_data.TRAIN_VIDEOS:
+        video = Path(shared) / rel
+        lab = real_data.load_pseudo_labels(video)
+        train, held = real_data.video_split(len(lab["found"]))
+        for f, image in real_data.read_video(video, frames=set(range(0, len(lab["found"]), 3))):
+            if f < len(lab["found"]) and (train[f] or held[f]):
+                for s in np.flatnonzero(lab["found"][f]):
+                    add(image, lab["uv"][f, s], bool(held[f]))
+        log(f"  {rel}: {len(parts)} part-of-hand close-ups so far")
+    arrays = {"part": np.asarray(parts, np.uint8).reshape(-1, 128, 128, 3), "part_held": np.asarray(held_out, bool)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **arrays)
+    return arrays
+
+
+def load_parts(shared, log=print):
+    """The part-of-hand cache (built on first use under runs/detnet_data/), or None without shared/."""
+    if not (Path(shared) / "labelled2d").exists():
+        return None
+    path = DATA_DIR / PART_CACHE
+    if path.exists():
+        with np.load(path) as data:
+            return {k: data[k] for k in data.files}
+    log(f"cutting part-of-hand close-ups from {shared} into {path} (once)")
+    return build_part_cache(shared, path, log=log)
+
+
 def _inside_share(box, w, h):
     """Share of box (4,) x0 y0 x1 y1 inside a w x h image."""
     ix = max(0.0, min(box[2], w) - max(box[0], 0.0))
@@ -297,8 +358,12 @@ class BatchMaker:
     """Numpy batches: image (B,128,128,3) uint8, uv (B,21,2), xyz (B,21,3), w2d, w3d,
     presence, right, w_hand (B,) float32."""
 
-    def __init__(self, synth, real, share_real, share_neg, share_left, upright=None, real_3d=0.0, left_2d=0.0):
+    def __init__(self, synth, real, share_real, share_neg, share_left, upright=None, real_3d=0.0, left_2d=0.0,
+                 parts=None, share_part=0.0):
         self.synth, self.real = synth, real
+        # close-ups of part of a hand (build_part_cache): that share of the negatives
+        self.part_train = np.flatnonzero(~parts["part_held"]) if parts is not None else np.zeros(0, int)
+        self.parts, self.share_part = parts, share_part if len(self.part_train) else 0.0
         self.real_3d = real_3d
         self.left_2d = left_2d
         self.share_left = share_left
@@ -383,12 +448,16 @@ class BatchMaker:
                 "presence": np.ones(n, np.float32), "right": (~show_left).astype(np.float32), "w_hand": weight}
 
     def _negatives(self, n, rng):
-        n_real = int(rng.binomial(n, 0.6)) if len(self.neg_train) else 0
+        n_part = int(rng.binomial(n, self.share_part)) if self.share_part else 0
+        n_other = n - n_part
+        n_real = int(rng.binomial(n_other, 0.6)) if len(self.neg_train) else 0
         if self.procedural is None:
-            n_real = n if len(self.neg_train) else 0
+            n_real = n_other if len(self.neg_train) else 0
         images = [self.real["neg"][self.neg_train[rng.integers(0, len(self.neg_train), n_real)]]] if n_real else []
-        if n - n_real:
-            images.append(self.procedural.sample(rng, n - n_real, 128)[0])
+        if n_other - n_real:
+            images.append(self.procedural.sample(rng, n_other - n_real, 128)[0])
+        if n_part:
+            images.append(self.parts["part"][self.part_train[rng.integers(0, len(self.part_train), n_part)]])
         images = np.concatenate(images)
         for i in np.flatnonzero(rng.random(len(images)) < 0.5):
             images[i] = images[i, :, ::-1]
@@ -647,6 +716,8 @@ def validate(net, sval, rval, refines=("softmax",)):
         m["real_presence"] = float((pres > 0.5).mean())
         if len(rval["neg"]):
             m["neg_rejected"] = float((predict(net, rval["neg"], ())[1] < 0.5).mean())
+        if len(rval.get("part", ())):
+            m["part_rejected"] = float((predict(net, rval["part"], ())[1] < 0.5).mean())
     return m
 
 
@@ -797,12 +868,18 @@ def main(args):
     if real is not None:
         print(f"real: {int((~real['held']).sum())} training hand crops, {int(real['held'].sum())} held out; "
               f"{int((~real['neg_held']).sum())} negatives ({int(real['neg_held'].sum())} held out)")
+    parts = load_parts(args.shared) if real is not None else None
+    if parts is not None:
+        print(f"part-of-hand close-ups: {int((~parts['part_held']).sum())} ({int(parts['part_held'].sum())} held out)"
+              + ("" if args.part_neg else ", measured only (--part-neg 0)"))
     maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright, args.real_3d,
-                       args.left_2d)
+                       args.left_2d, parts, args.part_neg)
     sval = synth_val_set(args.val) if (Path(args.val) / "meta.json").exists() else None
     if sval is None:
         print(f"note: no held-out synthetic set at {args.val}")
     rval = real_val_set(real)
+    if rval is not None and parts is not None:
+        rval["part"] = parts["part"][parts["part_held"]]
     if args.init_from and not args.resume:
         if args.init_from.suffix == ".onnx":        # an exported model: BN statistics from a batch of training crops
             try:

@@ -410,6 +410,38 @@ def test_arm_negatives_hold_no_keypoint_and_lie_beyond_the_wrist():
         assert centre[1] > hand[0, 1]                      # past the wrist, on the forearm's side
 
 
+def test_part_negatives_show_part_of_a_hand_too_close_to_be_a_whole_one():
+    """part_crop: a square 0.25-0.5 of the hand's crop side around one of its joints (never
+    the whole hand), None where it would be a blur of under 40 frame px; BatchMaker with
+    --part-neg P takes about P of its negatives from the part crops, labelled no hand."""
+    from handmocap import real_data
+    from handmocap.train_detnet import BatchMaker, part_crop
+    rng = np.random.default_rng(0)
+    for k in range(50):
+        hand = rng.uniform(-1, 1, (21, 2)) * 80 + 300
+        M = part_crop(hand, rng)
+        assert M is not None
+        inside = np.all((real_data.apply_affine(M, hand) >= 0) & (real_data.apply_affine(M, hand) <= 127), axis=1)
+        assert 1 <= inside.sum() < 21, k                  # a joint in view, never all of them
+        side = 128 / np.sqrt(abs(np.linalg.det(M[:, :2])))   # frame px the crop covers
+        box = np.max(hand.max(0) - hand.min(0))
+        assert 0.25 * 1.3 * box - 1e-6 <= side <= 0.5 * 1.3 * box + 1e-6
+    assert part_crop(rng.uniform(0, 30, (21, 2)), rng) is None     # a hand of 30 px: too small
+    n = 64
+    synth = {"image": np.zeros((n, 128, 128, 3), np.uint8), "uv": rng.uniform(30, 98, (n, 21, 2)),
+             "xyz_rel": np.zeros((n, 21, 3)), "handedness": np.zeros(n, np.int8)}
+    parts = {"part": np.full((8, 128, 128, 3), 77, np.uint8), "part_held": np.array([False] * 6 + [True] * 2)}
+    maker = BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts, share_part=0.4)
+    if maker.procedural is None:
+        pytest.skip("the synthetic engine's procedural backgrounds are needed for the other negatives")
+    batch = maker.make(1000, np.random.default_rng(1))
+    is_part = np.all(batch["image"] == 77, axis=(1, 2, 3))
+    assert 0.33 < is_part.mean() < 0.47
+    assert not batch["presence"].any() and np.all(batch["uv"] == -1000.0)
+    off = BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts).make(200, np.random.default_rng(1))
+    assert not np.all(off["image"] == 77, axis=(1, 2, 3)).any()
+
+
 def cv_inverse(M):
     """(2,3) affine -> its inverse (2,3)."""
     A = np.linalg.inv(M[:, :2])
