@@ -21,7 +21,9 @@ batches the uninterrupted run would have) mixes:
 * negatives (presence 0, heatmaps 0): real video crops away from every labelled hand of
   the frame, crops of the forearm beyond each labelled wrist (`arm_crop`: a track that
   slid up the arm must lose its presence), and procedural background textures
-  (handmocap.synth.backgrounds).
+  (handmocap.synth.backgrounds); with --part-neg P, that share of them close-ups of part
+  of a real hand (`part_crop`: a fingertip or the knuckles seen too close to be a whole
+  hand, as a finder box on a photo-filling hand shows it).
 Handedness ("does the crop show a right hand as it appears"): a share (--share-left) of
 hand crops is presented as a LEFT hand (a right hand mirrored, a left one left as it is);
 those train presence and handedness only, every other hand crop is presented as a right
