@@ -156,14 +156,29 @@ def test_joints_through_keypoints_take_x_y_from_exact_keypoints(seed, depth):
     truth = normalize_joints(xyz)
     for weight in (0.0, 0.5, 1.0):          # joints that agree with their pixels stay as they are
         np.testing.assert_allclose(joints_through_keypoints(K, project(xyz), truth, weight), truth, atol=1e-9)
-    # x, y off by 0.2 bone lengths, depths right: the pixels bring them back (all the way
-    # but for the error that the wrong x, y leave in the fitted distance)
+    # x, y off by 0.2 bone lengths, depths right: weight 1 puts every joint on its pixel's
+    # ray (x_i - z_i r_i = a (r_i - r_9) for one distance a, whatever x, y came in) ...
     wrong_xy = truth + np.concatenate([rng.normal(0, 0.2, (21, 2)), np.zeros((21, 1))], axis=1)
-    error = lambda j: np.linalg.norm(j - truth, axis=-1).mean()    # noqa: E731
     np.testing.assert_allclose(joints_through_keypoints(K, project(xyz), wrong_xy, 0.0), normalize_joints(wrong_xy),
                                atol=1e-12)
-    assert error(joints_through_keypoints(K, project(xyz), wrong_xy, 1.0)) < 0.3 * error(normalize_joints(wrong_xy))
-    assert error(joints_through_keypoints(K, project(xyz), wrong_xy, 0.5)) < 0.75 * error(normalize_joints(wrong_xy))
+    moved = joints_through_keypoints(K, project(xyz), wrong_xy, 1.0)
+    rays = (project(xyz) - K[:2, 2]) / np.diag(K)[:2]
+    lhs, d = moved[:, :2] - moved[:, 2:] * rays, rays - rays[9]
+    a = np.sum(lhs * d) / np.sum(d * d)
+    np.testing.assert_allclose(lhs, a * d, atol=1e-9)
+    # ... which brings them back but for the error the wrong x, y leave in the fitted
+    # distance: a few percent on most hands, up to ~40% on a rare one seen edge-on, so the
+    # bound is on the median of 20 hands (their worst median in 3,000 hands: 9%)
+    ratios = {0.5: [], 1.0: []}
+    for _ in range(20):
+        xyz = hand_in_camera(rng, depth)
+        truth = normalize_joints(xyz)
+        wrong_xy = truth + np.concatenate([rng.normal(0, 0.2, (21, 2)), np.zeros((21, 1))], axis=1)
+        error = lambda j: np.linalg.norm(j - truth, axis=-1).mean()    # noqa: E731, B023
+        for weight, r in ratios.items():
+            r.append(error(joints_through_keypoints(K, project(xyz), wrong_xy, weight)) / error(normalize_joints(wrong_xy)))
+    assert np.median(ratios[1.0]) < 0.2
+    assert np.max(ratios[0.5]) < 0.8          # half-way: about half the error (at most 0.70 in 3,000 hands)
 
 
 def test_joints_through_keypoints_batch_and_missing_pixels():
