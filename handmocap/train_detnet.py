@@ -309,12 +309,17 @@ def load_parts(shared, log=print):
     """The part-of-hand cache (built on first use under runs/detnet_data/), or None without shared/."""
     if not (Path(shared) / "labelled2d").exists():
         return None
-    path = DATA_DIR / PART_CACHE
+    return _cached(DATA_DIR / PART_CACHE, lambda path: build_part_cache(shared, path, log=log),
+                   f"cutting part-of-hand close-ups from {shared}", log)
+
+
+def _cached(path, build, what, log):
+    """The arrays of the .npz at `path`, or those build(path) writes there (once)."""
     if path.exists():
         with np.load(path) as data:
             return {k: data[k] for k in data.files}
-    log(f"cutting part-of-hand close-ups from {shared} into {path} (once)")
-    return build_part_cache(shared, path, log=log)
+    log(f"{what} into {path} (once)")
+    return build(path)
 
 
 def _inside_share(box, w, h):
@@ -337,12 +342,8 @@ def load_real(shared, log=print):
     if not (Path(shared) / "labelled2d").exists():
         log(f"note: no real data pack at {shared}; training on synthetic data only")
         return None
-    path = DATA_DIR / REAL_CACHE
-    if path.exists():
-        with np.load(path) as data:
-            return {k: data[k] for k in data.files}
-    log(f"cutting real crops from {shared} into {path} (once)")
-    return build_real_cache(shared, path, log=log)
+    return _cached(DATA_DIR / REAL_CACHE, lambda path: build_real_cache(shared, path, log=log),
+                   f"cutting real crops from {shared}", log)
 
 
 # ------------------------------------------------------------------ batches
