@@ -246,6 +246,13 @@ def square_box(uv):
     return square(np.concatenate([np.nanmin(uv, axis=0), np.nanmax(uv, axis=0)]))
 
 
+def nearby_crops(crop, k):
+    """The first `k` TEST_TIME_VARIANTS of a CropTransform: the same hand a little larger,
+    smaller or turned (same centre and mirroring)."""
+    return [CropTransform.around(crop.centre, crop.side * scale, mirrored=crop.mirrored,
+                                 angle=crop.angle + math.radians(turn)) for scale, turn in TEST_TIME_VARIANTS[:k]]
+
+
 def crop_for_box(box, mirrored=False, scale=CROP_SCALE):
     """The DetNet crop of a hand whose joint box is (4,) x0, y0, x1, y1 frame px."""
     box = np.asarray(box, dtype=np.float64)
@@ -771,11 +778,7 @@ class HandDetector:
         frame px and 3D in the frame camera's axes, mapped back to the track's crop, and the
         handedness the mean logit. Presence and heatmap peaks stay the crop's own: which
         hands are born does not change (a turned variant's peaks are lower)."""
-        variants = TEST_TIME_VARIANTS[:k]
-        crops = [CropTransform.around(self.tracks[i].crop.centre, self.tracks[i].crop.side * scale,
-                                      mirrored=self.tracks[i].crop.mirrored,
-                                      angle=self.tracks[i].crop.angle + math.radians(turn))
-                 for i in idx for scale, turn in variants]
+        crops = [c for i in idx for c in nearby_crops(self.tracks[i].crop, k)]
         more = self._run(image_bgr, crops)
         for n, i in enumerate(idx):
             own = self.tracks[i].crop

@@ -20,13 +20,12 @@ These are evaluation splits: read them, never tune on them.
 """
 import argparse
 import glob
-import math
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from handmocap.detector import TEST_TIME_VARIANTS, CropTransform, DetNetRunner, crop_for_joints, logit
+from handmocap.detector import DetNetRunner, crop_for_joints, logit, nearby_crops
 from handmocap.hand_finder import HandFinder
 
 SPLITS = ["temugeb_cam0", "temugeb_cam1", "howiema_040", "cmu_sample", "mmpose_freihand", "mmpose_rhd",
@@ -46,8 +45,7 @@ def finder_says_right(finder, image, uv):
 def detnet_cues(detnet, image, uv):
     """{cue: score (> 0 says right)} of DetNet on the labelled hand's crop, its variants, all flipped."""
     own = crop_for_joints(uv, mirrored=False, upright_step=90.0)
-    crops = [own] + [CropTransform.around(own.centre, own.side * scale, angle=own.angle + math.radians(turn))
-                     for scale, turn in TEST_TIME_VARIANTS[:4]]
+    crops = [own] + nearby_crops(own, 4)
     pixels = np.stack([c.cut(image) for c in crops])
     out = detnet(np.ascontiguousarray(np.concatenate([pixels, pixels[:, :, ::-1]])[..., ::-1]))
     n = len(crops)
