@@ -1,21 +1,27 @@
-"""HandTracker.process on 640x480 frames with one tracked hand, the detector's parts, and
-MediaPipe Hands (tracking/video mode) on the same frames when /tmp/mpenv has it.
+"""HandTracker.process against MediaPipe Hands, matched, and the tracker's parts.
 
-    python benchmarks/bench_tracker.py [--video data/demo/hand_clip.mp4] [--repeat 3] [--threads 1]
+    python benchmarks/bench_tracker.py [--videos V ...] [--max-hands 1 2] [--repeat 3] [--threads 1]
                                        [--detnet PATH] [--finder PATH] [--iknet int8|float32|PATH]
-                                       [--max-hands 2] [--set KEY=VALUE ...]
+                                       [--set KEY=VALUE ...]
 
-Prints median and p90 ms per frame of: the whole pipeline (HandTracker.process: detector +
-shape + IKNet + FK + translation + smoothing), its stages as CPU ms per frame (one more pass
-with each stage's function wrapped in a timer: detector with DetNet's onnxruntime call
-inside it, shape, pose with IKSolver.solve, IKNet's onnxruntime call, clamp_to_limits and
-pose_fields inside it; "rest" is the total minus the three stages), the detector alone (HandDetector.process),
-DetNet alone on one crop and on a batch of 16 (crops/s), the hand finder on a frame, and
-MediaPipe's ms per frame (scripts/mediapipe_reference.py --bench, a subprocess) with the
-ratio. The first pass over the clip is a warm-up (the finder runs on the first frame
-only; afterwards the hand is tracked). Wall time counts waiting for the CPU on a shared
-machine; CPU time (time.process_time, one onnxruntime thread) is what a frame costs, which
-is what an idle core would take.
+Matched comparison (first table): for each video (default: the demo clip and, where the
+data pack is beside the repository, two real clips: one hand at 540x960, two hands at
+1280x720) and each maximum number of hands (default 1 and 2), the median ms per frame of
+HandTracker.process and of MediaPipe Hands in tracking mode (scripts/mediapipe_reference.py
+--bench in /tmp/mpenv, a subprocess) on the same frames at their own size, with the same
+maximum number of hands, and the BGR -> RGB conversion MediaPipe needs counted on its side
+(HandTracker takes the camera's BGR frames as they are); ratio = ours / MediaPipe's.
+
+Then, on the first video with the first max-hands: median and p90 ms per frame of the
+whole pipeline (detector + shape + IKNet + FK + translation + smoothing), its stages as
+CPU ms per frame (one more pass with each stage's function wrapped in a timer: detector
+with DetNet's onnxruntime call inside it, shape, pose with IKSolver.solve, IKNet's
+onnxruntime call, clamp_to_limits and pose_fields inside it; "rest" is the total minus the
+three stages), the detector alone (HandDetector.process), DetNet alone on one crop and on a
+batch of 16 (crops/s) and the hand finder on a frame. The first pass over a clip is a
+warm-up. Wall time counts waiting for the CPU on a shared machine; CPU time
+(time.process_time, one onnxruntime thread) is what a frame costs, which is what an idle
+core would take.
 """
 import argparse
 import json
@@ -24,11 +30,61 @@ import subprocess
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 MP_PYTHON = Path("/tmp/mpenv/bin/python")
+REAL_CLIPS = ("video/webcam/lujunwang_hand.mp4", "video/wild/Criminal-9527__hands.mp4")   # one hand, two hands
+MAX_FRAMES = 200
+
+
+def default_videos():
+    """The demo clip, and the REAL_CLIPS of the data pack where it is beside the repository."""
+    from handmocap.pose_data import SHARED_DATA
+    return [ROOT / "data" / "demo" / "hand_clip.mp4"] + [SHARED_DATA / c for c in REAL_CLIPS
+                                                          if (SHARED_DATA / c).is_file()]
+
+
+def mediapipe_ms(video, max_hands):
+    """MediaPipe's tracking mode on the video's first MAX_FRAMES frames (a subprocess in
+    /tmp/mpenv): its JSON line (median_ms, hands_per_frame, ...) or a string saying why not."""
+    if not MP_PYTHON.is_file():
+        return "not measured: /tmp/mpenv absent"
+    r = subprocess.run([str(MP_PYTHON), str(ROOT / "scripts" / "mediapipe_reference.py"), "--bench", str(video),
+                        "--frames", str(MAX_FRAMES), "--max-hands", str(max_hands)], capture_output=True, text=True)
+    lines = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]
+    return json.loads(lines[-1]) if r.returncode == 0 and lines else f"failed: {r.stderr[-300:]}"
+
+
+def matched(videos, max_hands_list, args, settings):
+    """Rows (dicts) of the matched comparison, and its markdown table."""
+    from handmocap.frames import read_video
+    from handmocap.tracker import HandTracker
+    rows = []
+    for video in videos:
+        frames = [f for _, f in zip(range(MAX_FRAMES), read_video(str(video)))]
+        for max_hands in max_hands_list:
+            tracker = HandTracker(detnet=args.detnet, finder=args.finder, iknet=args.iknet, threads=args.threads,
+                                  max_hands=max_hands, **settings)
+            hands = [len(tracker.process(f)) for f in frames]         # warm-up; the hands are tracked from here on
+            ours = stats(timed(tracker.process, frames, args.repeat))
+            mp = mediapipe_ms(video, max_hands)
+            row = {"video": Path(video).name, "size": f"{frames[0].shape[1]}x{frames[0].shape[0]}",
+                   "max_hands": max_hands, "ours_ms": ours["median_ms"], "ours_cpu_ms": ours["median_cpu_ms"],
+                   "ours_hands_per_frame": float(np.mean(hands)), "mediapipe": mp}
+            if isinstance(mp, dict):
+                row["ratio"] = ours["median_ms"] / mp["median_ms"]
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    table = ["| video | size | max hands | ours ms (hands/frame) | MediaPipe ms (hands/frame) | ours / MediaPipe |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        mp = r["mediapipe"]
+        mp_cell = f"{mp['median_ms']:.1f} ({mp['hands_per_frame']:.2f})" if isinstance(mp, dict) else mp
+        table.append(f"| {r['video']} | {r['size']} | {r['max_hands']} | {r['ours_ms']:.1f} "
+                     f"({r['ours_hands_per_frame']:.2f}) | {mp_cell} | "
+                     f"{r['ratio']:.2f} |" if "ratio" in r else "– |")
+    return rows, "\n".join(table)
 
 
 def stage_cpu_ms(tracker, frames):
@@ -110,14 +166,16 @@ def timed(fn, items, repeat):
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--video", default=str(ROOT / "data" / "demo" / "hand_clip.mp4"))
+    p.add_argument("--videos", nargs="+", default=None,
+                   help="clips (default: the demo clip and the data pack's two real clips where it is there)")
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads per network")
     p.add_argument("--detnet", help="DetNet: int8 (default, models/detnet_int8.onnx), float32 "
                                      "(models/detnet.onnx) or an ONNX path")
     p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx)")
     p.add_argument("--iknet", help="IKNet: int8 (default, models/iknet_int8.onnx), float32 or an ONNX path")
-    p.add_argument("--max-hands", type=int, default=2, help="HandTracker/HandDetector max_hands (1: exactly one track)")
+    p.add_argument("--max-hands", type=int, nargs="+", default=[1, 2],
+                   help="maximum numbers of hands, each measured on both sides (default 1 2)")
     p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
                    help="detector settings (HandDetector keywords), e.g. tracked_test_time_crops=4")
     args = p.parse_args()
@@ -127,20 +185,24 @@ def main():
     from handmocap.frames import read_video
     from handmocap.tracker import HandTracker
 
-    frames = [cv2.resize(f, (640, 480)) if f.shape[:2] != (480, 640) else f for f in read_video(args.video)]
+    videos = args.videos or default_videos()
+    rows, table = matched(videos, args.max_hands, args, settings)
+    max_hands = args.max_hands[0]
+    frames = [f for _, f in zip(range(MAX_FRAMES), read_video(str(videos[0])))]
     from handmocap.ik_solver import model_path
-    results = {"frames": len(frames), "load_avg": os.getloadavg()[0], "threads": args.threads,
-               "max_hands": args.max_hands, "iknet": str(model_path(args.iknet)), "settings": settings}
+    results = {"matched": rows, "frames": len(frames), "load_avg": os.getloadavg()[0], "threads": args.threads,
+               "video": str(videos[0]), "max_hands": max_hands, "iknet": str(model_path(args.iknet)),
+               "settings": settings}
 
     tracker = HandTracker(detnet=args.detnet, finder=args.finder, iknet=args.iknet, threads=args.threads,
-                          max_hands=args.max_hands, **settings)
+                          max_hands=max_hands, **settings)
     for f in frames:                   # warm-up pass, and the hand is tracked from here on
         tracker.process(f)
     results["tracker"] = stats(timed(tracker.process, frames, args.repeat))
     results["tracker"]["hands_per_frame"] = float(np.mean([len(tracker.process(f)) for f in frames]))
     results["tracker_stages_cpu_ms_per_frame"] = stage_cpu_ms(tracker, frames)
 
-    det = HandDetector.load(args.detnet, args.finder, threads=args.threads, max_hands=args.max_hands, **settings)
+    det = HandDetector.load(args.detnet, args.finder, threads=args.threads, max_hands=max_hands, **settings)
     for f in frames:
         det.process(f)
     results["detector"] = stats(timed(det.process, frames, args.repeat))
@@ -154,19 +216,8 @@ def main():
                                   "crops_per_cpu_s": 16e3 / batch["median_cpu_ms"]}
     results["finder"] = stats(timed(det.finder.find, frames[:30], args.repeat))
 
-    if MP_PYTHON.is_file():
-        r = subprocess.run([str(MP_PYTHON), str(ROOT / "scripts" / "mediapipe_reference.py"), "--bench", args.video],
-                           capture_output=True, text=True)
-        lines = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]
-        if r.returncode == 0 and lines:
-            results["mediapipe_video_mode"] = json.loads(lines[-1])
-            results["mediapipe_over_tracker"] = results["mediapipe_video_mode"]["median_ms"] / \
-                results["tracker"]["median_ms"]
-        else:
-            results["mediapipe_video_mode"] = f"failed: {r.stderr[-300:]}"
-    else:
-        results["mediapipe_video_mode"] = "not measured: /tmp/mpenv absent"
     print(json.dumps(results, indent=1))
+    print(table)
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@
     handeval score --pred PRED.npz --gt GT.npz [--png CURVE.png] [--json OUT.json]
     handeval splits [--data shared/data] [--work /tmp/handeval] [--markdown TABLE.md]
                     [--methods ours mediapipe] [--only SPLIT ...] [--detnet ...]
+    handeval people [--data shared/data] [--png PCK.png] [--json OUT.json] [--detnet ...]
 
 predict: HandTracker on every image of DIR sorted by name (each image on its own: tracks
 reset, no smoothing; --sequence treats the images as consecutive video frames) or on every
@@ -29,7 +30,12 @@ hands, 2D PCK (0-30 px) and AUC; 3D (root/scale aligned, 20-50 mm) PCK/AUC of `x
 (DetNet + IKNet + FK) and of `xyz_rel` (DetNet alone), where GT has 3D.
 
 splits: builds the evaluation splits of shared/data (never used for training) and runs
-predict + score on each, printing one table (see `splits_table`).
+predict + score on each, printing one table (see `splits_table`), then the held-back
+people's table (`people`).
+
+people: the detector on the people held back from training by name (real_data
+WILD_HELD_BACK, ELEVEN_K_HELD_BACK) against MediaPipe's pseudo-labels: hands found, false
+hands per frame, error / hand size, PCK at 0.1 of it, side (handmocap/eval_people.py).
 """
 from __future__ import annotations
 
@@ -443,8 +449,37 @@ def run_splits(data, work, markdown=None, methods=("ours", "mediapipe"), models=
             rows.append(table_row(name, "MediaPipe Hands 0.10.21", ref))
     table = "\n".join(rows)
     print(table)
+    if not only:
+        people, _ = run_people(data, models)
+        table += "\n\n" + people
     if markdown:
         Path(markdown).write_text(table + "\n")
+
+
+def run_people(data, models=None, png=None, json_path=None):
+    """`handeval people`: print (and return) the held-back people's table."""
+    from . import eval_people
+    if not (data / "video" / "wild").is_dir():
+        raise ValueError(f"{data}: no video/wild (the data pack's second drop) here")
+    table, results = eval_people.run(data, detector_keywords(models))
+    print(table, flush=True)
+    if png:
+        plot_curves({k.split(" (")[0]: (eval_people.CURVE, v["curve"]) for k, v in results.items()}, png,
+                    "held-back people", xlabel="error threshold (share of hand size)", ylabel="2D PCK")
+        print(f"wrote {png}")
+    if json_path:
+        Path(json_path).write_text(json.dumps(to_jsonable(results), indent=1))
+    return table, results
+
+
+def detector_keywords(models):
+    """HandTracker keywords (model_paths) as HandDetector.load's: detnet -> detnet_path,
+    finder -> finder_path (iknet is not the detector's)."""
+    out = {k: v for k, v in (models or {}).items() if k not in ("detnet", "finder", "iknet")}
+    for k in ("detnet", "finder"):
+        if (models or {}).get(k):
+            out[f"{k}_path"] = models[k]
+    return out
 
 
 # ----------------------------------------------------------------------------- cli
@@ -510,6 +545,10 @@ def cmd_splits(args):
     run_splits(Path(args.data), Path(args.work), args.markdown, args.methods, model_paths(args), args.only)
 
 
+def cmd_people(args):
+    run_people(Path(args.data), model_paths(args), args.png, args.json)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="handeval", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -538,6 +577,12 @@ def main(argv=None):
     t.add_argument("--only", nargs="+", choices=list(SPLITS), help="these splits only")
     add_model_arguments(t)
     t.set_defaults(run=cmd_splits)
+    q = sub.add_parser("people", help="the detector on the people held back from training (MediaPipe's labels)")
+    q.add_argument("--data", default=str(SHARED_DATA))
+    q.add_argument("--png", help="write the PCK curve (error / hand size) here")
+    q.add_argument("--json", help="write every number here")
+    add_model_arguments(q)
+    q.set_defaults(run=cmd_people)
     args = parser.parse_args(argv)
     try:
         args.run(args)

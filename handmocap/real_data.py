@@ -7,9 +7,12 @@ Every loader returns a list of samples, each a dict:
 Video pseudo-labels (MediaPipe, not ground truth) come as per-frame arrays instead
 (`load_pseudo_labels`, `read_video`), since whole clips do not fit in memory as samples.
 
-Splits (README "Use" lines): training may use howiema subject 001 and the MediaPipe
-pseudo-labels of TRAIN_VIDEOS. Evaluation only: howiema 040, temugeb_stereo,
-cmu_hand_labels_sample, samples/mmpose/*.
+Splits (README "Use" lines): training may use howiema subject 001, the MediaPipe
+pseudo-labels of TRAIN_VIDEOS, the clips of video/wild but WILD_HELD_BACK, the 11K Hands
+people but ELEVEN_K_HELD_BACK, and images/scenes (one person). Evaluation only: howiema
+040, temugeb_stereo, cmu_hand_labels_sample, samples/mmpose/*, images/photos, and the
+held-back people (WILD_HELD_BACK, ELEVEN_K_HELD_BACK): the people the project is judged on
+are people it never trained on, so its own figures come from people held back by name.
 """
 import json
 from pathlib import Path
@@ -28,6 +31,29 @@ TRAIN_VIDEOS = (
 HOWIEMA_TRAIN_SUBJECT, HOWIEMA_EVAL_SUBJECT = "001", "040"
 HOWIEMA_HELD_OUT = ("L8", "R8")          # sequences of subject 001 kept for training-side validation
 HELD_OUT_TAIL, HELD_OUT_GAP = 0.15, 15   # of every training video: the last 15% validate, 15 frames apart
+
+# People held back from every training run (validation by person). video/wild: one clip a
+# person (the pack's README names the clips of one repository that show different people),
+# chosen to cover its conditions: small hands of waist-up signers (klyct, rodrmilano00),
+# two hands touching (ROSA, limpiar, want), a sink seen from above in dim light
+# (HandWash_017), a backlit low-angle webcam with motion blur (deepanjanroy), close-ups
+# counting fingers (CoderEnko007), a hand at the face (akstheme), brown skin (SHREYASH1504,
+# akstheme). 11K Hands: every 5th person id in sorted order (37 of 184 people).
+WILD_HELD_BACK = ("klyct__abrazo", "klyct__limpiar", "Kirichovka__want", "SHREYASH1504__v_video",
+                  "huiwen99__HandWash_017", "deepanjanroy__hand", "CoderEnko007__hand", "rodrmilano00__ROSA",
+                  "akstheme__gesture")
+WILD_UNLABELLED = ("aidenpearce001__hand",)      # MediaPipe found no hand in any frame: nothing to learn or score
+ELEVEN_K_HELD_BACK = (
+    "0000000", "0000012", "0000027", "0000054", "0000064", "0000084", "0000501", "0000507", "0000528", "0000539",
+    "0000559", "0000574", "0000588", "0001003", "0001013", "0001021", "0001028", "0001034", "0001041", "0001051",
+    "0001061", "0001073", "0001081", "0001090", "0001506", "0001516", "0001525", "0001532", "0001539", "0001545",
+    "0001552", "0001558", "0001566", "0001573", "0001593", "1200000", "6000000")
+# Pseudo-label filter (reliable_hands): a hand is kept when its joint box is at least
+# MIN_HAND_PX, it is not one of two overlapping detections (IoU > DUPLICATE_IOU: one hand
+# found twice) nor one of two hands given the same side, and (videos) a hand of the same
+# side lies within MAX_JUMP x its size (mean joint distance) in the frame before or after:
+# MediaPipe's misreads flicker, a real hand moves little in 1/30 s.
+MIN_HAND_PX, DUPLICATE_IOU, MAX_JUMP = 16.0, 0.3, 0.3
 
 # RHD: wrist, then each finger tip..base. InterHand: each finger tip..base, wrist last.
 RHD_TO_MP = np.array([0, 4, 3, 2, 1, 8, 7, 6, 5, 12, 11, 10, 9, 16, 15, 14, 13, 20, 19, 18, 17])
@@ -93,6 +119,91 @@ def read_video(video_path, frames=None):
             i += 1
     finally:
         cap.release()
+
+
+def hand_size(uv):
+    """(...,21,2) px -> (...) the side of the joints' box (the unit the errors are quoted in)."""
+    return (uv.max(-2) - uv.min(-2)).max(-1)
+
+
+def reliable_hands(lab, video=True):
+    """(F,2) bool: the pseudo-labelled hands (found) that pass the filter described at
+    MIN_HAND_PX / DUPLICATE_IOU / MAX_JUMP; video=False (photos) skips the temporal test."""
+    from .hand_finder import box_iou
+    found, uv, side = lab["found"].astype(bool), lab["uv"], lab["handedness"]
+    size = hand_size(uv)
+    ok = found & (size >= MIN_HAND_PX)
+    for f in np.flatnonzero(found.all(1)):
+        boxes = [np.r_[uv[f, s].min(0), uv[f, s].max(0)] for s in (0, 1)]
+        if box_iou(*boxes)[0, 0] > DUPLICATE_IOU or side[f, 0] == side[f, 1]:
+            ok[f] = False
+    if not video:
+        return ok
+    steady = np.zeros_like(ok)
+    for f, s in zip(*np.nonzero(ok)):
+        for g in (f - 1, f + 1):
+            if 0 <= g < len(found):
+                for t in np.flatnonzero(found[g] & (side[g] == side[f, s])):
+                    if np.linalg.norm(uv[f, s] - uv[g, t], axis=-1).mean() < MAX_JUMP * size[f, s]:
+                        steady[f, s] = True
+    return ok & steady
+
+
+def wild_clips(root=SHARED_DATA, held_back=False):
+    """The video/wild clips with pseudo-labels: those of WILD_HELD_BACK (held_back=True) or
+    the others (training), sorted paths."""
+    clips = [p for p in sorted((Path(root) / "video" / "wild").iterdir())
+             if p.suffix in (".mp4", ".mov", ".webm") and p.with_suffix(".mediapipe.npz").is_file()
+             and p.stem not in WILD_UNLABELLED]
+    return [p for p in clips if (p.stem in WILD_HELD_BACK) == held_back]
+
+
+def load_11khands(root=SHARED_DATA, held_back=False):
+    """11K Hands photos (about 180x180, one hand each) of the people in ELEVEN_K_HELD_BACK
+    (held_back=True) or of the others, as samples: uv = MediaPipe's 2D (pseudo-labels),
+    handedness = the person's hand from HandInfo.csv (the photos are not mirrored), name =
+    "<id>/<image>". Kept where MediaPipe found one reliable hand (reliable_hands) and its side
+    agrees with the table's (95% of them): where it does not, its joints are read for the
+    other hand's chirality."""
+    import csv
+    base = Path(root) / "images"
+    info = {r["imageName"]: r for r in csv.DictReader(open(base / "11khands" / "HandInfo.csv"))}
+    lab = load_pseudo_labels_images(base / "11khands")
+    ok = reliable_hands(lab, video=False)
+    out = []
+    for i, name in enumerate(lab["names"]):
+        row = info[str(name)]
+        if (row["id"] in ELEVEN_K_HELD_BACK) != held_back or not ok[i].any():
+            continue
+        s = int(np.argmax(ok[i]))
+        side = "right" if "right" in row["aspectOfHand"] else "left"
+        if ("right" if lab["handedness"][i, s] == 0 else "left") == side:
+            out.append(_sample(read_image(base / "11khands" / str(name)), lab["uv"][i, s], handedness=side,
+                               name=f"{row['id']}/{name}"))
+    return out
+
+
+def load_scenes(root=SHARED_DATA):
+    """images/scenes (one person, many scenes; training only): samples of its reliable
+    pseudo-labelled hands, handedness as MediaPipe labels the hand as it appears."""
+    base = Path(root) / "images" / "scenes"
+    lab = load_pseudo_labels_images(base)
+    ok = reliable_hands(lab, video=False)
+    out = []
+    for i, name in enumerate(lab["names"]):
+        slots = np.flatnonzero(ok[i])
+        if len(slots):
+            image = read_image(base / str(name))
+            out += [_sample(image, lab["uv"][i, s], handedness="right" if lab["handedness"][i, s] == 0 else "left",
+                            name=f"scenes/{name}") for s in slots]
+    return out
+
+
+def load_pseudo_labels_images(folder):
+    """`images/<folder>.mediapipe.npz`: names (N,), uv (N,2,21,2), world, score, handedness,
+    found (N,2), size (N,2)."""
+    with np.load(Path(folder).with_suffix(".mediapipe.npz")) as data:
+        return {k: data[k] for k in data.files}
 
 
 # ------------------------------------------------------------------ labelled 2D sets

@@ -60,8 +60,11 @@ RUN_DIR = Path("runs/detnet")
 DATA_DIR = Path("runs/detnet_data")
 CTX = 176                    # real hand context crops: px, covering CTX_SCALE x the keypoint box
 CTX_SCALE = 2.4
-REAL_CACHE = "real_v4.npz"          # v2: + arm-only negatives; v3: frame edges repeated as the detector repeats them;
-                                    # v4: + MediaPipe world landmarks of the video hands (xyz, has_3d)
+REAL_CACHE = "real_v5.npz"          # v2: + arm-only negatives; v3: frame edges repeated as the detector repeats them;
+                                    # v4: + MediaPipe world landmarks of the video hands (xyz, has_3d);
+                                    # v5: + video/wild, 11K Hands, images/scenes; pseudo-labels filtered
+                                    # (real_data.reliable_hands); the held-back people, validation only
+HELD_BACK_SOURCE = "heldback/"      # source prefix of the held-back people's crops (never trained on)
 PART_CACHE = "parts_v1.npz"         # close-ups of part of a hand (build_part_cache), negatives for --part-neg
 PALM_M = 0.093               # |wrist - middle MCP| that real held-out 3D errors are quoted at (temugeb's median)
 
@@ -191,22 +194,21 @@ def build_real_cache(shared, path, seed=0, log=print):
         seq_name = seq["name"].split("/")[1]
         add_hand(seq["image"], seq["uv"], seq["handedness"] == "right", 1.0, seq_name in real_data.HOWIEMA_HELD_OUT,
                  "howiema001/" + seq_name)
-    for rel in real_data.TRAIN_VIDEOS:
-        video = Path(shared) / rel
+    def add_video(video, train, held, stride=1, source=None, negatives=True):
+        """The reliable pseudo-labelled hands (real_data.reliable_hands) of every `stride`-th
+        frame where train | held (F,) bool, and negatives beside them on every 3rd."""
         lab = real_data.load_pseudo_labels(video)
-        train, held = real_data.video_split(len(lab["found"]))
-        for f, image in real_data.read_video(video):
-            if f >= len(lab["found"]) or not (train[f] or held[f]):
+        reliable = real_data.reliable_hands(lab)
+        keep = {f for f in range(0, len(lab["found"]), stride) if train[f] or held[f]}
+        for f, image in real_data.read_video(video, keep):
+            if f >= len(lab["found"]):
                 continue
             slots = np.flatnonzero(lab["found"][f])
             boxes = [np.r_[lab["uv"][f, s].min(0), lab["uv"][f, s].max(0)] for s in slots]
-            dup = len(slots) == 2 and _iou(boxes[0], boxes[1]) > 0.3
-            for s, box in zip(slots, boxes):
-                if dup:
-                    break
+            for s in np.flatnonzero(reliable[f]):
                 add_hand(image, lab["uv"][f, s], lab["handedness"][f, s] == 0, float(lab["score"][f, s]),
-                         bool(held[f]), video.stem, lab["world"][f, s])
-            if len(slots) and f % 3 == 0:             # negatives: squares of hand-like size, away from hands
+                         bool(held[f]), source or video.stem, lab["world"][f, s])
+            if negatives and len(slots) and f % 3 == 0:    # negatives: squares of hand-like size, away from hands
                 h, w = image.shape[:2]
                 grown = [np.r_[b[:2] - 0.3 * (b[2:] - b[:2]) - 12, b[2:] + 0.3 * (b[2:] - b[:2]) + 12] for b in boxes]
                 base = max(max(b[2] - b[0], b[3] - b[1]) for b in boxes) * 1.3
@@ -228,7 +230,27 @@ def build_real_cache(shared, path, seed=0, log=print):
                         negs.append(real_data.warp(image, arm, 128, replicate=True))
                         neg_held.append(bool(held[f]))
                         neg_arm.append(True)
-        log(f"  {rel}: {len(hands['image'])} hands, {len(negs)} negatives so far")
+        log(f"  {video.name}: {len(hands['image'])} hands, {len(negs)} negatives so far")
+
+    for rel in real_data.TRAIN_VIDEOS:
+        video = Path(shared) / rel
+        add_video(video, *real_data.video_split(len(real_data.load_pseudo_labels(video)["found"])))
+    # many more people (the pack's second drop): every 2nd frame of the training clips,
+    # every 3rd of the held-back people's (validation only; their source says so)
+    for held_back in (False, True):
+        for video in real_data.wild_clips(shared, held_back):
+            n = len(real_data.load_pseudo_labels(video)["found"])
+            flags = (np.zeros(n, bool), np.ones(n, bool)) if held_back else (np.ones(n, bool), np.zeros(n, bool))
+            add_video(video, *flags, stride=3 if held_back else 2,
+                      source=f"{HELD_BACK_SOURCE}{video.stem}" if held_back else "wild/" + video.stem,
+                      negatives=not held_back)
+        for s in real_data.load_11khands(shared, held_back):
+            add_hand(s["image"], s["uv"], s["handedness"] == "right", 1.0, held_back,
+                     (HELD_BACK_SOURCE if held_back else "") + "11k/" + s["name"].split("/")[0])
+        log(f"  11K Hands ({'held back' if held_back else 'training'} people): {len(hands['image'])} hands so far")
+    for s in real_data.load_scenes(shared):
+        add_hand(s["image"], s["uv"], s["handedness"] == "right", 1.0, False, "scenes")
+    log(f"  images/scenes: {len(hands['image'])} hands")
     arrays = {k: np.asarray(v) for k, v in hands.items()}
     arrays["neg"], arrays["neg_held"] = np.asarray(negs, np.uint8).reshape(-1, 128, 128, 3), np.asarray(neg_held)
     arrays["neg_arm"] = np.asarray(neg_arm, bool)
@@ -327,14 +349,6 @@ def _inside_share(box, w, h):
     ix = max(0.0, min(box[2], w) - max(box[0], 0.0))
     iy = max(0.0, min(box[3], h) - max(box[1], 0.0))
     return ix * iy / max((box[2] - box[0]) * (box[3] - box[1]), 1e-9)
-
-
-def _iou(a, b):
-    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = ix * iy
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / max(union, 1e-9)
 
 
 def load_real(shared, log=print):
@@ -622,12 +636,14 @@ def synth_val_set(path, limit=512):
 
 def real_val_set(real):
     """Held-out real crops at the detector's crop (box x 1.3, no jitter), shown as right
-    hands: every howiema L8/R8 frame and every 3rd held-out video hand."""
+    hands: every howiema L8/R8 frame, every held-back person's hand in the cache and every
+    3rd hand of the training videos' held-out tails."""
     if real is None:
         return None
     idx = np.flatnonzero(real["held"])
     how = np.char.startswith(real["source"][idx].astype(str), "howiema")
-    idx = np.concatenate([idx[how], idx[~how][::3]])
+    people = np.char.startswith(real["source"][idx].astype(str), HELD_BACK_SOURCE)
+    idx = np.concatenate([idx[how], idx[people], idx[~how & ~people][::3]])
     side = (CTX - 1) / CTX_SCALE * 1.3
     c = (CTX - 1) / 2
     images, uv = [], []
@@ -697,11 +713,20 @@ def validate(net, sval, rval, refines=("softmax",)):
     if rval is not None:
         reads, pres, _ = predict(net, rval["image"], refines[:1])
         err = np.linalg.norm(reads[refines[0]][0] - rval["uv"], axis=-1).mean(-1)
-        how = np.char.startswith(rval["source"].astype(str), "howiema")
+        source = rval["source"].astype(str)
+        how = np.char.startswith(source, "howiema")
+        people = np.char.startswith(source, HELD_BACK_SOURCE)
         if how.any():
             m["howiema001_heldout_px"] = float(err[how].mean())
-        if (~how).any():
-            m["video_heldout_px_vs_mediapipe"] = float(err[~how].mean())
+        if (~how & ~people).any():
+            m["video_heldout_px_vs_mediapipe"] = float(err[~how & ~people].mean())
+        photos = np.char.startswith(source, HELD_BACK_SOURCE + "11k/")
+        for name, mask in (("wild", people & ~photos), ("11k", people & photos)):
+            if mask.any():      # people never trained on, against MediaPipe: error / hand size, PCK at 0.1 of it
+                size = real_data.hand_size(rval["uv"][mask])
+                joint_err = np.linalg.norm(reads[refines[0]][0][mask] - rval["uv"][mask], axis=-1)
+                m[f"people_{name}_median_err"] = float(np.median(err[mask] / size))
+                m[f"people_{name}_pck10"] = float((joint_err <= 0.1 * size[:, None]).mean())
         # the same crops mirrored the wrong way (a left hand shown as it is): what a wrong
         # handedness call costs the 2D
         flipped, uv_flipped, _ = shown_as_right(rval["image"], rval["uv"], np.zeros((len(err), 21, 3)),
@@ -709,8 +734,10 @@ def validate(net, sval, rval, refines=("softmax",)):
         err_wrong = np.linalg.norm(predict(net, flipped, refines[:1])[0][refines[0]][0] - uv_flipped, axis=-1).mean(-1)
         if how.any():
             m["howiema001_heldout_px_wrong_side"] = float(err_wrong[how].mean())
-        if (~how).any():
-            m["video_heldout_px_wrong_side"] = float(err_wrong[~how].mean())
+        if (~how & ~people).any():
+            m["video_heldout_px_wrong_side"] = float(err_wrong[~how & ~people].mean())
+        if people.any():
+            m["people_px"], m["people_px_wrong_side"] = float(err[people].mean()), float(err_wrong[people].mean())
         if "has_3d" in rval and rval["has_3d"].any():   # agreement with MediaPipe's 3D, not accuracy
             has = rval["has_3d"]
             err_mm = np.linalg.norm(reads[refines[0]][1][has] - rval["xyz"][has], axis=-1) * PALM_M * 1000

@@ -11,7 +11,8 @@
 Data (each batch half real, half synthetic):
 * real frames of shared/data/video (webcam, dex_retargeting, tfjs_asl_hand; every n-th
   frame where MediaPipe found a hand, the first 85% of each clip, or all of it with
-  `--real-part all`) with the boxes of MediaPipe's 2D pseudo-labels, and howiema_lstm_pm
+  `--real-part all`; with `--wild` also every n-th frame of the video/wild clips of the
+  people not held back) with the boxes of MediaPipe's 2D pseudo-labels, and howiema_lstm_pm
   subject 001 (human labels) but for sequences L8 and R8; VAL_VIDEOS, the clips' last 15%
   and L8/R8 are held out for validation; temugeb_stereo and howiema 040 (evaluation) are
   never read;
@@ -74,6 +75,9 @@ def add_arguments(p):
     p.add_argument("--real-part", choices=("train", "all"), default="train",
                    help="frames of the training videos: the first 85%% (the tails validate) or all of them "
                         "(default %(default)s)")
+    p.add_argument("--wild", action="store_true",
+                   help="also train on the clips of video/wild (the pack's second drop) but the held-back "
+                        "people's (real_data.WILD_HELD_BACK), which validate as `people`")
     p.add_argument("--val-every", type=int, default=1000, help="validate every n iterations (default %(default)s)")
     p.add_argument("--resume", action="store_true")
     p.add_argument("--export-only", action="store_true")
@@ -88,14 +92,15 @@ def joint_box(uv):
 
 
 def load_real_frames(data_dir, videos, stride=2, size=REAL_SIZE, part="all"):
-    """Letterboxed RGB frames (N,size,size,3) of the videos where MediaPipe found a hand,
-    their boxes (N,2,4) input px (NaN: none) and right-hand flags (N,2) (as MediaPipe labels
-    the hand as it appears). part: "all" frames, or of real_data.video_split "train" (the
-    first 85%) or "tail" (the held-out last 15%)."""
+    """Letterboxed RGB frames (N,size,size,3) of the videos (stems under video/ of .mp4
+    files, or paths) where MediaPipe found a hand, their boxes (N,2,4) input px (NaN: none)
+    and right-hand flags (N,2) (as MediaPipe labels the hand as it appears). part: "all"
+    frames, or of real_data.video_split "train" (the first 85%) or "tail" (the held-out last
+    15%)."""
     images, boxes, right = [], [], []
     for stem in videos:
-        video = data_dir / "video" / f"{stem}.mp4"
-        labels = np.load(data_dir / "video" / f"{stem}.mediapipe.npz")
+        video = stem if isinstance(stem, Path) else data_dir / "video" / f"{stem}.mp4"
+        labels = real_data.load_pseudo_labels(video)
         n = len(labels["found"])
         keep = dict(zip(("train", "tail"), real_data.video_split(n))).get(part, np.ones(n, bool))
         cap = cv2.VideoCapture(str(video))
@@ -390,10 +395,13 @@ def main(args):
         if args.real_part == "train":
             val_sets["tails"] = load_real_frames(args.data, TRAIN_VIDEOS, stride=1, size=INPUT_SIZE, part="tail")
         val_sets["howiema"] = load_howiema_frames(args.data, held_out=True, size=INPUT_SIZE)
+        if args.wild:   # people never trained on (real_data.WILD_HELD_BACK), every 2nd frame
+            val_sets["people"] = load_real_frames(args.data, real_data.wild_clips(args.data, held_back=True),
+                                                  stride=2, size=INPUT_SIZE)
         # the same hands turned (a quarter turn each way and a half): upright hands only tell
         # half the story for a camera above a desk or a hand that hangs down; and upright in
         # grey (a mono or IR camera)
-        for name in [k for k in ("real", "tails", "howiema") if k in val_sets]:
+        for name in [k for k in ("real", "tails", "howiema", "people") if k in val_sets]:
             images, boxes, right = val_sets[name]
             val_sets[f"{name}_turned"] = turned(images, boxes, right)
             val_sets[f"{name}_grey"] = (greyed(images), boxes, right)
@@ -409,7 +417,9 @@ def main(args):
                    *(load_synth(d, range(shard_count(d))) for d in args.synth[1:]))
     if have_real:
         real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, part=args.real_part),
-                      load_howiema_frames(args.data, held_out=False))
+                      load_howiema_frames(args.data, held_out=False),
+                      *([load_real_frames(args.data, real_data.wild_clips(args.data), stride=args.real_stride)]
+                        if args.wild else []))
     else:
         real = (np.zeros((0,)), None, None)
     negatives = background_crops(Path(__file__).resolve().parent.parent)

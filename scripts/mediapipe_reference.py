@@ -7,7 +7,7 @@ Run with a throwaway environment that has MediaPipe (never a project dependency)
     /tmp/mpenv/bin/python scripts/mediapipe_reference.py --images DIR|VIDEO --out MP.npz \
         [--K-file K.npy | --K fx,fy,cx,cy] [--sequence]
     handeval score --pred MP.npz --gt GT.npz          # scored exactly like our predictions
-    /tmp/mpenv/bin/python scripts/mediapipe_reference.py --bench VIDEO [--frames 200]   # ms per frame
+    /tmp/mpenv/bin/python scripts/mediapipe_reference.py --bench VIDEO [--frames 200] [--max-hands 2]   # ms per frame
 
 mediapipe.solutions.hands (the legacy Hands solution bundled with the package, model
 complexity 1, up to 2 hands, confidences 0.5): static-image mode for a folder of
@@ -126,17 +126,19 @@ def bench(args):
     """Median ms per frame of MediaPipe's tracking (video) mode on a video's frames."""
     import mediapipe as mp
     images = list(frames(args.bench))[:args.frames]
-    times = []
-    with mp.solutions.hands.Hands(static_image_mode=False, max_num_hands=2, model_complexity=1) as hands:
+    times, found = [], []
+    with mp.solutions.hands.Hands(static_image_mode=False, max_num_hands=args.max_hands,
+                                  model_complexity=1) as hands:
         for _ in range(2):   # second pass timed: models warm
-            times = []
+            times, found = [], []
             for frame in images:
-                rgb = cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
-                t = time.perf_counter()
-                hands.process(rgb)
+                t = time.perf_counter()      # the BGR -> RGB conversion counts: a camera gives BGR frames
+                result = hands.process(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
                 times.append(time.perf_counter() - t)
+                found.append(len(result.multi_hand_landmarks or []))
     print(json.dumps({"median_ms": 1e3 * float(np.median(times)), "p90_ms": 1e3 * float(np.percentile(times, 90)),
-                      "frames": len(times)}))
+                      "frames": len(times), "hands_per_frame": float(np.mean(found)), "max_hands": args.max_hands,
+                      "size": list(images[0].shape[1::-1])}))
 
 
 def main():
@@ -149,6 +151,7 @@ def main():
     p.add_argument("--sequence", action="store_true", help="a folder's images are consecutive video frames")
     p.add_argument("--bench", help="a video: print MediaPipe's median ms per frame (JSON) instead")
     p.add_argument("--frames", type=int, default=200)
+    p.add_argument("--max-hands", type=int, default=2, help="with --bench: max_num_hands (default %(default)s)")
     args = p.parse_args()
     if args.bench:
         bench(args)
