@@ -12,9 +12,12 @@ Each batch (drawn from numpy generator [seed, iteration], so a resumed run sees 
 batches the uninterrupted run would have) mixes:
 * synthetic crops (handsynth shards, --data): all heads. Left hands are mirrored to the
   right and the 3D label's x negated (DESIGN.md);
-* real hand crops with 2D labels: howiema_lstm_pm subject 001 and the MediaPipe
-  pseudo-labels of real_data.TRAIN_VIDEOS (weight = MediaPipe's score), cut like the
-  detector cuts (square around the keypoint box x 1.3) with jitter. With --real-3d W the
+* real hand crops with 2D labels: howiema_lstm_pm subject 001, the MediaPipe
+  pseudo-labels of real_data.TRAIN_VIDEOS (weight = MediaPipe's score) and, since cache
+  v5, of every video/wild clip, 11K Hands person and images/scenes photo but the people
+  held back by name (real_data.WILD_HELD_BACK, ELEVEN_K_HELD_BACK), all through
+  real_data.reliable_hands; cut like the detector cuts (square around the keypoint box x
+  1.3) with jitter. With --real-3d W the
   video crops' 3D heads also learn MediaPipe's world landmarks (root-relative and
   scale-normalized like the synthetic labels; weight W x score): the only 3D on real
   pixels there is, where the paper's real data has 2D only (zero 3D weight, the default);
@@ -38,8 +41,9 @@ Losses: heatmap 100 (per-cell MSE, sigma = 1 cell Gaussians), location 10, delta
 map also learns its value away from the peak), presence and handedness BCE 1, AdamW
 weight decay (L_reg).
 Validation (never training data): held-out synthetic shards (--val), the held-out tail
-of every training video (last 15% of frames, 15 frames gap) and howiema 001 sequences
-L8/R8 (not used for training).
+of every training video (last 15% of frames, 15 frames gap), howiema 001 sequences L8/R8
+(not used for training) and the held-back people's crops (`people_*`: error / hand size
+and PCK at 0.1 of it, against MediaPipe's labels).
 """
 import glob
 import json
