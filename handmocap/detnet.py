@@ -339,7 +339,7 @@ def export_onnx(net, path, refine="logquad", opset=17):
     was_training = net.training
     net.eval()
     wrapper = DetNetExport(net, refine).eval()
-    dummy = torch.rand(2, 3, CROP, CROP)
+    dummy = torch.rand(2, 3, CROP, CROP, device=next(net.parameters()).device)   # a GPU net exports too
     torch.onnx.export(wrapper, (dummy,), str(path), input_names=["image"], output_names=list(OUTPUTS),
                       dynamic_axes={"image": {0: "N"}, **{k: {0: "N"} for k in OUTPUTS}},
                       opset_version=opset, dynamo=False)

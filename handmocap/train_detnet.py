@@ -122,6 +122,12 @@ def add_arguments(p):
     p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
+    p.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda (a GPU, when one is lent)")
+    p.add_argument("--amp", action="store_true",
+                   help="bf16 mixed precision for the forward pass (autocast; the losses in float32): for --device cuda")
+    p.add_argument("--workers", type=int, default=0, metavar="N",
+                   help="processes that make the batches ahead (default 0: in the training loop, as on the 2-core "
+                        "CPU); a GPU run wants about one per core")
     p.add_argument("--val-every", type=int, default=250)
     p.add_argument("--ckpt-every", type=int, default=50)
     p.add_argument("--run-dir", type=Path, default=None, help="default runs/detnet/<backbone>")
@@ -487,6 +493,20 @@ class BatchMaker:
                 "w2d": np.ones(n, np.float32), "w3d": zeros, "presence": zeros, "right": zeros, "w_hand": zeros}
 
 
+class IterationBatches:
+    """A map-style dataset whose item i is fn(iterations[i]): the batches of a run, for a
+    torch DataLoader (batch_size=None) to make in worker processes."""
+
+    def __init__(self, fn, iterations):
+        self.fn, self.iterations = fn, list(iterations)
+
+    def __len__(self):
+        return len(self.iterations)
+
+    def __getitem__(self, i):
+        return self.fn(self.iterations[i])
+
+
 def degrade(images, hand, share, rng):
     """Degrade a `share` of the crops `images` (B,128,128,3) uint8 where `hand` (B,) bool, in
     place, each one of three ways: a patch (15-45% of the side) of another crop of the batch
@@ -675,16 +695,17 @@ def predict(net, images, refines=("softmax",), batch=128):
     from .detnet import read_out
     was_training = net.training
     net.eval()
+    device = next(net.parameters()).device
     reads, pres, right = {r: [] for r in refines}, [], []
     with torch.no_grad():
         for i in range(0, len(images), batch):
-            x = torch.from_numpy(np.ascontiguousarray(images[i:i + batch])).permute(0, 3, 1, 2).float() / 255.0
-            out = net(x.contiguous(memory_format=torch.channels_last))
+            x = torch.from_numpy(np.ascontiguousarray(images[i:i + batch])).to(device).permute(0, 3, 1, 2).float() / 255.0
+            out = {k: v.float() for k, v in net(x.contiguous(memory_format=torch.channels_last)).items()}
             for r in refines:
-                reads[r].append([t.numpy() for t in read_out(out["heatmap"], out["location"], net.stride, r,
-                                                                         out["heat_logits"], out.get("fine_logits"))])
-            pres.append(torch.sigmoid(out["presence"]).numpy())
-            right.append(torch.sigmoid(out["handedness"]).numpy())
+                reads[r].append([t.cpu().numpy() for t in read_out(out["heatmap"], out["location"], net.stride, r,
+                                                                               out["heat_logits"], out.get("fine_logits"))])
+            pres.append(torch.sigmoid(out["presence"]).cpu().numpy())
+            right.append(torch.sigmoid(out["handedness"]).cpu().numpy())
     net.train(was_training)
     return ({r: [np.concatenate(k) for k in zip(*v)] for r, v in reads.items()},
             np.concatenate(pres), np.concatenate(right))
@@ -863,8 +884,12 @@ def main(args):
     from .detnet import DetNet, export_onnx
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit(f"--device {args.device}: torch {torch.__version__} sees no CUDA device here; "
+                         f"train on the CPU with --device cpu")
     run_dir = args.run_dir or RUN_DIR / args.backbone
-    net = DetNet(args.backbone, fine=args.fine_head).to(memory_format=torch.channels_last)
+    net = DetNet(args.backbone, fine=args.fine_head).to(device, memory_format=torch.channels_last)
     trained = dict(net.named_parameters())
     if args.train_only:
         trained = {k: v for k, v in trained.items() if k.split(".")[0] in args.train_only}
@@ -879,7 +904,7 @@ def main(args):
     if args.resume or args.export_only:
         if not ckpt_path.exists():
             raise SystemExit(f"no checkpoint at {ckpt_path}: train from scratch with `handtrain detnet`")
-        ckpt = torch.load(ckpt_path, weights_only=False)
+        ckpt = torch.load(ckpt_path, weights_only=False, map_location=device)
         fresh = load_matching(net, ckpt["model"])
         if fresh:                                   # an older checkpoint: new heads start fresh, so does AdamW
             print(f"note: {ckpt_path} lacks {', '.join(sorted(fresh))}; those start from scratch")
@@ -924,7 +949,7 @@ def main(args):
                                  f"({type(e).__name__}: {str(e)[:200]})") from None
             print(f"recovered a trainable {source} DetNet from {args.init_from}")
         else:
-            state = torch.load(args.init_from, weights_only=False)["model"]
+            state = torch.load(args.init_from, weights_only=False, map_location=device)["model"]
         fresh = load_matching(net, state)
         grown = identity_init_new_blocks(net, state)
         print(f"initialised from {args.init_from}; new: {', '.join(sorted(fresh)) or 'nothing'} "
@@ -945,11 +970,25 @@ def main(args):
         if args.train_only:             # frozen modules keep their BatchNorm statistics too
             for name, m in net.named_children():
                 m.train(name in args.train_only)
+    def batch_at(it):
+        """Iteration it's batch (to_torch tensors on the CPU), the same wherever it is made."""
+        rng = np.random.default_rng([args.seed, it])
+        batch = maker.make(args.batch, rng)
+        if args.degrade:
+            degrade(batch["image"], batch["presence"] > 0, args.degrade, rng)
+        return to_torch(batch, rng, args.grey)
+
+    # --workers N: N processes make the batches ahead (in order, each from its iteration's
+    # seed, so a run gives the same batches either way), which keeps a GPU fed; they hold
+    # the data as it was at the start (no new synthetic folders picked up)
+    batches = iter(torch.utils.data.DataLoader(IterationBatches(batch_at, range(start, args.iters)), batch_size=None,
+                                               num_workers=args.workers, prefetch_factor=4,
+                                               pin_memory=device.type == "cuda")) if args.workers else None
     bar = tqdm(range(start, args.iters), initial=start, total=args.iters, desc=f"detnet-{args.backbone}",
                dynamic_ncols=True, mininterval=5)
     t0 = time.monotonic()
     for it in bar:
-        if it % 500 == 0 and it > start and len(synth["image"]) < args.max_synth:
+        if it % 500 == 0 and it > start and len(synth["image"]) < args.max_synth and not args.workers:
             new_dirs = synth_dirs(args.data)
             if new_dirs != dirs:
                 dirs, synth = new_dirs, load_synth(new_dirs, args.max_synth)
@@ -957,13 +996,11 @@ def main(args):
                 bar.write(f"synthetic: now {len(synth['image'])} crops from {len(dirs)} directories")
         for group in opt.param_groups:
             group["lr"] = warmup_cosine_lr(it, args.lr, args.iters, warmup=300, floor=0.02)
-        rng = np.random.default_rng([args.seed, it])
-        batch = maker.make(args.batch, rng)
-        if args.degrade:
-            degrade(batch["image"], batch["presence"] > 0, args.degrade, rng)
-        b = to_torch(batch, rng, args.grey)
+        b = {k: v.to(device, non_blocking=True) for k, v in (next(batches) if batches else batch_at(it)).items()}
         train_mode()                    # validation and export leave every module in training mode
-        losses = detnet_losses(net(b["image"].contiguous(memory_format=torch.channels_last)), b, net.stride)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.amp):   # --amp: bf16 mixed precision
+            out = net(b["image"].contiguous(memory_format=torch.channels_last))
+        losses = detnet_losses({k: v.float() for k, v in out.items()}, b, net.stride)
         loss = sum(weights[k] * v for k, v in losses.items())
         opt.zero_grad(set_to_none=True)
         loss.backward()

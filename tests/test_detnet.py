@@ -563,3 +563,34 @@ def test_padding_depthwise_convs_keeps_the_function():
     assert next(a.i for a in dw.attribute if a.name == "group") == 120
     np.testing.assert_allclose(run(m, x), before, rtol=1e-5, atol=1e-5)
     assert pad_depthwise_convs(m) == 0 and pad_depthwise_convs(model(120)) == 0
+
+
+def test_handtrain_detnet_batches_are_the_same_made_ahead_by_workers_and_amp_trains(tmp_path):
+    """`handtrain detnet --workers 2` (a GPU run's loader) trains on exactly the batches the
+    in-loop path makes (the same weights after a few steps), --amp (bf16 autocast) trains
+    and exports, and --device cuda without a GPU is one clear line."""
+    torch = _torch()
+    pytest.importorskip("moderngl")
+    import subprocess
+    import sys
+    shards = tmp_path / "synth"
+    r = subprocess.run([sys.executable, "-m", "handmocap.synth.cli", "generate", "-n", "48", "-o", str(shards),
+                        "--procedural", "--workers", "1", "--quiet"], capture_output=True, text=True)
+    if r.returncode:
+        pytest.skip(f"no synthetic crops (no EGL context?): {r.stderr[-200:]}")
+    from handmocap.train_cli import main
+
+    def run(name, *extra):
+        main(["detnet", "--backbone", "fast", "--data", str(shards), "--val", str(shards), "--shared",
+              str(tmp_path / "no_pack"), "--iters", "3", "--batch", "6", "--val-every", "3", "--max-synth", "48",
+              "--run-dir", str(tmp_path / name), "--export", str(tmp_path / f"{name}.onnx"), *extra])
+        return torch.load(tmp_path / name / "last.pt", weights_only=False)
+    inline, ahead = run("inline"), run("ahead", "--workers", "2")
+    for k, v in inline["model"].items():
+        assert torch.equal(v, ahead["model"][k]), k
+    amp = run("amp", "--amp")
+    assert (tmp_path / "amp.onnx").is_file() and np.isfinite(amp["history"][-1]["syn_px_softmax"])
+    assert any(not torch.equal(v, inline["model"][k]) for k, v in amp["model"].items() if v.is_floating_point())
+    if not torch.cuda.is_available():
+        with pytest.raises(SystemExit, match="sees no CUDA device here"):
+            main(["detnet", "--device", "cuda", "--run-dir", str(tmp_path / "cuda")])
