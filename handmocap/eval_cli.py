@@ -449,9 +449,11 @@ def run_splits(data, work, markdown=None, methods=("ours", "mediapipe"), models=
             rows.append(table_row(name, "MediaPipe Hands 0.10.21", ref))
     table = "\n".join(rows)
     print(table)
-    if not only:
+    if not only and (data / "video" / "wild").is_dir():
         people, _ = run_people(data, models)
         table += "\n\n" + people
+    elif not only:
+        print(f"held-back people skipped: {data} has no video/wild (the data pack's second drop)")
     if markdown:
         Path(markdown).write_text(table + "\n")
 
