@@ -229,7 +229,9 @@ def plot_curves(curves, path, title="", xlabel="error threshold (mm)", ylabel="P
         cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, colour, 2, cv2.LINE_AA)
         for p in pts:
             cv2.circle(img, tuple(int(v) for v in p), 3, colour, -1, cv2.LINE_AA)
-        cv2.putText(img, f"{label} (AUC {metrics.auc(t, c):.3f})", (left + 10, h - bottom - 12 - 18 * i), font, 0.45,
+        text = f"{label} (AUC {metrics.auc(t, c):.3f})"     # bottom right: PCK curves rise, so it is empty there
+        tw = cv2.getTextSize(text, font, 0.45, 1)[0][0]
+        cv2.putText(img, text, (w - right - 10 - tw, h - bottom - 12 - 18 * i), font, 0.45,
                     colour, 1, cv2.LINE_AA)
     if not cv2.imwrite(str(path), img):
         raise ValueError(f"{path}: cannot write the PNG")
