@@ -28,17 +28,12 @@ CURVE = np.linspace(0.0, 0.3, 31)              # thresholds of the PCK plot
 def frames_of_clip(video):
     """(BGR frame, MediaPipe hands (k,21,2), reliable (k,) bool, sides [k]) per frame of a
     clip: every hand MediaPipe found, one of two overlapping detections dropped."""
-    from .hand_finder import box_iou
     lab = real_data.load_pseudo_labels(video)
-    reliable = real_data.reliable_hands(lab)
+    reliable, twice = real_data.reliable_hands(lab), real_data.found_twice(lab)
     for f, rgb in real_data.read_video(video):
         if f >= len(lab["found"]):
             break
-        slots = list(np.flatnonzero(lab["found"][f]))
-        if len(slots) == 2:
-            boxes = [np.r_[lab["uv"][f, s].min(0), lab["uv"][f, s].max(0)] for s in slots]
-            if box_iou(*boxes)[0, 0] > real_data.DUPLICATE_IOU:
-                slots = slots[:1]
+        slots = list(np.flatnonzero(lab["found"][f]))[:1 if twice[f] else 2]
         yield (np.ascontiguousarray(rgb[..., ::-1]), lab["uv"][f, slots], reliable[f, slots],
                ["right" if lab["handedness"][f, s] == 0 else "left" for s in slots])
 

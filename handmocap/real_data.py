@@ -95,7 +95,9 @@ def video_split(n_frames):
 
 def load_pseudo_labels(video_path):
     """The `<stem>.mediapipe.npz` beside a video: dict of arrays uv (F,2,21,2), world,
-    score (F,2), handedness (F,2) int8 0 Right / 1 Left / -1 empty, found (F,2), fps, size."""
+    score (F,2), handedness (F,2) int8 0 Right / 1 Left / -1 empty, found (F,2), fps, size.
+    For an image folder (images/<folder>) the file beside it, with names (N,) and size (N,2)
+    per image instead of fps and size."""
     path = Path(video_path).with_suffix(".mediapipe.npz")
     with np.load(path) as data:
         return {k: data[k] for k in data.files}
@@ -126,17 +128,24 @@ def hand_size(uv):
     return (uv.max(-2) - uv.min(-2)).max(-1)
 
 
+def found_twice(lab):
+    """(F,) bool: the frames whose two pseudo-labelled hands' joint boxes overlap by more
+    than DUPLICATE_IOU (one hand found twice)."""
+    from .hand_finder import box_iou
+    twice = np.zeros(len(lab["found"]), bool)
+    for f in np.flatnonzero(lab["found"].all(1)):
+        boxes = np.concatenate([lab["uv"][f].min(-2), lab["uv"][f].max(-2)], -1)    # (2,4)
+        twice[f] = box_iou(boxes[0], boxes[1])[0, 0] > DUPLICATE_IOU
+    return twice
+
+
 def reliable_hands(lab, video=True):
     """(F,2) bool: the pseudo-labelled hands (found) that pass the filter described at
     MIN_HAND_PX / DUPLICATE_IOU / MAX_JUMP; video=False (photos) skips the temporal test."""
-    from .hand_finder import box_iou
     found, uv, side = lab["found"].astype(bool), lab["uv"], lab["handedness"]
     size = hand_size(uv)
     ok = found & (size >= MIN_HAND_PX)
-    for f in np.flatnonzero(found.all(1)):
-        boxes = [np.r_[uv[f, s].min(0), uv[f, s].max(0)] for s in (0, 1)]
-        if box_iou(*boxes)[0, 0] > DUPLICATE_IOU or side[f, 0] == side[f, 1]:
-            ok[f] = False
+    ok[found_twice(lab) | (found.all(1) & (side[:, 0] == side[:, 1]))] = False
     if not video:
         return ok
     steady = np.zeros_like(ok)
@@ -168,7 +177,7 @@ def load_11khands(root=SHARED_DATA, held_back=False):
     import csv
     base = Path(root) / "images"
     info = {r["imageName"]: r for r in csv.DictReader(open(base / "11khands" / "HandInfo.csv"))}
-    lab = load_pseudo_labels_images(base / "11khands")
+    lab = load_pseudo_labels(base / "11khands")
     ok = reliable_hands(lab, video=False)
     out = []
     for i, name in enumerate(lab["names"]):
@@ -187,7 +196,7 @@ def load_scenes(root=SHARED_DATA):
     """images/scenes (one person, many scenes; training only): samples of its reliable
     pseudo-labelled hands, handedness as MediaPipe labels the hand as it appears."""
     base = Path(root) / "images" / "scenes"
-    lab = load_pseudo_labels_images(base)
+    lab = load_pseudo_labels(base)
     ok = reliable_hands(lab, video=False)
     out = []
     for i, name in enumerate(lab["names"]):
@@ -197,13 +206,6 @@ def load_scenes(root=SHARED_DATA):
             out += [_sample(image, lab["uv"][i, s], handedness="right" if lab["handedness"][i, s] == 0 else "left",
                             name=f"scenes/{name}") for s in slots]
     return out
-
-
-def load_pseudo_labels_images(folder):
-    """`images/<folder>.mediapipe.npz`: names (N,), uv (N,2,21,2), world, score, handedness,
-    found (N,2), size (N,2)."""
-    with np.load(Path(folder).with_suffix(".mediapipe.npz")) as data:
-        return {k: data[k] for k in data.files}
 
 
 # ------------------------------------------------------------------ labelled 2D sets

@@ -204,10 +204,12 @@ def build_real_cache(shared, path, seed=0, log=print):
         seq_name = seq["name"].split("/")[1]
         add_hand(seq["image"], seq["uv"], seq["handedness"] == "right", 1.0, seq_name in real_data.HOWIEMA_HELD_OUT,
                  "howiema001/" + seq_name)
-    def add_video(video, train, held, stride=1, source=None, negatives=True):
+    def add_video(video, split=real_data.video_split, stride=1, source=None, negatives=True):
         """The reliable pseudo-labelled hands (real_data.reliable_hands) of every `stride`-th
-        frame where train | held (F,) bool, and negatives beside them on every 3rd."""
+        frame where train | held ((F,) bool each, split(F)), and negatives beside them on
+        every 3rd."""
         lab = real_data.load_pseudo_labels(video)
+        train, held = split(len(lab["found"]))
         reliable = real_data.reliable_hands(lab)
         keep = {f for f in range(0, len(lab["found"]), stride) if train[f] or held[f]}
         for f, image in real_data.read_video(video, keep):
@@ -243,15 +245,14 @@ def build_real_cache(shared, path, seed=0, log=print):
         log(f"  {video.name}: {len(hands['image'])} hands, {len(negs)} negatives so far")
 
     for rel in real_data.TRAIN_VIDEOS:
-        video = Path(shared) / rel
-        add_video(video, *real_data.video_split(len(real_data.load_pseudo_labels(video)["found"])))
+        add_video(Path(shared) / rel)
     # many more people (the pack's second drop): every 2nd frame of the training clips,
     # every 3rd of the held-back people's (validation only; their source says so)
     for held_back in (False, True):
+        def whole(n):           # a clip is all training or all held out
+            return np.full(n, not held_back), np.full(n, held_back)
         for video in real_data.wild_clips(shared, held_back):
-            n = len(real_data.load_pseudo_labels(video)["found"])
-            flags = (np.zeros(n, bool), np.ones(n, bool)) if held_back else (np.ones(n, bool), np.zeros(n, bool))
-            add_video(video, *flags, stride=3 if held_back else 2,
+            add_video(video, whole, stride=3 if held_back else 2,
                       source=f"{HELD_BACK_SOURCE}{video.stem}" if held_back else "wild/" + video.stem,
                       negatives=not held_back)
         for s in real_data.load_11khands(shared, held_back):
