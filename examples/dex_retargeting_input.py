@@ -1,86 +1,38 @@
-"""/hand/pose -> the input of dex-retargeting (github.com/dexsuite/dex-retargeting), which stays
-uninstalled here: numpy (+ pyzmq and msgpack for the live loop), no handmocap import.
+"""/hand/pose -> a robot hand, live, with dex-retargeting (pip install -e '.[retarget]').
 
-dex-retargeting's examples retarget MediaPipe's world landmarks (SingleHandDetector.detect):
-21 joints in MediaPipe's order (handmocap's order too: no reordering), metres, the wrist at
-the origin, rotated into a wrist frame estimated from the wrist, index MCP and middle MCP and
-then by a fixed per-hand matrix into what it calls the MANO convention:
-    joint_pos = (p - p[0]) @ wrist_frame(p) @ OPERATOR2MANO[hand]           (21, 3) metres
-Here p is /hand/pose `xyz` (metric, camera frame: only its shape matters, the rotation drops
-out). In that frame, for either hand, the middle MCP lies on +z; the index MCP is on +y for a
-right hand and on -y for a left one. Feed it as their examples do:
+The retarget node does this inside a graph (launch/teleop.yaml); this is the same loop as a
+plain subscriber, to copy into a robot program: every /hand/pose message, the hand of one side
+turned into dex-retargeting's input (handmocap.retarget.retargeting_joint_pos: its joint order,
+wrist frame and metres) and retargeted onto a robot hand, whose joint names and positions are
+printed.
 
-    retargeting = RetargetingConfig.load_from_file(config_path).build()     # dex_retargeting
-    ref = ref_value(joint_pos, retargeting.optimizer.target_link_human_indices,
-                    retargeting.optimizer.retargeting_type)
-    qpos = retargeting.retarget(ref)
+    python examples/dex_retargeting_input.py [right|left] [CONFIG] [URDF_DIR] [ENDPOINT]
 
-Pick the hand by `handedness` (the anatomical hand, as its hand_type means it: their
-SingleHandDetector with selfie=False swaps MediaPipe's mirrored labels for the same reason).
-/hand/keypoints' xyz_rel would do too, but it is scale-normalized (|joint 0 - joint 9| = 1), and
-the retargeting configs' scaling_factor expects metres: multiply it by a hand size first.
-
-    python examples/dex_retargeting_input.py [right|left] [ENDPOINT]   # prints joint_pos live
+CONFIG: a dex-retargeting config (.yml, or a name it ships such as allegro_hand_right; default
+the project's toy hand, examples/robot_hand/toy_hand_right.yml); URDF_DIR: the folder its
+urdf_path is relative to; ENDPOINT: the ik node's (default: read from the running graph).
 """
 import json
 import os
 import sys
 import tempfile
+from pathlib import Path
 
+import msgpack
 import numpy as np
+import zmq
 
-# dex-retargeting's fixed rotations from its estimated wrist frame to its MANO convention
-# (example/vector_retargeting/single_hand_detector.py), applied on the right: p @ M.
-OPERATOR2MANO = {
-    "right": np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
-    "left": np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]),
-}
-WRIST, INDEX_MCP, MIDDLE_MCP = 0, 5, 9
+from handmocap.retarget import RobotHand
 
-
-def wrist_frame(xyz):
-    """(3,3) rotation whose columns are the wrist frame's axes in xyz's frame: x from the middle
-    MCP towards the wrist, y the normal of the plane (wrist, index MCP, middle MCP), z = x × y,
-    with the sign of y chosen so that z points from the middle MCP towards the index MCP.
-    xyz: (21,3) joints, any rigid frame, any unit."""
-    xyz = np.asarray(xyz, dtype=np.float64)
-    wrist, index, middle = xyz[WRIST], xyz[INDEX_MCP], xyz[MIDDLE_MCP]
-    normal = np.cross(index - wrist, middle - wrist)   # the 3 points' plane (their SVD fit, exactly)
-    normal /= np.linalg.norm(normal)
-    x = wrist - middle
-    x -= (x @ normal) * normal                          # Gram-Schmidt: x in the palm plane
-    x /= np.linalg.norm(x)
-    z = np.cross(x, normal)
-    if z @ (index - middle) < 0:                        # z towards the index side
-        normal, z = -normal, -z
-    return np.stack([x, normal, z], axis=1)
-
-
-def retargeting_joint_pos(xyz, handedness):
-    """(21,3) joints (metres, MediaPipe order, e.g. /hand/pose xyz) -> dex-retargeting's
-    joint_pos (21,3): wrist-relative, in its MANO-convention wrist frame."""
-    xyz = np.asarray(xyz, dtype=np.float64)
-    rel = xyz - xyz[WRIST]
-    return rel @ wrist_frame(xyz) @ OPERATOR2MANO[handedness]
-
-
-def ref_value(joint_pos, indices, retargeting_type):
-    """What retargeting.retarget() takes, as dex-retargeting's examples form it: the joints
-    themselves for POSITION retargeting, else vectors joint_pos[task] - joint_pos[origin] with
-    indices (2, K) = (origin row, task row)."""
-    indices = np.asarray(indices)
-    if str(retargeting_type).upper().endswith("POSITION"):
-        return joint_pos[indices, :]
-    return joint_pos[indices[1], :] - joint_pos[indices[0], :]
+TOY_HAND = Path(__file__).resolve().parent / "robot_hand" / "toy_hand_right.yml"
 
 
 def main():
     hand_type = sys.argv[1] if len(sys.argv) > 1 else "right"
-    import msgpack
-    import zmq
+    robot = RobotHand(sys.argv[2] if len(sys.argv) > 2 else TOY_HAND, sys.argv[3] if len(sys.argv) > 3 else None)
     run_dir = os.environ.get("HANDMOCAP_RUN_DIR") or os.path.join(
         tempfile.gettempdir(), f"handmocap-{os.getuid()}", os.environ.get("HANDMOCAP_GRAPH", "default"))
-    endpoint = sys.argv[2] if len(sys.argv) > 2 else json.load(open(os.path.join(run_dir, "ik.json")))["endpoint"]
+    endpoint = sys.argv[4] if len(sys.argv) > 4 else json.load(open(os.path.join(run_dir, "ik.json")))["endpoint"]
     sock = zmq.Context().socket(zmq.SUB)
     sock.connect(endpoint)
     sock.subscribe(b"/hand/pose\0")
@@ -89,7 +41,8 @@ def main():
             if hand["handedness"] == hand_type:
                 a = hand["xyz"]
                 xyz = np.frombuffer(a["data"], a["dtype"]).reshape(a["shape"])
-                print(np.round(retargeting_joint_pos(xyz, hand_type), 4).tolist(), flush=True)
+                qpos = robot.retarget(xyz, hand_type)
+                print(" ".join(f"{n}={q:.3f}" for n, q in zip(robot.joint_names, qpos)), flush=True)
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ from .kinematics import (
     frames_to_bone_rotations, frames_to_relative, relative_to_frames,
 )
 from .rotations import mirror_points
-from .skeleton import FROM_MANO_ORDER, NON_TIP_JOINTS, NUM_JOINTS, REF_BONE
+from .skeleton import FROM_MANO_ORDER, HAND_LENGTH_JOINTS, NON_TIP_JOINTS, NUM_JOINTS, REF_BONE
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 BUNDLED_MODEL = MODELS_DIR / "hand_model.npz"
@@ -144,6 +144,30 @@ class HandModel:
         """(...,) length in metres of the reference bone 0 -> 9 at rest."""
         j = self.rest_joints(beta)
         return np.linalg.norm(j[..., REF_BONE[1], :] - j[..., REF_BONE[0], :], axis=-1)
+
+    def hand_length(self, beta=None):
+        """(...,) rest length in metres from the wrist joint to the middle fingertip (a ruler's
+        hand length: wrist crease to the tip of the middle finger) for beta (..., B)."""
+        j = self.rest_joints(beta)
+        return np.linalg.norm(j[..., HAND_LENGTH_JOINTS[1], :] - j[..., HAND_LENGTH_JOINTS[0], :], axis=-1)
+
+    def sized(self, beta, hand_length):
+        """beta (B,) with its `hand_size` coefficient set so that the rest hand is hand_length
+        metres from wrist to middle fingertip (HandModel.hand_length); the others kept.
+
+        Exact: the rest joints are linear in beta, so with s the size coefficient the wrist ->
+        tip vector is c + d s and |c + d s| = hand_length is a quadratic in s; of its roots
+        the one of the larger hand (the other flips the hand through itself)."""
+        beta = self._beta(beta).astype(np.float64).copy()
+        k = self.beta_names.index("hand_size")
+        beta[k] = 0.0
+        j0 = self.rest_joints(beta)
+        wrist, tip = HAND_LENGTH_JOINTS
+        c = j0[tip] - j0[wrist]                                                 # (3,)
+        d = self.j_shapedirs[tip, :, k] - self.j_shapedirs[wrist, :, k]         # (3,)
+        a, b, cc = d @ d, 2.0 * (c @ d), c @ c - float(hand_length) ** 2
+        beta[k] = (-b + np.sqrt(max(b * b - 4.0 * a * cc, 0.0))) / (2.0 * a)
+        return beta
 
     # ---------------------------------------------------------------- posing
     @staticmethod

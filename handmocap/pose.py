@@ -39,7 +39,7 @@ from .joint_limits import JointLimits
 from .kinematics import RIGID_PALM_BONES, as_matrices, forward_kinematics, global_quats_to_relative
 from .one_euro import OneEuroFilter
 from .rotations import mirror_points, quat_normalize, quat_to_matrix
-from .skeleton import REF_BONE, ROOT
+from .skeleton import DEFAULT_HAND_LENGTH_M, REF_BONE, ROOT
 from .translation import camera_joints_from_keypoints, joints_through_keypoints, root_fitting_keypoints
 
 # Settings of PoseEstimator (the ik node's parameters): filter cut-offs in Hz (handmocap/one_euro.py),
@@ -47,8 +47,12 @@ from .translation import camera_joints_from_keypoints, joints_through_keypoints,
 # "Pose smoothing"): the root's min cut-off 0.5 Hz, first set on synthetic jitter, lagged
 # behind real motion (median 11 mm from the motion's zero-phase estimate, 6 mm unsmoothed); at
 # 2 Hz it is 7 mm with a jitter 7x below the unsmoothed output's. The rotations' were kept.
+# hand_length: the person's hand length in metres (wrist crease to middle fingertip, as a
+# ruler measures it); the metric size of every hand, as scale-normalized keypoints cannot show
+# size (its default: the adult average, skeleton.DEFAULT_HAND_LENGTH_M).
 POSE_DEFAULTS = {"clamp_to_limits": True, "smooth": True, "xy_from_keypoints": 0.5, "rot_min_cutoff": 1.0,
-                 "rot_beta": 1.5, "root_min_cutoff": 2.0, "root_beta": 2.0, "d_cutoff": 1.0, "reset_after_s": 0.5}
+                 "rot_beta": 1.5, "root_min_cutoff": 2.0, "root_beta": 2.0, "d_cutoff": 1.0, "reset_after_s": 0.5,
+                 "hand_length": DEFAULT_HAND_LENGTH_M}
 
 
 def posed_joints(quats, model, beta, rest=None):
@@ -98,12 +102,15 @@ def joints_for_iknet(hand, K, xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints
 
 
 def pose_from_keypoints(hand, K, rest, solver, model, beta=None, limits=None,
-                        xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints"]):
+                        xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints"], hand_length=None):
     """One HandKeypoints hand -> one HandPose hand, unsmoothed. rest: (21,3) rest joints of
     the person (None: the model's at beta); beta (10,) (None: the average hand); limits: a
     JointLimits to clip the finger angles into (None: IKNet's angles as they are);
-    xy_from_keypoints: see joints_for_iknet."""
+    xy_from_keypoints: see joints_for_iknet; hand_length: metres, sets beta's hand_size
+    (HandModel.sized; None: beta's own size)."""
     beta = np.zeros(model.num_betas) if beta is None else np.asarray(beta, dtype=np.float64)
+    if hand_length is not None:
+        beta = model.sized(beta, hand_length)
     rest = model.rest_joints(beta) if rest is None else rest
     quats = solve_rotations(joints_for_iknet(hand, K, xy_from_keypoints), hand["handedness"], rest, solver, limits)
     return pose_fields(hand, quats, beta, K, model)
@@ -132,6 +139,7 @@ class PoseEstimator:
         self.shapes = {}          # track id -> (beta (10,), rest_xyz (21,3))
         self.limits = JointLimits.for_model(model) if self.p["clamp_to_limits"] else None
         self.tracks = {}          # track id -> TrackSmoother
+        self.average = np.zeros(model.num_betas)
 
     def set_shapes(self, shapes):
         self.shapes = {s["track_id"]: (np.asarray(s["beta"], np.float64), np.asarray(s["rest_xyz"], np.float64))
@@ -148,7 +156,8 @@ class PoseEstimator:
         for hand in hands:
             if not (np.all(np.isfinite(hand["xyz_rel"])) and np.all(np.isfinite(hand["uv"]))):
                 continue
-            beta, rest = self.shapes.get(hand["track_id"], (np.zeros(self.model.num_betas), None))
+            beta, rest = self.shapes.get(hand["track_id"], (self.average, None))
+            beta = self.model.sized(beta, self.p["hand_length"])   # the shape fit leaves size at 0
             rest = self.model.rest_joints(beta) if rest is None else rest
             q = solve_rotations(joints_for_iknet(hand, K, self.p["xy_from_keypoints"]), hand["handedness"], rest,
                                 self.solver, self.limits)

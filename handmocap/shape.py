@@ -3,8 +3,13 @@
     E(beta) = sum_b ( l_b(beta) / l_ref(beta) - r_b )^2 + lambda |beta|^2
 
 r_b are the bone-length ratios of the predicted joints to the reference bone 0 -> 9
-(scale-normalized predictions fix only ratios, so shape is relative: a coefficient that
-scales the whole hand uniformly, or thickens fingers, cannot be seen and stays at 0).
+(scale-normalized predictions fix only ratios, so shape is relative). The model's
+`hand_size` coefficient is left out of the fit and stays 0: it scales the whole hand, and
+the small changes of proportion that come with it made a free fit trade it against
+the other coefficients (on a real clip it ran to -4.75, a 7.2 cm instead of a 10 cm palm).
+The metric size is set afterwards, from the person's hand length or the population's
+(HandModel.sized, PoseEstimator). Coefficients that only thicken fingers cannot be seen
+either; the prior keeps them near 0.
 The model's rest joints are linear in beta, so the ratios are nearly linear in beta:
 ShapeFitter solves the damped linear least squares at beta = 0 in closed form (one
 precomputed (B, n_bones) matrix), then takes Gauss-Newton steps with the exact ratios and
@@ -42,19 +47,21 @@ class ShapeFitter:
     steps: Gauss-Newton refinements after the closed-form linear solve.
     """
 
-    def __init__(self, model, prior=1e-6, include_tips=True, steps=2):
+    def __init__(self, model, prior=1e-6, include_tips=True, steps=2, fixed=("hand_size",)):
         self.j_template = np.asarray(model.j_template, dtype=np.float64)       # (21,3)
         self.j_shapedirs = np.asarray(model.j_shapedirs, dtype=np.float64)     # (21,3,B)
         self.num_betas = self.j_shapedirs.shape[-1]
+        # the coefficients fitted (F,); those named in `fixed` stay 0
+        self.free = np.array([k for k, name in enumerate(model.beta_names) if name not in fixed])
         self.prior = float(prior)
         self.bones = np.array(BONES_WITH_TIPS if include_tips else BONES_WITHOUT_TIPS)
         self.steps = steps
         r0, jac0 = self.ratios_and_jacobian(np.zeros(self.num_betas))
         self.r0 = r0
-        self.jac0 = jac0[self.bones]
+        self.jac0 = jac0[np.ix_(self.bones, self.free)]                         # (bones, F)
         self.normal0 = self.jac0.T @ self.jac0
         # beta = (JᵀJ + λI)⁻¹ Jᵀ (r - r0): the first Gauss-Newton step from beta = 0
-        self.linear_solve = np.linalg.solve(self.normal0 + self.prior * np.eye(self.num_betas), self.jac0.T)
+        self.linear_solve = np.linalg.solve(self.normal0 + self.prior * np.eye(len(self.free)), self.jac0.T)
 
     def ratios_and_jacobian(self, beta):
         """Model bone ratios (20,) at beta and their derivative (20, B)."""
@@ -73,15 +80,18 @@ class ShapeFitter:
         overrides lambda (e.g. a tracker's, shrinking as frames accumulate)."""
         target = np.asarray(ratios, dtype=np.float64)[self.bones]
         prior = self.prior if prior is None else float(prior)
-        eye = prior * np.eye(self.num_betas)
+        eye = prior * np.eye(len(self.free))
         if prior == self.prior:
-            beta = self.linear_solve @ (target - self.r0[self.bones])
+            free = self.linear_solve @ (target - self.r0[self.bones])
         else:
-            beta = np.linalg.solve(self.normal0 + eye, self.jac0.T @ (target - self.r0[self.bones]))
+            free = np.linalg.solve(self.normal0 + eye, self.jac0.T @ (target - self.r0[self.bones]))
+        beta = np.zeros(self.num_betas)
         for _ in range(self.steps):
+            beta[self.free] = free
             r, jac = self.ratios_and_jacobian(beta)
-            jac = jac[self.bones]
-            beta = beta + np.linalg.solve(jac.T @ jac + eye, jac.T @ (target - r[self.bones]) - prior * beta)
+            jac = jac[np.ix_(self.bones, self.free)]
+            free = free + np.linalg.solve(jac.T @ jac + eye, jac.T @ (target - r[self.bones]) - prior * free)
+        beta[self.free] = free
         return beta
 
     def fit(self, xyz):

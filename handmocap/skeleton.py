@@ -23,6 +23,13 @@ ROOT = 9                # joint that root-relative coordinates are centred on (m
 REF_BONE = (0, 9)       # bone whose length is 1 in scale-normalized coordinates
 
 FINGER_TIPS = (4, 8, 12, 16, 20)
+HAND_LENGTH_JOINTS = (0, 12)   # wrist -> middle fingertip: a ruler's hand length
+
+# Average adult hand length (wrist crease to middle fingertip), metres: about 0.193 for men
+# and 0.172 for women in anthropometric surveys; the bundled model's average hand (beta = 0)
+# measures 0.183 (reference bone 0 -> 9: 0.102). The metric size of a hand whose owner gave
+# none (scale-normalized joints cannot show size).
+DEFAULT_HAND_LENGTH_M = 0.183
 
 # (parent, child) pairs of the 20 bones, in child order 1..20.
 BONES = tuple((int(PARENTS[j]), j) for j in range(1, NUM_JOINTS))

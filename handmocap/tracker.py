@@ -26,7 +26,7 @@ from .hand_model import HandModel
 from .ik_solver import IKSolver
 from .pose import PoseEstimator
 from .shape import ShapeEstimator
-from .skeleton import ROOT
+from .skeleton import DEFAULT_HAND_LENGTH_M, ROOT
 
 
 class HandTracker:
@@ -44,12 +44,13 @@ class HandTracker:
     well (test_time_crops), as `handeval predict` does."""
 
     def __init__(self, detnet=None, finder=None, iknet=None, model=None, threads=1, smooth=True,
-                 vertices=False, fps=30.0, clamp_to_limits=True, detector=None, **detector_kwargs):
+                 vertices=False, fps=30.0, clamp_to_limits=True, hand_length=DEFAULT_HAND_LENGTH_M, detector=None,
+                 **detector_kwargs):
         self.model = HandModel.load(model)
         self.detector = detector or HandDetector.load(detnet, finder, threads=threads, **detector_kwargs)
         self.shapes = ShapeEstimator(self.model)
         self.poses = PoseEstimator(IKSolver.load(iknet, threads=threads, model=self.model), self.model,
-                                   {"smooth": smooth, "clamp_to_limits": clamp_to_limits})
+                                   {"smooth": smooth, "clamp_to_limits": clamp_to_limits, "hand_length": hand_length})
         self.vertices, self.fps = vertices, fps
         self.frame_index = 0
         self.last_keypoints = []

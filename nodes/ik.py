@@ -13,7 +13,8 @@ Params: model (hand model path, default bundled), iknet ("int8", the default:
 models/iknet_int8.onnx; "float32": models/iknet.onnx; or an ONNX path), threads (onnxruntime intra-op threads), and PoseEstimator's settings
 (handmocap.pose.POSE_DEFAULTS): xy_from_keypoints (0.5: how far the x, y of the joints IKNet
 reads move from DetNet's onto those the 2D keypoints imply through K; 0: DetNet's as they
-are), clamp_to_limits, smooth, rot_min_cutoff Hz / rot_beta on
+are), hand_length (metres, wrist crease to middle fingertip: the size of every hand, 0.183 by
+default, the adult average), clamp_to_limits, smooth, rot_min_cutoff Hz / rot_beta on
 quaternion components, root_min_cutoff Hz / root_beta on metres, d_cutoff Hz, reset_after_s.
 The filter defaults were chosen on the detector's output on real clips
 (scripts/tune_smoothing.py): lower cut-offs smooth more and lag more.
@@ -46,6 +47,10 @@ def check_params(params: dict) -> None:
         else:
             check_number_param("ik", key, value, minimum=None if key.endswith("cutoff") else 0,
                                positive=key.endswith("cutoff"))   # a 0 Hz cut-off divides by zero
+    length = params.get("hand_length", POSE_DEFAULTS["hand_length"])
+    if not 0.08 <= length <= 0.30:   # 18 or 183 would be centimetres or millimetres
+        raise ValueError(f"ik param hand_length: expected metres from the wrist crease to the middle fingertip "
+                         f"(adults: about 0.16 to 0.21), got {length!r}")
 
 
 def start() -> tuple[Node, Callable[[Message], None]]:

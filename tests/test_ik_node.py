@@ -89,7 +89,10 @@ def test_estimator_uses_track_shapes_smooths_and_resets_lost_tracks():
         est.set_shapes([{"track_id": 3, "beta": beta, "rest_xyz": normalize_joints(MODEL.rest_joints(beta))}])
     outs = {name: [est.update([h], K, i / 30.0)[0] for i, h in enumerate(jittered)]
             for name, est in (("raw", raw), ("smooth", smooth))}
-    np.testing.assert_allclose(outs["smooth"][0]["beta"], beta.astype(np.float32))
+    # the track's shape, at the size of the default hand length (bone ratios cannot show size)
+    sized = MODEL.sized(beta, ik.POSE_DEFAULTS["hand_length"])
+    np.testing.assert_allclose(outs["smooth"][0]["beta"], sized.astype(np.float32), rtol=1e-6)
+    assert np.all(np.delete(sized, MODEL.beta_names.index("hand_size")) == np.delete(beta, 0))
     for field in ("root", "quat"):
         jitter = {k: np.abs(np.diff([o[field] for o in v[10:]], axis=0)).mean() for k, v in outs.items()}
         assert jitter["smooth"] < 0.5 * jitter["raw"], (field, jitter)

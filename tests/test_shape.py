@@ -8,6 +8,7 @@ from handmocap.shape import RecentRows, ShapeFitter, ShapeTracker, _column_media
 MODEL = HandModel.load()
 FITTER = ShapeFitter(MODEL)
 LIMITS = JointLimits.for_model(MODEL)
+SIZE = MODEL.beta_names.index("hand_size")
 
 
 def test_jacobian_matches_finite_differences():
@@ -25,15 +26,36 @@ def test_jacobian_matches_finite_differences():
 def test_fit_reproduces_bone_ratios_of_posed_hands(seed):
     rng = np.random.default_rng(seed)
     beta = rng.normal(size=10)
+    beta[SIZE] = 0.0        # size is not fitted (test_fit_leaves_the_size_alone)
     _, joints = MODEL.forward(LIMITS.sample(1, rng)[0], beta)
     xyz = (joints - joints[9]) / MODEL.ref_bone_length(beta) * rng.uniform(0.5, 2.0)   # any scale
     fitted = FITTER.fit(xyz)
     err = np.abs(FITTER.model_ratios(fitted) / bone_ratios(xyz) - 1)[FITTER.bones]
     assert err.mean() < 0.01
+    assert fitted[SIZE] == 0.0
     # well-observed coefficients come back (finger lengths)
     for name in ("finger_length", "thumb_length", "index_length", "ring_length"):
         k = MODEL.beta_names.index(name)
         assert abs(fitted[k] - beta[k]) < 0.2
+
+
+def test_fit_leaves_the_size_alone():
+    """hand_size scales the hand (and shifts its proportions a little): bone ratios of a small
+    or a large hand give hand_size 0, the ratios met by the other coefficients; a free fit had
+    traded it against the rest (-4.75 on a real clip: a hand 30% too small)."""
+    rng = np.random.default_rng(3)
+    for size in (-3.0, 3.0):
+        beta = np.zeros(10)
+        beta[SIZE] = size
+        fitted = FITTER.fit(MODEL.rest_joints(beta))
+        assert fitted[SIZE] == 0.0
+        err = np.abs(FITTER.model_ratios(fitted) / bone_ratios(MODEL.rest_joints(beta)) - 1)[FITTER.bones]
+        assert err.mean() < 0.01
+    # the size comes from a hand length instead, exactly, whatever the other coefficients
+    for length in (0.15, 0.183, 0.21):
+        sized = MODEL.sized(rng.normal(size=10), length)
+        assert np.isclose(MODEL.hand_length(sized), length, atol=1e-9)
+    assert np.isclose(MODEL.hand_length(MODEL.sized(np.zeros(10), MODEL.hand_length())), MODEL.hand_length())
 
 
 def test_average_hand_gives_zero_beta():

@@ -84,6 +84,24 @@ def test_without_K_the_default_field_of_view_is_used():
 DETNET, FINDER = ROOT / "models" / "detnet.onnx", ROOT / "models" / "finder.onnx"
 
 
+@needs_iknet
+def test_hand_length_sets_the_size_and_so_the_depth():
+    """Scale-normalized keypoints cannot show size: the hand is as long as hand_length says,
+    whatever shape the bone ratios give, and its depth follows (a hand 20% smaller at the same
+    pixels is 20% nearer). The shape fit once shrank the hand by a third (issue 28)."""
+    xyz, uv = known_hand(depth=0.5)
+    frame = draw(np.zeros((H, W, 3), np.uint8), uv)
+    average = MODEL.hand_length()
+    for scale in (1.0, 0.8):
+        t = tracker(xyz, smooth=False, hand_length=scale * average)
+        for _ in range(30):                                    # the shape estimate settles in
+            hand = t.process(frame, K)[0]
+        assert MODEL.hand_length(hand["beta"]) == pytest.approx(scale * average, rel=1e-6)
+        knuckle = np.linalg.norm(hand["xyz"][9] - hand["xyz"][0])
+        assert knuckle == pytest.approx(scale * np.linalg.norm(xyz[9] - xyz[0]), rel=0.03)
+        assert hand["root"][2] == pytest.approx(scale * 0.5, rel=0.05)
+
+
 @pytest.mark.skipif(not (DETNET.is_file() and FINDER.is_file() and IKNET.is_file()),
                     reason="models/detnet.onnx, finder.onnx or iknet.onnx not committed yet")
 def test_real_models_on_the_rendered_clip():
