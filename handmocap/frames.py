@@ -107,10 +107,23 @@ def read_video(path: str | Path) -> list[np.ndarray]:
     return [frame for _, frame in VideoFrames(path)]
 
 
-def image_message(frame: np.ndarray) -> dict:
-    """The Image body (without header) of one BGR frame (H,W,3) uint8."""
+def image_message(frame: np.ndarray, jpeg_quality: int | None = None) -> dict:
+    """The Image body (without header) of one BGR frame (H,W,3) uint8: raw bgr8, or with
+    jpeg_quality (1-100) a JPEG of it (about 1/20 of the bytes at 90 on camera frames)."""
     h, w = frame.shape[:2]
-    return {"encoding": "bgr8", "width": w, "height": h, "data": np.ascontiguousarray(frame)}
+    if jpeg_quality is None:
+        return {"encoding": "bgr8", "width": w, "height": h, "data": np.ascontiguousarray(frame)}
+    ok, jpeg = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+    if not ok:
+        raise ValueError(f"could not JPEG-encode a {w}x{h} frame")
+    return {"encoding": "jpeg", "width": w, "height": h, "data": jpeg.reshape(-1)}
+
+
+def compressed(image_msg: dict, jpeg_quality: int) -> dict:
+    """An Image message (with its header) as JPEG; one already JPEG comes back as it is."""
+    if image_msg["encoding"] == "jpeg":
+        return image_msg
+    return {**image_msg, **image_message(frame_bgr(image_msg), jpeg_quality)}
 
 
 def frame_bgr(image_msg):

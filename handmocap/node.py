@@ -109,6 +109,13 @@ def check_number_param(node: str, key: str, value, minimum=None, positive=False,
         raise ValueError(f"{node} param {key}: expected {want}, got {value!r}")
 
 
+def check_jpeg_param(node: str, value) -> None:
+    """jpeg_quality: null (raw images) or an integer 1 to 100."""
+    check_number_param(node, "jpeg_quality", value, minimum=1, integer=True, null=True)
+    if value is not None and value > 100:
+        raise ValueError(f"{node} param jpeg_quality: expected 1 to 100 or null, got {value}")
+
+
 def check_bool_param(node: str, key: str, value) -> None:
     """A param that must be true or false (a word such as `maybe` is no bool: YAML reads it as a
     string, which Python would take as true)."""

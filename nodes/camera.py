@@ -9,6 +9,8 @@ Parameters (PARAMS):
 - calibration: a calibration file (formats: handmocap.camera_info); without one K comes from
   a 60 degree horizontal field of view (source 'default-fov').
 - frame_id: header frame id of both topics.
+- jpeg_quality: null publishes raw bgr8 frames; 1-100 JPEG frames of that quality (a graph
+  spread over hosts sends about 1/20 of the bytes; the detector decodes them).
 - mirror: flip frames left-right (selfie view). K and the distortion are mirrored with them,
   so downstream sees a consistent pinhole camera of the mirrored scene: a real left hand
   then appears, and is reported, as a right hand.
@@ -35,10 +37,11 @@ import cv2
 import numpy as np
 
 from handmocap.camera_info import Intrinsics, camera_info_message, check_calibration_param, intrinsics_for_frames
-from handmocap.node import Node, check_bool_param, check_number_param, run
+from handmocap.frames import image_message
+from handmocap.node import Node, check_bool_param, check_jpeg_param, check_number_param, run
 
 PARAMS = {"device": 0, "width": 640, "height": 480, "fps": 30, "calibration": None, "frame_id": "camera",
-          "mirror": False}
+          "mirror": False, "jpeg_quality": None}
 
 FAIL_AFTER_S = 2.0        # a live camera without a frame this long has failed
 FIRST_FRAME_TIMEOUT_S = 5.0
@@ -62,6 +65,7 @@ def check_params(params: dict) -> None:
         check_number_param("camera", key, params.get(key, PARAMS[key]), minimum=1, integer=True)
     check_number_param("camera", "fps", params.get("fps", PARAMS["fps"]), positive=True)
     check_bool_param("camera", "mirror", params.get("mirror", PARAMS["mirror"]))
+    check_jpeg_param("camera", params.get("jpeg_quality"))
     check_calibration_param("camera", params.get("calibration"))
 
 
@@ -161,12 +165,6 @@ def mirrored(intr: Intrinsics, width: int) -> Intrinsics:
     return Intrinsics(K, d, intr.size, intr.source)
 
 
-def image_message(frame: np.ndarray) -> dict:
-    """The Image body (no header) of one (H,W,3) uint8 BGR frame."""
-    h, w = frame.shape[:2]
-    return {"encoding": "bgr8", "width": int(w), "height": int(h), "data": np.ascontiguousarray(frame)}
-
-
 def main() -> None:
     node = Node("camera", params=PARAMS)
     p = node.params
@@ -187,7 +185,7 @@ def main() -> None:
             if p["mirror"]:
                 frame = cv2.flip(frame, 1)
             node.publish("/camera/info", info, stamp_ns=stamp_ns, frame_id=p["frame_id"])
-            node.publish("/camera/image", image_message(frame), stamp_ns=stamp_ns, frame_id=p["frame_id"])
+            node.publish("/camera/image", image_message(frame, p["jpeg_quality"]), stamp_ns=stamp_ns, frame_id=p["frame_id"])
     finally:
         cap.release()
         node.close()

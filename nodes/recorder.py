@@ -1,9 +1,11 @@
-"""recorder: writes topics of the graph to an MCAP bag, payloads byte for byte as received.
+"""recorder: writes topics of the graph to an MCAP bag, payloads as received (images compressed).
 
 Params: `output` (bag path; parent folders are made; an existing file is an error unless
 `overwrite` is true, and is replaced only when the first message arrives: a graph that fails
 before sending anything leaves the earlier recording as it was), `topics` (list; empty =
-every topic of the graph). Subscriptions are
+every topic of the graph), `raw` and `jpeg_quality`: images (Image messages in bgr8, rgb8 or
+mono8) are stored as JPEG of that quality (benchmarks/bench_recording.py measures the size),
+unless `raw` is true or jpeg_quality null (lossless, byte for byte). Subscriptions are
 keep-all. Each message is stored with its receive time as MCAP log time and its header
 stamp as publish time. The bag is finished properly (summary, footer) on SIGINT/SIGTERM and
 when every recorded input has ended; a one-line summary is logged at the end.
@@ -12,10 +14,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from handmocap import codec
 from handmocap.bag import BagWriter
-from handmocap.node import Node, check_bool_param, run
+from handmocap.frames import compressed
+from handmocap.node import Node, check_bool_param, check_jpeg_param, run
 
-PARAMS = {"output": "out.mcap", "topics": [], "overwrite": False}
+PARAMS = {"output": "out.mcap", "topics": [], "overwrite": False, "raw": False, "jpeg_quality": 90}
 IDLE_TICK_S = 0.5   # when nothing arrives this long, close the open chunk if it is old
 
 
@@ -40,6 +44,8 @@ def check_params(params: dict) -> None:
     replaced, or an overwrite that is no bool, is one error (nothing else has started)."""
     overwrite = params.get("overwrite", PARAMS["overwrite"])
     check_bool_param("recorder", "overwrite", overwrite)
+    check_bool_param("recorder", "raw", params.get("raw", PARAMS["raw"]))
+    check_jpeg_param("recorder", params.get("jpeg_quality", PARAMS["jpeg_quality"]))
     try:
         output_path(str(params.get("output", PARAMS["output"])), overwrite)
     except FileExistsError as e:
@@ -84,8 +90,11 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
                 continue
             if bag is None:
                 bag = open_output(str(path), True)
+            payload = msg.raw
+            if msg.type == "Image" and not p["raw"] and p["jpeg_quality"] and msg.data["encoding"] != "jpeg":
+                payload = codec.encode(compressed(msg.data, int(p["jpeg_quality"])), "Image")
             try:
-                bag.write(msg.topic, msg.type, msg.raw, msg.recv_ns, msg.stamp_ns)
+                bag.write(msg.topic, msg.type, payload, msg.recv_ns, msg.stamp_ns)
             except ValueError as e:   # one channel holds one type: keep the first, skip the rest
                 if msg.topic not in refused:
                     refused.add(msg.topic)

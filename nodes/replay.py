@@ -8,7 +8,8 @@ queued for or held by a subscriber); `start` skips that many seconds; `loop` res
 comes from `calibration` (a file, see handmocap.camera_info) or, failing that, from the
 bag's own /camera/info, or from a default field of view (camera_info.DEFAULT_HFOV_DEG) that
 the message marks with source "default-fov". It is sent with every frame, so late subscribers
-get it at once (a latched topic by repetition).
+get it at once (a latched topic by repetition). `jpeg_quality` (1-100) publishes JPEG images
+instead of raw bgr8 (null), as a network camera would.
 """
 from __future__ import annotations
 
@@ -18,14 +19,14 @@ from collections import deque
 from pathlib import Path
 
 from handmocap import camera_info, codec
-from handmocap.frames import image_message, open_frames
-from handmocap.node import Node, check_bool_param, check_number_param, run
+from handmocap.frames import frame_bgr, image_message, open_frames
+from handmocap.node import Node, check_bool_param, check_jpeg_param, check_number_param, run
 
 JIT_MARGIN_S = 0.002   # decode the next frame this long plus twice its recent decoding time before it is due
 AHEAD = 3   # at rate 0, frames sent and not yet taken by every subscriber before the next is decoded
 
 PARAMS = {"source": None, "rate": 1.0, "fps": None, "start": 0.0, "loop": False,
-          "calibration": None, "frame_id": "camera"}
+          "calibration": None, "frame_id": "camera", "jpeg_quality": None}
 
 
 def check_params(params: dict) -> None:
@@ -41,6 +42,7 @@ def check_params(params: dict) -> None:
     check_number_param("replay", "fps", params.get("fps"), positive=True, null=True)
     check_number_param("replay", "start", params.get("start", PARAMS["start"]), minimum=0)
     check_bool_param("replay", "loop", params.get("loop", PARAMS["loop"]))
+    check_jpeg_param("replay", params.get("jpeg_quality"))
     camera_info.check_calibration_param("replay", params.get("calibration"))
 
 
@@ -56,10 +58,7 @@ def bag_frames(path: Path, start_s: float):
             t0 = log_ns if t0 is None else t0
             if (log_ns - t0) / 1e9 < start_s:
                 continue
-            m = codec.decode(payload, type_name)
-            if m["encoding"] != "bgr8":
-                raise ValueError(f"bag {path}: image encoding {m['encoding']} is not supported by replay")
-            yield log_ns, m["data"], info
+            yield log_ns, frame_bgr(codec.decode(payload, type_name)), info
 
 
 def for_frames(calib, w: int, h: int, path) -> camera_info.Intrinsics:
@@ -148,7 +147,7 @@ def replay(node: Node) -> None:
                     own_info = camera_info.camera_info_message(intr.K, intr.distortion, w, h, intr.source)
                 info = own_info
             stamp = time.time_ns()
-            node.publish("/camera/image", image_message(frame), stamp_ns=stamp, frame_id=p["frame_id"])
+            node.publish("/camera/image", image_message(frame, p["jpeg_quality"]), stamp_ns=stamp, frame_id=p["frame_id"])
             node.publish("/camera/info", info, stamp_ns=stamp, frame_id=p["frame_id"])
             sent += 1
         if not p["loop"] or t_first is None:

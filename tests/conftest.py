@@ -91,7 +91,7 @@ nodes:
   detector: {{node: detector, params: {{every_frame: true{detector_params}}}, required: true{', ' + detector if detector else ''}}}
   shape: {{node: shape}}
   ik: {{node: ik, required: true}}
-  recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true}}, required: true}}
+  recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true, raw: true}}, required: true}}
 {extra_nodes}"""
 
 

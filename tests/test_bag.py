@@ -20,6 +20,7 @@ from mcap.reader import make_reader
 
 from handmocap import bag, bus, codec
 from handmocap.bag_cli import main as handbag
+from handmocap.frames import frame_bgr
 from handmocap.skeleton import BONES
 
 T0 = 1_700_000_000_000_000_000   # ns, a fixed epoch for stamps in synthetic bags
@@ -292,7 +293,7 @@ def wait_ready(run_dir: Path, name: str, proc: subprocess.Popen, timeout: float 
 def test_play_into_recorder_is_byte_identical(tmp_path, graph_env):
     src, rec = tmp_path / "src.mcap", tmp_path / "sub" / "rec.mcap"
     written = write_sample_bag(src, extra_frames=300)   # enough that the recorder has a backlog
-    recorder = subprocess.Popen([sys.executable, "-m", "handmocap.nodes.recorder", f"output:={rec}"],
+    recorder = subprocess.Popen([sys.executable, "-m", "handmocap.nodes.recorder", f"output:={rec}", "raw:=true"],
                                 env=graph_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         wait_ready(Path(graph_env["HANDMOCAP_RUN_DIR"]), "recorder", recorder)
@@ -309,6 +310,36 @@ def test_play_into_recorder_is_byte_identical(tmp_path, graph_env):
     assert not bag.bag_info(rec)["truncated"]
 
 
+def test_recorder_stores_images_as_jpeg_by_default(tmp_path, graph_env):
+    """Without raw:=true an image is stored as a JPEG of itself (same header, size, nearly the
+    same pixels, a fraction of the bytes); every other message byte for byte."""
+    src, rec = tmp_path / "src.mcap", tmp_path / "rec.mcap"
+    written = write_sample_bag(src, extra_frames=20)
+    recorder = subprocess.Popen([sys.executable, "-m", "handmocap.nodes.recorder", f"output:={rec}"],
+                                env=graph_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_ready(Path(graph_env["HANDMOCAP_RUN_DIR"]), "recorder", recorder)
+        assert run_handbag("play", str(src), "--rate", "0", env=graph_env).returncode == 0
+        _, err = recorder.communicate(timeout=30)
+    finally:
+        if recorder.poll() is None:
+            recorder.kill()
+    assert recorder.returncode == 0, err
+    got = [(t, ty, p) for t, ty, p, _ in bag.iter_messages(rec)]
+    assert [(t, ty) for t, ty, _ in got] == [(t, ty) for t, ty, _ in written]
+    images = 0
+    for (topic, kind, stored), (_, _, sent) in zip(got, written):
+        if kind != "Image":
+            assert stored == sent, topic
+            continue
+        a, b = codec.decode(sent, kind), codec.decode(stored, kind)
+        assert b["encoding"] == "jpeg" and len(stored) < len(sent) / 3
+        assert (b["header"], b["width"], b["height"]) == (a["header"], a["width"], a["height"])
+        assert np.abs(frame_bgr(b).astype(int) - frame_bgr(a)).mean() < 6
+        images += 1
+    assert images == 25
+
+
 def test_recorder_replaces_an_earlier_bag_only_when_a_message_arrives(tmp_path, graph_env):
     """overwrite:=true keeps the earlier bag through a run that records nothing (a graph that
     failed at start) and replaces it with the messages of a run that records some."""
@@ -316,7 +347,7 @@ def test_recorder_replaces_an_earlier_bag_only_when_a_message_arrives(tmp_path, 
     written = write_sample_bag(src)
     rec.write_bytes(b"an earlier recording")
     run_dir = Path(graph_env["HANDMOCAP_RUN_DIR"])
-    cmd = [sys.executable, "-m", "handmocap.nodes.recorder", f"output:={rec}", "overwrite:=true"]
+    cmd = [sys.executable, "-m", "handmocap.nodes.recorder", f"output:={rec}", "overwrite:=true", "raw:=true"]
     recorder = subprocess.Popen(cmd, env=graph_env, stderr=subprocess.PIPE, text=True)
     wait_ready(run_dir, "recorder", recorder)
     recorder.send_signal(signal.SIGTERM)

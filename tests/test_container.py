@@ -28,7 +28,7 @@ nodes:
   detector: {{node: detector, params: {{every_frame: true{detector}}}, required: true{c}}}
   shape: {{node: shape{shape}{c}}}
   ik: {{node: ik, required: true{c}{ik}}}
-  recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true}}, required: true}}
+  recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true, raw: true}}, required: true}}
 """
 
 

@@ -52,6 +52,28 @@ def test_replay_with_calibration_file_publishes_its_K(clip, tmp_path, run_dir):
     np.testing.assert_allclose(infos[0]["K"], [[500, 0, 159.5], [0, 500, 119.5], [0, 0, 1]])
 
 
+def test_jpeg_source_and_compressed_bag_replay_again(clip, tmp_path, run_dir):
+    """jpeg:=90 makes the source publish JPEG frames (the detector decodes them); the bag, which
+    stores images as JPEG by default, is a source itself: replaying it gives the same frames
+    (nearly the same pixels) again."""
+    from handmocap import codec
+    from handmocap.bag import iter_messages
+    from handmocap.frames import frame_bgr
+    first, second = tmp_path / "first.mcap", tmp_path / "second.mcap"
+    r = handlaunch([ROOT / "launch/replay.yaml", f"input:={clip / 'frames'}", f"bag:={first}", "jpeg:=90"], run_dir)
+    assert r.returncode == 0, r.stdout + r.stderr
+    r = handlaunch([ROOT / "launch/replay.yaml", f"input:={first}", f"bag:={second}"], run_dir)
+    assert r.returncode == 0, r.stdout + r.stderr
+    counts, _ = bag_counts(second)
+    assert counts["/camera/image"] == counts["/hand/keypoints"] == 90
+    originals = sorted((clip / "frames").iterdir())
+    for bag in (first, second):
+        images = [codec.decode(p, t) for _, t, p, _ in iter_messages(bag, topics=["/camera/image"])]
+        assert len(images) == 90 and {m["encoding"] for m in images} == {"jpeg"}
+        for m, path in list(zip(images, originals))[::15]:
+            assert np.abs(frame_bgr(m).astype(int) - cv2.imread(str(path))).mean() < 4
+
+
 @pytest.mark.parametrize("make, words", [
     (lambda d: d / "missing.mp4", "no such file or folder"),
     (lambda d: (d / "bad.mp4").write_bytes(b"\x00not a video" * 100) and d / "bad.mp4", "cannot be opened"),
