@@ -152,9 +152,13 @@ def cmd_info(args) -> None:
 
 # -- export ----------------------------------------------------------------------------------
 def cmd_export(args) -> None:
+    if args.ros2:
+        return export_ros2_cli(args)
     from .foxglove_export import export_foxglove
     if not args.foxglove:
-        raise CliError("export needs a target format: --foxglove")
+        raise CliError("export needs a target format: --foxglove -o OUT.mcap, or --ros2 OUT_FOLDER")
+    if not args.output:
+        raise CliError("export --foxglove needs -o OUT.mcap")
     src, dst = Path(args.file), Path(args.output)
     _checked_info(args.file, args.topics)
     if dst.exists() and dst.resolve() == src.resolve():
@@ -166,6 +170,20 @@ def cmd_export(args) -> None:
     for topic, n in result["skipped"].items():
         print(f"{topic}: skipped {n} malformed message(s)", file=sys.stderr)
     print(f"wrote {dst}")
+
+
+def export_ros2_cli(args) -> None:
+    from .ros2_export import export_ros2
+    src, dst = Path(args.file), Path(args.ros2)
+    _checked_info(args.file, args.topics)
+    if dst.exists():
+        raise CliError(f"{dst} already exists: a rosbag2 is a new folder (remove it or choose another)")
+    result = export_ros2(src, dst, args.topics)
+    for topic, (msgtype, n) in sorted(result["topics"].items()):
+        print(f"{topic}: {n} message(s) as {msgtype}")
+    for topic, why in result["skipped"].items():
+        print(f"{topic}: not exported ({why})", file=sys.stderr)
+    print(f"wrote {dst} (play it with: ros2 bag play {dst})")
 
 
 # -- entry point -----------------------------------------------------------------------------
@@ -191,11 +209,14 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--json", action="store_true", help="machine-readable output")
     i.set_defaults(func=cmd_info)
 
-    e = sub.add_parser("export", help="write a copy in another encoding")
+    e = sub.add_parser("export", help="write a copy in another encoding: Foxglove JSON or a ROS 2 bag")
     e.add_argument("file")
-    e.add_argument("-o", "--output", required=True, help="file to write (.mcap)")
+    e.add_argument("-o", "--output", help="file to write (.mcap), with --foxglove")
     e.add_argument("--foxglove", action="store_true",
                    help="JSON messages with Foxglove well-known schemas (images as JPEG)")
+    e.add_argument("--ros2", metavar="OUT",
+                   help="write a rosbag2 folder OUT (MCAP storage, CDR: sensor_msgs, geometry_msgs, tf2_msgs) "
+                        "for ros2 bag play; needs the ros2 extra")
     e.add_argument("--topics", nargs="+", help="export only these topics")
     e.set_defaults(func=cmd_export)
     return p
@@ -207,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         args.func(args)
     except KeyboardInterrupt:
         pass
-    except (CliError, NotABag, FileNotFoundError, FileExistsError, ValueError, OSError) as e:
+    except (CliError, NotABag, FileNotFoundError, FileExistsError, ValueError, OSError, RuntimeError) as e:
         print(f"handbag: error: {e}", file=sys.stderr)
         return 1
     return 0
