@@ -4,8 +4,8 @@ dex-retargeting (pip install -e '.[retarget]') ships its clip's MediaPipe input
 (`human_joint_right.pkl`: per frame the (21,3) joint_pos its SingleHandDetector feeds to the
 retargeting, metres, wrist frame). Here the same clip goes through HandTracker (the graph's
 code path: detector, shape, IKNet, translation), each frame's right hand becomes joint_pos
-exactly as examples/dex_retargeting_input.py makes it, and both inputs drive one
-dex-retargeting instance each per robot config. Printed per robot: the mean absolute
+exactly as the retarget node makes it (handmocap.retarget), and both inputs drive one
+dex-retargeting instance each per robot config (ours with the node's time budget max_ms). Printed per robot: the mean absolute
 difference of the robot joints (rad), the median per-joint correlation over time, and the
 retargeting time per call (ms, p50/p95); and the hand's wrist -> middle-knuckle length
 (cm, min/median/max over frames), which sets how far the robot fingers close.
@@ -28,11 +28,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "examples"))
-from dex_retargeting_input import ref_value, retargeting_joint_pos  # noqa: E402
+from handmocap.retarget import ref_value, retargeting_joint_pos
+from handmocap.tracker import HandTracker
 
-from handmocap.tracker import HandTracker  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 CLIP = ROOT.parent / "shared" / "data" / "video" / "dex_retargeting"
 
@@ -51,12 +50,14 @@ def pose_xyz(video, hand_length):
     return out
 
 
-def retarget_all(config_path, joint_pos_frames):
+def retarget_all(config_path, joint_pos_frames, max_ms=None):
     """Robot qpos (N, J) for joint_pos (21,3) per frame (None: the last input held, as a live
-    loop would), with one SeqRetargeting (its warm start and low-pass filter), and the time
-    of each retarget() call (s)."""
+    loop would), with one SeqRetargeting (its warm start and low-pass filter; max_ms: the
+    retarget node's time budget), and the time of each retarget() call (s)."""
     from dex_retargeting.retargeting_config import RetargetingConfig
     retargeting = RetargetingConfig.load_from_file(config_path).build()
+    if max_ms:
+        retargeting.optimizer.opt.set_maxtime(max_ms / 1000.0)
     indices = retargeting.optimizer.target_link_human_indices
     kind = retargeting.optimizer.retargeting_type
     qpos, times, last = [], [], None
@@ -88,6 +89,8 @@ def main():
     ap.add_argument("--robots", nargs="+", default=["allegro_hand_right", "inspire_hand_right"],
                     help="dex-retargeting teleop config names")
     ap.add_argument("--hand-length", type=float, default=None, help="metres (default: the ik node's default)")
+    ap.add_argument("--max-ms", type=float, default=None,
+                    help="time budget per retarget call for /hand/pose's run (default: the retarget node's)")
     args = ap.parse_args()
     if importlib.util.find_spec("dex_retargeting") is None:
         sys.exit("bench_retarget: dex-retargeting is not installed: pip install -e '.[retarget]'")
@@ -102,6 +105,9 @@ def main():
 
     from handmocap.pose import POSE_DEFAULTS
     hand_length = POSE_DEFAULTS["hand_length"] if args.hand_length is None else args.hand_length
+    if args.max_ms is None:
+        from handmocap.nodes.retarget import PARAMS
+        args.max_ms = PARAMS["max_ms"]
     t0 = time.perf_counter()
     xyz = pose_xyz(video, hand_length)
     mediapipe = [np.asarray(p, np.float64) for p in pickle.load(open(reference, "rb"))]
@@ -115,7 +121,7 @@ def main():
     ours_pos = [None if p is None else retargeting_joint_pos(p, "right") for p in xyz]
     print(f"{'robot':24s} {'mean |dq| rad':>14s} {'median corr':>12s} {'frames':>7s} {'retarget ms p50/p95':>20s}")
     for robot in args.robots:
-        ours, times, _ = retarget_all(configs / f"{robot}.yml", ours_pos)
+        ours, times, _ = retarget_all(configs / f"{robot}.yml", ours_pos, args.max_ms)
         theirs, _, _ = retarget_all(configs / f"{robot}.yml", mediapipe)
         diff, corr, n = compare(ours, theirs)
         print(f"{robot:24s} {diff:14.3f} {corr:12.3f} {n:7d} "

@@ -9,7 +9,10 @@ robot per side, each its own dex-retargeting config and URDF, as the launch file
 
 Params: right, left: a dex-retargeting config (.yml path, or the name of one bundled with
 dex-retargeting, e.g. allegro_hand_right; null: no robot for that side; at least one);
-urdf_dir: the folder the configs' urdf_path is relative to (null: each config's own folder).
+urdf_dir: the folder the configs' urdf_path is relative to (null: each config's own folder);
+max_ms: the time budget of one hand's optimisation (dex-retargeting's nlopt stops there with
+its best so far; null: until it converges): 4 ms keeps the added latency p95 under 5 ms per
+hand on Allegro and Inspire (benchmarks/bench_retarget.py).
 Every /hand/pose gets one /robot/joint_states message (the robots of the sides in view; of two
 hands of one side the surer one), stamped with the frame's capture time.
 """
@@ -21,10 +24,10 @@ from typing import Callable
 
 import numpy as np
 
-from handmocap.node import Message, Node, run, spin
+from handmocap.node import Message, Node, check_number_param, run, spin
 from handmocap.retarget import RobotHand
 
-PARAMS = {"right": None, "left": None, "urdf_dir": None}
+PARAMS = {"right": None, "left": None, "urdf_dir": None, "max_ms": 4.0}
 SIDES = ("right", "left")
 
 
@@ -38,6 +41,7 @@ def check_params(params: dict) -> None:
         value = params.get(side)
         if value is not None and str(value).endswith((".yml", ".yaml")) and not Path(str(value)).expanduser().is_file():
             raise ValueError(f"retarget param {side}: no such file {value}")
+    check_number_param("retarget", "max_ms", params.get("max_ms", PARAMS["max_ms"]), positive=True, null=True)
     urdf_dir = params.get("urdf_dir")
     if urdf_dir is not None and not Path(str(urdf_dir)).expanduser().is_dir():
         raise ValueError(f"retarget param urdf_dir: no such folder {urdf_dir}")
@@ -62,7 +66,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     p = node.params
     node.subscribe("/hand/pose", "HandPose", mode="all")       # every pose a robot command
     node.advertise("/robot/joint_states", "RobotJointStates")
-    robots = {side: RobotHand(p[side], p["urdf_dir"]) for side in SIDES if p[side]}
+    robots = {side: RobotHand(p[side], p["urdf_dir"], p["max_ms"]) for side in SIDES if p[side]}
     names = {side: Path(str(p[side])).stem for side in robots}
 
     def on_pose(msg: Message) -> None:

@@ -51,10 +51,11 @@ def test_a_missing_config_urdf_or_library_is_one_clear_error():
 
 def test_teleop_graph_retargets_every_pose(tmp_path):
     """launch/teleop.yaml on a recorded clip: one /robot/joint_states per /hand/pose, stamped
-    alike, equal to the same robot run offline on the recorded poses."""
+    alike, equal to the same robot run offline on the recorded poses (without the time budget,
+    whose cut depends on the machine's load)."""
     bag = tmp_path / "teleop.mcap"
     out = handlaunch([ROOT / "launch" / "teleop.yaml", f"device:={DEMO_CLIP}", f"bag:={bag}", f"right:={TOY}",
-                      f"left:={TOY}"], tmp_path / "run", timeout=120, cwd=ROOT)
+                      f"left:={TOY}", "max_ms:=null"], tmp_path / "run", timeout=120, cwd=ROOT)
     assert out.returncode == 0, out.stderr[-2000:]
     read = lambda topic: [codec.decode(payload, kind) for _, kind, payload, _ in iter_messages(bag, [topic])]
     poses, robots = read("/hand/pose"), read("/robot/joint_states")
