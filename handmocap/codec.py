@@ -386,9 +386,61 @@ def _decode_tail(payload, type_name: str, validate) -> dict | None:
 def decode(payload: bytes, type_name: str, max_bytes: int = MAX_MESSAGE_BYTES) -> dict:
     """Unpack and validate one payload of type `type_name`; arrays come back as numpy views.
 
-    Raises MalformedMessage (reason: oversized, msgpack, schema, array-size, array-shape,
-    unknown-type).
+    Raises MalformedMessage, and nothing else, whatever the bytes (reason: oversized, msgpack,
+    schema, array-size, array-shape, too-deep, unknown-type, or inconsistent: a message that
+    fits its schema but not itself, see CONSISTENCY).
     """
+    try:
+        msg = _decode(payload, type_name, max_bytes)
+        check = CONSISTENCY.get(type_name)
+        if check is not None:
+            check(msg)
+        return msg
+    except MalformedMessage:
+        raise
+    except RecursionError:
+        raise MalformedMessage("too-deep", "nested deeper than the decoder follows") from None
+    except Exception as e:   # numpy's "array is too big", "maximum dimension exceeded", ...
+        raise MalformedMessage("array-shape", f"{type(e).__name__}: {str(e)[:200]}") from None
+
+
+def _image_consistent(m: dict) -> None:
+    """An Image's data agrees with its encoding, width and height."""
+    data, enc, w, h = m["data"], m["encoding"], m["width"], m["height"]
+    want = {"bgr8": (h, w, 3), "rgb8": (h, w, 3), "mono8": (h, w)}.get(enc)
+    if want is not None and data.shape != want:
+        raise MalformedMessage("inconsistent", f"{enc} image {w}x{h} needs data {want}, got {data.shape}")
+    if enc == "jpeg" and (data.ndim != 1 or data.size < 4):
+        raise MalformedMessage("inconsistent", f"jpeg image data must be a (N,) byte stream, got {data.shape}")
+
+
+def _finite(*fields):
+    """A check that every hand's `fields` (arrays) are finite (no NaN, no inf)."""
+    def check(m: dict) -> None:
+        for hand in m.get("hands", ()):
+            for f in fields:
+                if f in hand and not np.isfinite(hand[f]).all():
+                    raise MalformedMessage("not-finite", f"hand {hand.get('track_id')}: {f} has NaN or inf")
+    return check
+
+
+def _camera_info_consistent(m: dict) -> None:
+    K = m["K"]
+    if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0 or not np.isfinite(m["distortion"]).all():
+        raise MalformedMessage("inconsistent", "K needs positive finite focal lengths, finite entries")
+
+
+# Checks past the schema, per type: what a schema cannot say (an image's bytes against its size,
+# numbers that must be finite). A message failing one is dropped like a malformed one.
+CONSISTENCY = {
+    "Image": _image_consistent,
+    "CameraInfo": _camera_info_consistent,
+    "HandKeypoints": _finite("uv", "xyz_rel", "bbox", "confidence"),
+    "HandPose": _finite("xyz", "root", "quat", "uv"),
+}
+
+
+def _decode(payload, type_name: str, max_bytes: int) -> dict:
     if len(payload) > max_bytes:
         raise MalformedMessage("oversized", f"{len(payload)} bytes > limit {max_bytes}")
     try:

@@ -68,7 +68,7 @@ def start_nodes(members: list[dict], on_exit: Callable[[dict, int], None]) -> li
 def spin(started: list[tuple], on_exit: Callable[[dict, int], None]) -> None:
     """Call each node's handler for every message queued for it, node after node, until
     every node has ended (its inputs ended, or node.stop_all()). A node ends by closing and
-    on_exit(member, 0), or, where its handler raised, on_exit(member, code) likewise."""
+    on_exit(member, 0); a message its handler raises on is dropped and counted (Node.handle)."""
     live = [(m, node, handler, node.steps()) for m, node, handler in started]
     poller = zmq.Poller()
     for _, node, _, _ in live:
@@ -83,7 +83,7 @@ def spin(started: list[tuple], on_exit: Callable[[dict, int], None]) -> None:
                 for msg in steps:
                     if msg is node_mod.IDLE:
                         return
-                    handler(msg)
+                    node.handle(handler, msg)   # a message its handler fails on is dropped, not fatal
                 ended.append(True)   # the stream is over for this node
             code = exit_code(step, m["name"])
             if code or ended:

@@ -73,17 +73,24 @@ class HandModel:
     def load(cls, path=None):
         """The bundled open model (path None), a model .npz, or a MANO_RIGHT.pkl."""
         path = BUNDLED_MODEL if path is None else Path(path)
-        if path.suffix == ".pkl":
-            return cls.from_mano(path)
-        data = np.load(path, allow_pickle=False)
-        return cls(
-            v_template=data["v_template"], shapedirs=data["shapedirs"], weights=data["weights"],
-            faces=data["faces"], j_template=data["j_template"], j_shapedirs=data["j_shapedirs"],
-            tip_vertex_ids=data["tip_vertex_ids"],
-            posedirs=data["posedirs"] if "posedirs" in data else None,
-            beta_names=[str(s) for s in data["beta_names"]] if "beta_names" in data else None,
-            name=path.stem,
-        )
+        if not path.is_file():
+            raise FileNotFoundError(f"hand model {path} not found")
+        try:
+            if path.suffix == ".pkl":
+                return cls.from_mano(path)
+            data = np.load(path, allow_pickle=False)
+            return cls(
+                v_template=data["v_template"], shapedirs=data["shapedirs"], weights=data["weights"],
+                faces=data["faces"], j_template=data["j_template"], j_shapedirs=data["j_shapedirs"],
+                tip_vertex_ids=data["tip_vertex_ids"],
+                posedirs=data["posedirs"] if "posedirs" in data else None,
+                beta_names=[str(s) for s in data["beta_names"]] if "beta_names" in data else None,
+                name=path.stem,
+            )
+        except Exception as e:   # a cut or foreign file: zipfile, pickle, numpy and key errors alike
+            raise ValueError(f"hand model {path} is not a readable hand model file "
+                             f"({type(e).__name__}: {str(e)[:200]}); the bundled one is models/hand_model.npz, "
+                             f"made by scripts/build_hand_model.py") from None
 
     @classmethod
     def from_mano(cls, path):

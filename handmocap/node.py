@@ -475,13 +475,25 @@ class Node:
             self._trace.append(("recv", topic, msg.stamp_ns, msg.recv_ns))
         return msg
 
-    def _drop(self, topic: str, reason: str, detail: str) -> None:
+    def _drop(self, topic: str, reason: str, detail: str, what: str = "a malformed message") -> None:
         self.stats["dropped"][f"{topic}:{reason}"] += 1
         if (topic, reason) not in self._logged_drops:
             self._logged_drops.add((topic, reason))
-            self.log.warning("dropped a malformed message on %s (%s); further drops of this kind "
-                             "are only counted in the node status", topic, detail[:200])
+            self.log.warning("dropped %s on %s (%s); further drops of this kind are only counted "
+                             "in the node status", what, topic, detail[:300])
         return None
+
+    def handle(self, handler, msg: Message) -> None:
+        """handler(msg), where an exception drops that message only: counted per topic and
+        cause ("handler-<Exception>") in the node status, logged once with its traceback, and
+        the node goes on with the next message (one bad input must not stop a graph)."""
+        try:
+            handler(msg)
+        except Exception as e:
+            reason = f"handler-{type(e).__name__}"
+            if (msg.topic, reason) not in self._logged_drops:
+                self.log.warning("its handler failed on a message of %s", msg.topic, exc_info=True)
+            self._drop(msg.topic, reason, f"{type(e).__name__}: {e}", "a message its handler failed on")
 
     # -- discovery and end of stream --------------------------------------------------------
     def _scan(self, force: bool = False) -> bool:
@@ -630,7 +642,7 @@ def spin(start) -> None:
     handmocap.executor): set up, call the handler for every received message, close."""
     node, handler = start()
     for msg in node:
-        handler(msg)
+        node.handle(handler, msg)
     node.close()
 
 

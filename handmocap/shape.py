@@ -23,6 +23,7 @@ _REF_INDEX = BONES.index(REF_BONE)
 BONES_WITH_TIPS = tuple(i for i in range(len(BONES)) if i != _REF_INDEX)                     # 19
 BONES_WITHOUT_TIPS = tuple(i for i in BONES_WITH_TIPS if BONES[i][1] not in FINGER_TIPS)    # 14
 _PARENT = np.array([p for p, _ in BONES])
+MAX_SHAPES = 16   # messages/HandShape.json: shapes maxItems
 _CHILD = np.array([c for _, c in BONES])
 
 
@@ -274,7 +275,10 @@ class ShapeEstimator:
             tracker = self.tracks.get(h["track_id"], (None,))[0] or ShapeTracker(self.fitter, window=self.window)
             tracker.update(h["xyz_rel"])
             self.tracks[h["track_id"]] = (tracker, h["handedness"], now)
-        for tid in [t for t, (_, _, seen) in self.tracks.items() if now - seen > self.forget_after_s]:
+        stale = [t for t, (_, _, seen) in self.tracks.items() if now - seen > self.forget_after_s]
+        # at most MAX_SHAPES (HandShape's schema limit): the tracks seen longest ago go first
+        by_age = sorted((t for t in self.tracks if t not in stale), key=lambda t: self.tracks[t][2])
+        for tid in stale + by_age[:max(0, len(by_age) - MAX_SHAPES)]:
             del self.tracks[tid]
             self._rest_cache.pop(tid, None)
         out = []

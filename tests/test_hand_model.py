@@ -206,3 +206,12 @@ def test_renderer_projects_like_the_camera_model():
     assert abs(depth[int(round(w)), int(round(u))] - palm[2]) < 0.03
     assert depth[0, 0] == 0 and (rgb[0, 0] == 255).all()      # background
     assert 0.05 < (depth > 0).mean() < 0.6
+
+
+def test_a_corrupt_or_missing_model_file_is_one_clear_error(tmp_path):
+    cut = tmp_path / "hand_model.npz"
+    cut.write_bytes(BUNDLED_MODEL.read_bytes()[:5000])
+    with pytest.raises(ValueError, match="not a readable hand model file"):
+        HandModel.load(cut)
+    with pytest.raises(FileNotFoundError, match="not found"):
+        HandModel.load(tmp_path / "missing.npz")

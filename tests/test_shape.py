@@ -141,3 +141,15 @@ def test_refitting_beta_every_few_frames_holds_it_in_between_and_changes_it_litt
     np.testing.assert_allclose(fast[changes], exact[changes], atol=1e-12)   # the same fit at a refit
     moved = np.abs(exact[72:] - exact[64:-8]).max(1)
     assert np.percentile(np.abs(exact - fast).max(1)[72:], 90) <= np.max(moved)
+
+
+def test_estimator_never_publishes_more_shapes_than_its_schema_takes():
+    """Many short tracks within forget_after_s: the 16 seen last are kept (HandShape maxItems 16)."""
+    from handmocap import codec
+    from handmocap.shape import MAX_SHAPES, ShapeEstimator
+    est = ShapeEstimator(MODEL)
+    xyz = (MODEL.rest_joints() - MODEL.rest_joints()[9]) / MODEL.ref_bone_length()
+    for t in range(40):
+        shapes = est.update([{"track_id": t, "handedness": "right", "xyz_rel": xyz}], t * 0.01)
+    assert [s["track_id"] for s in shapes] == list(range(40 - MAX_SHAPES, 40))
+    codec.encode({"header": codec.header(0), "shapes": shapes}, "HandShape")   # schema-valid

@@ -1,0 +1,170 @@
+"""No message, however malformed, stops a node (issue 30): the codec raises only
+MalformedMessage, on every message type; the four inputs that once stopped a whole graph are
+dropped and counted with the graph running on; a handler that fails on a message loses only
+that message."""
+import json
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from conftest import handlaunch
+from graphnodes.killers import image_killers, nan_keypoints
+from handmocap import codec
+from handmocap.bag import iter_messages
+
+
+def test_the_four_killers_are_malformed_messages():
+    reasons = {}
+    for name, payload in image_killers(1_700_000_000_000_000_000):
+        with pytest.raises(codec.MalformedMessage) as e:
+            codec.decode(payload, "Image")
+        reasons[name] = e.value.reason
+    assert reasons == {"1-D data": "inconsistent", "(0,0,3) data": "inconsistent",
+                       "huge extra array": "array-shape", "nested 1,000 deep": "too-deep"}
+    with pytest.raises(codec.MalformedMessage, match="not-finite"):
+        codec.decode(nan_keypoints(0), "HandKeypoints")
+
+
+def sample(type_name):
+    """A valid message of each type (its wire form, before msgpack)."""
+    h = codec.header(3)
+    f32 = lambda *s: np.zeros(s, np.float32)
+    hand_kp = {"track_id": 1, "handedness": "left", "score": 0.5, "bbox": f32(4), "uv": f32(21, 2),
+               "confidence": f32(21), "xyz_rel": f32(21, 3)}
+    hand_pose = {"track_id": 1, "handedness": "right", "score": 0.5, "xyz": f32(21, 3), "root": f32(3),
+                 "quat": np.tile(np.float32([1, 0, 0, 0]), (21, 1)), "pose": f32(16, 3), "beta": f32(10),
+                 "uv": f32(21, 2)}
+    bodies = {
+        "Image": {"encoding": "bgr8", "width": 4, "height": 2, "data": np.zeros((2, 4, 3), np.uint8)},
+        "CameraInfo": {"width": 4, "height": 2, "K": np.eye(3), "distortion": np.zeros(5)},
+        "HandKeypoints": {"width": 4, "height": 2, "hands": [hand_kp]},
+        "HandPose": {"hands": [hand_pose]},
+        "HandShape": {"shapes": [{"track_id": 1, "handedness": "left", "beta": f32(10), "rest_xyz": f32(21, 3),
+                                  "bone_ratios": f32(20), "samples": 3}]},
+        "HandMesh": {"hands": [{"track_id": 1, "handedness": "left", "vertices": f32(5, 3)}]},
+        "RobotJointStates": {"robots": [{"handedness": "left", "track_id": 1, "robot": "toy", "name": ["a"],
+                                         "position": np.zeros(1)}]},
+        "Blob": {"data": np.zeros(8, np.uint8)},
+    }
+    return {"header": h, **bodies[type_name]}
+
+
+def test_every_type_has_a_valid_sample():
+    assert set(codec.message_types()) <= {"Image", "CameraInfo", "HandKeypoints", "HandPose", "HandShape",
+                                          "HandMesh", "RobotJointStates", "Blob"}
+    for t in codec.message_types():
+        codec.decode(codec.encode(sample(t), t), t)
+
+
+def wire(obj):
+    """The message with its arrays in wire form (what msgpack carries)."""
+    return msgpack.unpackb(codec.encode(obj), raw=False)
+
+
+leaves = (st.none() | st.booleans() | st.integers(-2**64, 2**64 - 1) | st.floats() | st.text(max_size=6)
+          | st.binary(max_size=24)
+          | st.builds(lambda d, s, n: {"dtype": d, "shape": s, "data": bytes(n)},
+                      st.sampled_from(["uint8", "float32", "int64", "bool", "complex64", 7]),
+                      st.lists(st.integers(-1, 2**64 - 1) | st.floats(0, 4), max_size=4), st.integers(0, 64)))
+structures = st.recursive(leaves, lambda c: st.lists(c, max_size=3) | st.dictionaries(st.text(max_size=6), c, max_size=3),
+                          max_leaves=12)
+
+
+def _paths(obj, prefix=()):
+    yield prefix
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _paths(v, prefix + (k,))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from _paths(v, prefix + (i,))
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.sampled_from(sorted(codec.message_types())), st.data())
+def test_structured_fuzz_of_every_type_only_ever_raises_malformed(type_name, data):
+    """A valid message of the type with one part replaced by anything (a deeply nested list, an
+    array of absurd shape, a wrong type), or an extra key, or its payload cut or flipped."""
+    msg = wire(sample(type_name))
+    paths = [p for p in _paths(msg) if p]
+    how = data.draw(st.sampled_from(["replace", "extra", "deep", "bytes"]))
+    if how == "replace":
+        path = data.draw(st.sampled_from(paths))
+        parent = msg
+        for k in path[:-1]:
+            parent = parent[k]
+        parent[path[-1]] = data.draw(structures)
+    elif how == "extra":
+        msg[data.draw(st.text(max_size=6))] = data.draw(structures)
+    elif how == "deep":
+        deep = leaf = []
+        for _ in range(data.draw(st.integers(100, 1000))):   # msgpack packs at most ~1,000 deep
+            leaf.append([])
+            leaf = leaf[0]
+        msg[data.draw(st.sampled_from(list(msg)))] = deep
+    payload = msgpack.packb(msg)
+    if how == "bytes":
+        payload = bytearray(payload)
+        for _ in range(data.draw(st.integers(1, 8))):
+            payload[data.draw(st.integers(0, len(payload) - 1))] = data.draw(st.integers(0, 255))
+        payload = bytes(payload)[:data.draw(st.integers(1, len(payload)))]
+    try:
+        out = codec.decode(payload, type_name)
+    except codec.MalformedMessage:
+        return
+    assert isinstance(out, dict) and "header" in out
+
+
+def write(tmp_path, name, text):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_killers_are_dropped_and_counted_with_the_graph_running_on(tmp_path, run_dir):
+    """killers -> detector -> shape -> ik, and a recorder of everything: every good frame gets its
+    keypoints and pose, every killer is dropped by each subscriber (one warning per cause and
+    a counter), the NaN keypoints by ik, and the graph ends normally."""
+    bag = tmp_path / "k.mcap"
+    lf = write(tmp_path, "g.yaml", f"""
+nodes:
+  killers: {{node: graphnodes.killers, params: {{frames: 20}}, required: true}}
+  detector: {{node: detector, params: {{every_frame: true}}, required: true}}
+  shape: {{node: shape}}
+  ik: {{node: ik, required: true}}
+  recorder: {{node: recorder, params: {{output: "{bag}", raw: true}}, required: true}}
+""")
+    r = handlaunch([lf], run_dir, timeout=120)
+    out = r.stdout + r.stderr
+    assert r.returncode == 0, out
+    assert "Traceback" not in out
+    counts = {}
+    for topic, _, _, _ in iter_messages(bag):
+        counts[topic] = counts.get(topic, 0) + 1
+    assert counts["/camera/image"] == 20 and counts["/hand/pose"] == 20
+    for node in ("detector", "recorder"):
+        for cause in ("inconsistent: bgr8 image 64x48 needs data", "Maximum allowed dimension", "too-deep"):
+            assert any(line.startswith(f"[{node}] WARNING dropped") and cause in line for line in out.splitlines()), \
+                (node, cause, out)
+    assert any(line.startswith("[ik] WARNING dropped") and "not-finite" in line for line in out.splitlines()), out
+
+
+def test_a_handler_that_fails_drops_only_that_message(tmp_path, monkeypatch):
+    from handmocap.node import Message, Node
+    monkeypatch.setenv("HANDMOCAP_RUN_DIR", str(tmp_path / "run"))
+    node = Node("handler_test", params={}, argv=[])
+    seen = []
+
+    def handler(msg):
+        if msg.data["n"] == 2:
+            raise KeyError("boom")
+        seen.append(msg.data["n"])
+    try:
+        for n in range(5):
+            node.handle(handler, Message("/t", "Blob", {"n": n}, b"", 0))
+        assert seen == [0, 1, 3, 4]
+        assert node.stats["dropped"] == {"/t:handler-KeyError": 1}
+    finally:
+        node.close()
