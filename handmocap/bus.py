@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import tempfile
 import threading
 import time
@@ -33,19 +34,46 @@ HEARTBEAT_S = 0.5
 STALE_S = 5.0   # a node file whose heartbeat is older than this, or whose pid is gone, is dead
 
 
+class RunDirError(PermissionError):
+    """A run dir that is not this user's own private folder (nothing may start in it)."""
+
+
+def private_dir(path: Path) -> Path:
+    """`path`, made (mode 0700) if missing, checked to be a folder of this user's that no one
+    else may read or write and not a symlink: a predictable /tmp path could have been made
+    first by another user, who could then read the graph's node files and feed it messages.
+    RunDirError naming the path and what is wrong."""
+    try:
+        path.mkdir(mode=0o700)
+    except FileExistsError:
+        pass
+    st = os.lstat(path)
+    if stat.S_ISLNK(st.st_mode) or not stat.S_ISDIR(st.st_mode):
+        raise RunDirError(f"run dir {path} is {'a symlink' if stat.S_ISLNK(st.st_mode) else 'not a folder'}; "
+                          f"remove it (or set HANDMOCAP_RUN_DIR to a private folder)")
+    if st.st_uid != os.getuid():
+        raise RunDirError(f"run dir {path} belongs to uid {st.st_uid}, not to you (uid {os.getuid()}): another "
+                          f"user made it; remove it, or set HANDMOCAP_RUN_DIR to a private folder")
+    if st.st_mode & 0o077:
+        raise RunDirError(f"run dir {path} has mode {stat.S_IMODE(st.st_mode):o}: others may read or write it; "
+                          f"chmod 700 {path} (or remove it)")
+    return path
+
+
 def run_dir(graph: str | None = None) -> Path:
-    """Directory that holds one graph's sockets and node files.
+    """Directory that holds one graph's sockets and node files, private to this user (0700,
+    checked on every call: private_dir).
 
     $HANDMOCAP_RUN_DIR if set, else <tmp>/handmocap-<uid>/<graph> with graph from the
     argument, $HANDMOCAP_GRAPH or "default". Kept short: unix socket paths max out at 107 bytes.
     """
     if os.environ.get("HANDMOCAP_RUN_DIR"):
         d = Path(os.environ["HANDMOCAP_RUN_DIR"])
-    else:
-        graph = graph or os.environ.get("HANDMOCAP_GRAPH", "default")
-        d = Path(tempfile.gettempdir()) / f"handmocap-{os.getuid()}" / graph
-    d.mkdir(parents=True, exist_ok=True)
-    return d
+        d.parent.mkdir(parents=True, exist_ok=True)
+        return private_dir(d)
+    graph = graph or os.environ.get("HANDMOCAP_GRAPH", "default")
+    base = private_dir(Path(tempfile.gettempdir()) / f"handmocap-{os.getuid()}")
+    return private_dir(base / graph)
 
 
 def topic_frame(topic: str) -> bytes:
@@ -86,7 +114,9 @@ def write_node_file(directory: Path, info: NodeInfo) -> None:
     """Atomically (re)write a node's file; its mtime and heartbeat_ns are the heartbeat."""
     info.heartbeat_ns = time.time_ns()
     tmp = directory / f".{info.name}.json.{os.getpid()}"
-    tmp.write_text(json.dumps(info.__dict__))
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)   # pids, endpoints: this user's only
+    with os.fdopen(fd, "w") as f:
+        f.write(json.dumps(info.__dict__))
     os.replace(tmp, directory / f"{info.name}.json")
 
 

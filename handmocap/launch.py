@@ -56,6 +56,7 @@ drains the graph), with exit 1 if a required node failed; Ctrl-C/SIGTERM stops a
 """
 from __future__ import annotations
 
+import fcntl
 import importlib
 import importlib.util
 import json
@@ -115,6 +116,11 @@ def _load_yaml_with_lines(path: Path) -> tuple[object, dict]:
             out = {}
             for k, v in node.value:
                 key = yaml.safe_load(yaml.serialize(k))
+                if key in out:   # YAML would keep the last silently: a node or arg defined twice
+                    first = lines[key_path + (key,)]
+                    raise LaunchError(f"{path}:{k.start_mark.line + 1}: {key!r} is given twice "
+                                      f"(lines {first} and {k.start_mark.line + 1})"
+                                      + (f" under {'.'.join(map(str, key_path))}" if key_path else ""))
                 lines[key_path + (key,)] = k.start_mark.line + 1
                 out[key] = build(v, key_path + (key,))
             return out
@@ -379,6 +385,39 @@ class Child:
             self.proc.send_signal(signal.SIGTERM)
 
 
+def topic_cycle(nodes: dict) -> str | None:
+    """'a -[/x]-> b -[/y]-> a' for a cycle of topics among the graph's nodes (NodeInfo by
+    name; tools that only observe are left out), or None. An every-topic subscriber ("*", the
+    recorder) counts as subscribing to every topic."""
+    nodes = {n: i for n, i in nodes.items() if not i.observer}
+    edges = {n: [(t, m) for m, j in nodes.items() for t in i.publishes if t in j.subscribes or "*" in j.subscribes]
+             for n, i in nodes.items()}
+    state: dict[str, int] = {}   # 1: on the current path, 2: done
+    path: list[tuple[str, str]] = []
+
+    def visit(n):
+        state[n] = 1
+        for topic, m in edges[n]:
+            path.append((n, topic))
+            if state.get(m) == 1:
+                start = next(i for i, (k, _) in enumerate(path) if k == m)
+                return "".join(f"{k} -[{t}]-> " for k, t in path[start:]) + m
+            if m not in state:
+                found = visit(m)
+                if found:
+                    return found
+            path.pop()
+        state[n] = 2
+        return None
+
+    for n in sorted(nodes):
+        if n not in state:
+            found = visit(n)
+            if found:
+                return found
+    return None
+
+
 class Launcher:
     def __init__(self, launch: LaunchFile, out=sys.stdout):
         self.launch = launch
@@ -403,7 +442,27 @@ class Launcher:
                                   f"under another name (graph: in the file, or HANDMOCAP_GRAPH=...)")
             (self.dir / f"{name}.json").unlink(missing_ok=True)   # stale file of a dead node
 
+    def lock_graph(self) -> None:
+        """Hold an exclusive lock on <run dir>/graph.lock for the launcher's life: "one graph per
+        name" is atomic (two launches 0.3 s apart had both passed check_names_free and shared
+        sockets). The lock goes with the process, however it ends."""
+        self._lock_file = open(self.dir / "graph.lock", "a+")
+        try:
+            fcntl.flock(self._lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self._lock_file.seek(0)
+            holder = self._lock_file.read().strip() or "?"
+            self._lock_file.close()
+            raise LaunchError(f"{self.launch.path}: graph {self.dir} is already running (handlaunch pid {holder}); "
+                              f"stop it, or run this graph under another name (graph: in the file, or "
+                              f"HANDMOCAP_GRAPH=...)") from None
+        self._lock_file.seek(0)
+        self._lock_file.truncate()
+        self._lock_file.write(str(os.getpid()))
+        self._lock_file.flush()
+
     def run(self) -> int:
+        self.lock_graph()
         self.check_names_free()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: setattr(self, "stopping", True))
@@ -417,6 +476,13 @@ class Launcher:
             while not self.stopping:
                 if not ready_file.exists():
                     if self._all_ready():
+                        cycle = topic_cycle(bus.read_node_files(self.dir, alive_only=False))
+                        if cycle:   # before the first message: nodes wait for the ready file
+                            self.print("handlaunch", f"error: topic cycle {cycle}: its nodes would wait for "
+                                       f"each other's end of stream and the graph would never end; "
+                                       f"nothing was sent")
+                            failed = "cycle"
+                            break
                         self._write_ready(ready_file)
                     elif time.monotonic() - t0 > STARTUP_TIMEOUT_S:
                         self.print("handlaunch", f"error: nodes not up after {STARTUP_TIMEOUT_S} s: "
@@ -431,7 +497,7 @@ class Launcher:
             self._stop_all()
             ready_file.unlink(missing_ok=True)
         if failed:
-            return 1
+            return 2 if failed == "cycle" else 1
         if self.stopping:
             self.print("handlaunch", "stopped")
             return 130 if any(c.exit_code not in (0, None) for c in self.children if c.spec.required) else 0
@@ -619,7 +685,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         launch = load_launch_file(argv[0], parse_cli_params(argv[1:]))
         return Launcher(launch).run()
-    except (LaunchError, ValueError) as e:
+    except (LaunchError, ValueError, bus.RunDirError) as e:
         print(f"handlaunch: error: {e}", file=sys.stderr)
         return 2
 

@@ -130,6 +130,8 @@ def parse_cli_params(argv: list[str]) -> dict:
         if ":=" not in arg:
             raise ValueError(f"expected name:=value, got {arg!r}")
         k, v = arg.split(":=", 1)
+        if k in out:   # the last would silently win
+            raise ValueError(f"{k} is given twice: {k}:={out[k]!r} and {arg!r}")
         out[k] = yaml.safe_load(v) if v else ""
     return out
 

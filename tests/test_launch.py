@@ -81,6 +81,9 @@ def test_good_file_substitutes_arguments_keeping_types(tmp_path):
     (GOOD, {"input": "x", "rate": "fast"}, 7, "replay param rate: expected a number >= 0, got 'fast'"),
     (GOOD.replace("out-$(var rate).mcap", "kept.mcap"), {"input": "x"}, 11,
      "recorder param output: kept.mcap already exists"),
+    (GOOD + "  replay:\n    node: replay\n", {"input": "x"}, 12, "'replay' is given twice (lines 5 and 12) under nodes"),
+    (GOOD.replace("rate: $(var rate)}", "rate: $(var rate), rate: 2}"), {"input": "x"}, 7,
+     "'rate' is given twice"),
     ("nodes: []\n", {}, 1, "'nodes:' must map"),
     ("nodez: {}\n", {}, 1, "unknown key 'nodez'"),
 ])
@@ -167,3 +170,39 @@ def test_product_launch_files_are_valid(name, monkeypatch):
     names = [n.name for n in lf.nodes]
     assert "visualizer" in names or name == "replay"
     assert ("recorder" in names) == (name in ("demo", "replay"))   # live graphs record only with bag:=
+
+
+def test_an_argument_given_twice_is_an_error_naming_both(tmp_path, run_dir):
+    path = write(tmp_path, GOOD)
+    r = subprocess.run([sys.executable, "-m", "handmocap.launch", str(path), "input:=a.mp4", "rate:=1", "rate:=2"],
+                       capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.strip() == "handlaunch: error: rate is given twice: rate:=1 and 'rate:=2'"
+    assert not list(run_dir.iterdir())
+
+
+def test_a_topic_cycle_is_refused_before_any_message(tmp_path, run_dir):
+    """ticker -> /b -> r1 -> /c -> r2 -> /b: r1 and r2 would each wait for the other's end of
+    stream for ever; the launcher names the cycle once every node is up, before the first
+    message, and stops the graph."""
+    from conftest import handlaunch
+    path = write(tmp_path, """
+nodes:
+  ticker: {node: graphnodes.ticker, params: {topic: /b, count: 5}}
+  r1: {node: graphnodes.relay, params: {input: /b, output: /c}}
+  r2: {node: graphnodes.relay, params: {input: /c, output: /b}}
+""")
+    r = handlaunch([path], run_dir, timeout=60)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "error: topic cycle r1 -[/c]-> r2 -[/b]-> r1" in r.stdout, r.stdout
+
+
+def test_topic_cycle_finds_cycles_and_only_cycles():
+    from handmocap.bus import NodeInfo
+    from handmocap.launch import topic_cycle
+    node = lambda name, pub=(), sub=(), **kw: NodeInfo(name, 1, "", {t: "Blob" for t in pub}, {t: "all" for t in sub}, **kw)
+    chain = {"s": node("s", ["/a"]), "m": node("m", ["/b"], ["/a"]), "rec": node("rec", [], ["*"]),
+             "echo": node("echo", [], ["*"], observer=True)}
+    assert topic_cycle(chain) is None
+    assert topic_cycle({**chain, "back": node("back", ["/a"], ["/b"])}) == "back -[/a]-> m -[/b]-> back"
+    assert topic_cycle({"self": node("self", ["/x"], ["*"])}) == "self -[/x]-> self"
