@@ -187,15 +187,11 @@ class _ChannelInfo:
 _DAMAGE = (McapError, ValueError, struct.error, zlib.error)   # CRC mismatch is a ValueError
 
 
-def _scan_messages(path, topics, scan_out: list) -> Iterator[tuple[_ChannelInfo, Message]]:
-    """Yield (channel, message record) in file order, optionally only on `topics`; append the
-    _Scan to `scan_out` first. Stops at the first incomplete or damaged record."""
+def _scan_records(path, scan_out: list) -> Iterator[Schema | Channel | Message]:
+    """Yield the Schema, Channel and Message records of a bag in file order (from chunks too);
+    append the _Scan to `scan_out` first. Stops at the first incomplete or damaged record."""
     f, scan = _open_bag(path)
     scan_out.append(scan)
-    wanted = None if topics is None else set(topics)
-    schemas: dict[int, str] = {}
-    channels: dict[int, _ChannelInfo] = {}
-    unknown = _ChannelInfo("", "", "")
     with f:
         for opcode, body in _read_records(f, scan):
             stream = ReadDataStream(io.BytesIO(body))
@@ -212,15 +208,60 @@ def _scan_messages(path, topics, scan_out: list) -> Iterator[tuple[_ChannelInfo,
                     continue   # indexes, statistics, attachments, metadata
             except _DAMAGE:
                 return     # scan.good_bytes still ends before this record
-            for r in records:
+            yield from records
+
+
+def _scan_messages(path, topics, scan_out: list) -> Iterator[tuple[_ChannelInfo, Message]]:
+    """Yield (channel, message record) in file order, optionally only on `topics`; append the
+    _Scan to `scan_out` first. Stops at the first incomplete or damaged record."""
+    wanted = None if topics is None else set(topics)
+    schemas: dict[int, str] = {}
+    channels: dict[int, _ChannelInfo] = {}
+    unknown = _ChannelInfo("", "", "")
+    for r in _scan_records(path, scan_out):
+        if isinstance(r, Schema):
+            schemas[r.id] = r.name
+        elif isinstance(r, Channel):
+            channels[r.id] = _ChannelInfo(r.topic, schemas.get(r.schema_id, ""), r.message_encoding)
+        elif isinstance(r, Message):
+            ch = channels.get(r.channel_id, unknown)
+            if wanted is None or ch.topic in wanted:
+                yield ch, r
+
+
+def repair(path: str | os.PathLike) -> dict:
+    """Make a bag whose writer was killed (no summary, no footer: the standard MCAP reader's
+    default, seeking path refuses it) whole, in place: every schema, channel and message of
+    its complete records rewritten unchanged (payloads, times, sequence numbers), then a
+    summary and footer; written beside it and renamed over it only when complete.
+    Returns bag_info of the result plus "repaired" (False: the bag was whole already) and
+    "dropped_bytes" (the unreadable tail that was cut off)."""
+    path = Path(path)
+    before = bag_info(path)
+    if not before["truncated"]:
+        return {**before, "repaired": False, "dropped_bytes": 0}
+    tmp = path.with_name(path.name + ".repairing")
+    try:
+        with open(tmp, "wb") as out:
+            writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.NONE)
+            writer.start(profile="", library="handmocap (handbag repair)")
+            schema_ids, channel_ids = {0: 0}, {}
+            for r in _scan_records(path, []):
                 if isinstance(r, Schema):
-                    schemas[r.id] = r.name
+                    schema_ids[r.id] = writer.register_schema(r.name, r.encoding, r.data)
                 elif isinstance(r, Channel):
-                    channels[r.id] = _ChannelInfo(r.topic, schemas.get(r.schema_id, ""), r.message_encoding)
-                elif isinstance(r, Message):
-                    ch = channels.get(r.channel_id, unknown)
-                    if wanted is None or ch.topic in wanted:
-                        yield ch, r
+                    channel_ids[r.id] = writer.register_channel(r.topic, r.message_encoding,
+                                                                schema_ids.get(r.schema_id, 0), r.metadata)
+                elif isinstance(r, Message) and r.channel_id in channel_ids:
+                    writer.add_message(channel_ids[r.channel_id], log_time=r.log_time, data=r.data,
+                                       publish_time=r.publish_time, sequence=r.sequence)
+            writer.finish()
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return {**bag_info(path), "repaired": True, "dropped_bytes": before["unreadable_bytes"]}
 
 
 def iter_messages(path: str | os.PathLike, topics=None) -> Iterator[tuple[str, str, bytes, int]]:

@@ -127,7 +127,8 @@ def _fmt_bytes(n: int) -> str:
 
 def format_info(info: dict) -> str:
     """The human-readable `handbag info` table."""
-    trunc = (f"yes: the writer did not finish; {info['unreadable_bytes']} byte(s) at the end unreadable"
+    trunc = (f"yes: the writer did not finish; {info['unreadable_bytes']} byte(s) at the end unreadable; "
+             f"`handbag repair {info['path']}` makes it whole for any MCAP reader"
              if info["truncated"] else "no")
     lines = [f"path:       {info['path']}",
              f"size:       {_fmt_bytes(info['size_bytes'])}",
@@ -148,6 +149,16 @@ def format_info(info: dict) -> str:
 def cmd_info(args) -> None:
     info = bag_info(args.file)
     print(json.dumps(info, indent=2) if args.json else format_info(info))
+
+
+def cmd_repair(args) -> None:
+    from .bag import repair
+    result = repair(args.file)
+    if not result["repaired"]:
+        print(f"{args.file}: whole already ({result['message_count']} messages); nothing to do")
+        return
+    print(f"{args.file}: repaired: {result['message_count']} messages kept, any MCAP reader opens it now "
+          f"({result['dropped_bytes']} bytes of a record cut short dropped)")
 
 
 # -- export ----------------------------------------------------------------------------------
@@ -208,6 +219,10 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("file")
     i.add_argument("--json", action="store_true", help="machine-readable output")
     i.set_defaults(func=cmd_info)
+
+    rp = sub.add_parser("repair", help="make a bag whose recorder was killed whole, in place (lossless)")
+    rp.add_argument("file")
+    rp.set_defaults(func=cmd_repair)
 
     e = sub.add_parser("export", help="write a copy in another encoding: Foxglove JSON or a ROS 2 bag")
     e.add_argument("file")

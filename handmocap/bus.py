@@ -2,7 +2,8 @@
 
 Wire: every message is three frames, `[topic + b"\\0", type name, msgpack payload]`. The
 trailing NUL makes ZeroMQ's prefix subscription an exact topic match. A control type
-`_eos` (payload: the publishing node's name) marks the end of a publisher's stream.
+`_eos` (payload: the publishing node's name, NUL, the eos_token of its node file) marks the end
+of a publisher's stream; a subscriber honours it only with the token of the publisher it names.
 
 Discovery: each node binds one XPUB socket (by default `ipc://<run dir>/<node>.pub`, so
 nothing listens on the network) and writes `<run dir>/<node>.json` saying what it publishes
@@ -104,6 +105,7 @@ class NodeInfo:
     ended: bool = False      # set by the launcher on a node that died for good: its streams are over
     heartbeat_ns: int = 0
     stats: dict = field(default_factory=dict)
+    eos_token: str = ""      # this run's secret of the node: its end-of-stream carries it (Node._decode)
 
     @property
     def alive(self) -> bool:

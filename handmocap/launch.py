@@ -428,6 +428,9 @@ class Launcher:
         env = {**os.environ, "HANDMOCAP_RUN_DIR": str(self.dir), "HANDMOCAP_LAUNCH_ID": self.id}
         self.children = [Child(s, env, self.print) for s in processes(launch.nodes)]
         self.stopping = False
+        self.publishers: dict[str, list[str]] = {}   # topic -> node names, once every node is up
+        self.inputs: dict[str, list[str]] = {}       # node name -> its subscribed topics
+        self.ended_early: list[str] = []             # nodes that ended before their inputs' publishers
 
     def print(self, who: str, text: str) -> None:
         with self._lock:
@@ -501,6 +504,9 @@ class Launcher:
         if self.stopping:
             self.print("handlaunch", "stopped")
             return 130 if any(c.exit_code not in (0, None) for c in self.children if c.spec.required) else 0
+        if self.ended_early:
+            self.print("handlaunch", f"error: {', '.join(self.ended_early)} ended before their inputs did")
+            return 1
         self.print("handlaunch", "all nodes finished")
         return 0
 
@@ -520,6 +526,23 @@ class Launcher:
         tmp = ready_file.with_suffix(".tmp")
         tmp.write_text(json.dumps({"publishers": publishers, "subscribers": subscribers}))
         os.replace(tmp, ready_file)
+        self.publishers, self.inputs = publishers, {n: [t for t, names in subscribers.items() if n in names]
+                                                   for c in self.children for n in c.names}
+
+    def _ended_before_its_inputs(self, c) -> None:
+        """A node that ended (exit 0) while a publisher of one of its inputs still runs did not
+        end by the end of its streams (a forged or mistaken end of stream): say so, and the
+        graph's exit code says so too."""
+        running = {n for other in self.children if other.exit_code is None for n in other.names}
+        for name in c.names:
+            for topic in self.inputs.get(name, ()):
+                upstream = [p for t, names in self.publishers.items() if topic in ("*", t) for p in names]
+                still = sorted(set(upstream) & running)
+                if still:
+                    self.print("handlaunch", f"error: {name} ended while {', '.join(still)}, which publish its input "
+                               f"{topic}, still run (it did not hear the end of its stream from them)")
+                    self.ended_early.append(name)
+                    break
 
     def _all_ready(self) -> bool:
         return not self._not_ready()
@@ -543,6 +566,7 @@ class Launcher:
                 continue
             c.exit_code = c.proc.returncode
             if c.exit_code == 0:
+                self._ended_before_its_inputs(c)
                 continue
             how = f"killed by signal {-c.exit_code}" if c.exit_code < 0 else f"exit code {c.exit_code}"
             if c.spec.respawn:

@@ -26,6 +26,7 @@ import json
 import logging
 import math
 import os
+import secrets
 import signal
 import sys
 import threading
@@ -165,7 +166,9 @@ class Node:
         self.pub = bus.Publisher(self.ctx, bind)
         self.sub = bus.Subscriber(self.ctx)
         self.extra_endpoints = json.loads(_setting("HANDMOCAP_CONNECT", "[]"))
-        self.info = bus.NodeInfo(self.name, os.getpid(), self.pub.endpoint, observer=observer)
+        self.info = bus.NodeInfo(self.name, os.getpid(), self.pub.endpoint, observer=observer,
+                                 eos_token=secrets.token_hex(8))
+        self._eos_tokens: dict[str, str] = {}   # publisher name -> the token its end of stream must carry
         if not self._own_ctx:   # also bound in-process, for the container's other nodes
             self.info.inproc = self.pub.bind_inproc(f"inproc://{self.name}", _SHARED["token"])
         self._thread = threading.get_ident()   # the thread that runs this node (a container has several)
@@ -458,7 +461,10 @@ class Node:
                 self._names.clear()
         topic, type_name = names
         if type_b == _EOS:
-            sender = bytes(payload).decode(errors="replace")
+            sender, _, token = bytes(payload).decode(errors="replace").partition("\0")
+            if not token or self._eos_tokens.get(sender) != token:   # not from the publisher it names
+                return self._drop(topic, "forged-eos", f"an end of stream that says it is from {sender!r} "
+                                  f"but lacks that node's token", "an end of stream")
             self._ended[topic].add(sender)
             self._eos_seen = True
             if "*" in self.info.subscribes:   # an every-topic subscription hears the end per topic
@@ -527,6 +533,7 @@ class Node:
             endpoint = info.endpoint
             if info.inproc and info.inproc.get("token") == _SHARED["token"] and not self._own_ctx:
                 endpoint = info.inproc["endpoint"]   # same container: in-process, not through a socket
+            self._eos_tokens[info.name] = info.eos_token
             if self._pub_pids.get(info.name) != info.pid:   # new, or respawned: its stream reopens
                 self._pub_pids[info.name] = info.pid
                 for ended in self._ended.values():
@@ -607,7 +614,7 @@ class Node:
         if self.info.publishes and not self._graph_ready and not self._stop.is_set():
             self.wait_for_subscribers(2.0)   # they must be connected to hear the end-of-stream
         for topic in self.info.publishes:
-            self.pub.send(topic, bus.EOS.decode(), self.name.encode())
+            self.pub.send(topic, bus.EOS.decode(), f"{self.name}\0{self.info.eos_token}".encode())
         self._stop.set()
         with self._file_lock:
             self._closed = True

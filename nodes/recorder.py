@@ -27,8 +27,15 @@ def output_path(output: str, overwrite: bool) -> Path:
     """The bag path `output`; FileExistsError names the file if it exists and may not be replaced."""
     path = Path(output).expanduser()
     if path.exists() and not overwrite:
+        cut = ""
+        try:
+            from handmocap.bag import bag_info
+            if bag_info(path)["truncated"]:
+                cut = f"; it was cut short (its recorder was killed): `handbag repair {path}` makes it whole"
+        except (OSError, ValueError):
+            pass
         raise FileExistsError(f"{path} already exists (remove it, choose another "
-                              f"output, or set overwrite:=true)")
+                              f"output, or set overwrite:=true){cut}")
     return path
 
 

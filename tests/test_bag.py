@@ -168,6 +168,19 @@ def test_sigkilled_writer_leaves_a_readable_bag(tmp_path):
     assert info["truncated"] is True
     assert info["topics"]["/test/blob"]["count"] == len(msgs) > 0
     assert info["unreadable_bytes"] < 64 * 1024 + 6000   # at most the chunk being filled
+    # the standard MCAP reader's default (seeking) path refuses it until it is repaired, in place
+    from mcap.reader import make_reader
+    with open(path, "rb") as f, pytest.raises(Exception):
+        list(make_reader(f).iter_messages())
+    out = run_handbag("repair", str(path))
+    assert out.returncode == 0 and f"repaired: {len(msgs)} messages kept" in out.stdout, out.stdout + out.stderr
+    with open(path, "rb") as f:
+        standard = [(c.topic, s.name, m.data, m.log_time, m.publish_time, m.sequence)
+                    for s, c, m in make_reader(f).iter_messages()]
+    assert [(t, ty, p, ln) for t, ty, p, ln, _, _ in standard] == msgs            # every message, unchanged
+    assert [pt for *_, pt, _ in standard] == list(range(len(msgs)))              # publish times kept
+    assert not bag.bag_info(path)["truncated"]
+    assert "whole already" in run_handbag("repair", str(path)).stdout
 
 
 # -- handbag info / export / errors -----------------------------------------------------------

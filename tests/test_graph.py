@@ -222,3 +222,34 @@ def test_one_node_with_latest_and_keep_all_inputs_small_and_large(run_dir):
     sub.close()
     assert small == list(range(50))   # keep-all: every one, in order; the loop ended on end-of-stream
     assert bigs and bigs == sorted(bigs) and bigs[-1] == 49
+
+
+def test_a_forged_end_of_stream_is_ignored_and_counted(tmp_path, run_dir):
+    """A node of the graph sends end-of-stream marks on /test/blob that name the ticker (no
+    token, a wrong one): the sink ignores them, counts them, and still gets all 300 messages."""
+    out = tmp_path / "sink.json"
+    lf = write(tmp_path, "g.yaml", f"""
+nodes:
+  ticker: {{node: graphnodes.ticker, params: {{count: 300, size: 64, hz: 200}}, required: true}}
+  eos_forger: {{node: graphnodes.eos_forger}}
+  sink: {{node: graphnodes.sink, params: {{mode: all, out: {out}}}}}
+""")
+    r = handlaunch([lf], run_dir)
+    assert r.returncode == 0, r.stdout + r.stderr
+    res = sink_result(out)
+    assert res["seqs"] == list(range(300)) and res["dropped"] == 2
+    assert sum("[sink] WARNING dropped an end of stream on /test/blob" in line for line in r.stdout.splitlines()) == 1
+
+
+def test_a_node_that_ends_before_its_inputs_is_reported(tmp_path, run_dir):
+    """A sink that stops by itself (max_messages) while the ticker still publishes: handlaunch
+    says so and exits 1 instead of a silent 0."""
+    out = tmp_path / "sink.json"
+    lf = write(tmp_path, "g.yaml", f"""
+nodes:
+  ticker: {{node: graphnodes.ticker, params: {{count: 300, size: 64, hz: 100}}}}
+  sink: {{node: graphnodes.sink, params: {{mode: all, out: {out}, max_messages: 10}}}}
+""")
+    r = handlaunch([lf], run_dir)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "error: sink ended while ticker, which publish its input /test/blob, still run" in r.stdout

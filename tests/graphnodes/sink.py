@@ -1,11 +1,12 @@
 """Test node: receives `topic` in `mode`, sleeps `work_s` per message, and writes what it saw
-(sequence numbers, ages at receipt) as JSON to `out` when its input ends or it is stopped."""
+(sequence numbers, ages at receipt) as JSON to `out` when its input ends, it is stopped, or
+it has `max_messages` (0: no limit)."""
 import json
 import time
 
 from handmocap.node import Node, run
 
-PARAMS = {"topic": "/test/blob", "mode": "latest", "work_s": 0.0, "out": "sink.json"}
+PARAMS = {"topic": "/test/blob", "mode": "latest", "work_s": 0.0, "out": "sink.json", "max_messages": 0}
 
 
 def main():
@@ -18,6 +19,8 @@ def main():
         ages_ms.append((msg.recv_ns - msg.stamp_ns) / 1e6)
         if p["work_s"]:
             time.sleep(p["work_s"])
+        if p["max_messages"] and len(seqs) >= p["max_messages"]:   # stops by itself, inputs or not
+            break
     dropped = sum(node.stats["dropped"].values())
     with open(p["out"], "w") as f:
         json.dump({"seqs": seqs, "ages_ms": ages_ms, "dropped": dropped}, f)
