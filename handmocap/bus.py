@@ -106,6 +106,7 @@ class NodeInfo:
     heartbeat_ns: int = 0
     stats: dict = field(default_factory=dict)
     eos_token: str = ""      # this run's secret of the node: its end-of-stream carries it (Node._decode)
+    closing: bool = False    # set before its end-of-stream goes out: its streams are ending normally
 
     @property
     def alive(self) -> bool:

@@ -533,7 +533,9 @@ class Launcher:
         """A node that ended (exit 0) while a publisher of one of its inputs still runs did not
         end by the end of its streams (a forged or mistaken end of stream): say so, and the
         graph's exit code says so too."""
-        running = {n for other in self.children if other.exit_code is None for n in other.names}
+        files = bus.read_node_files(self.dir)   # alive ones: a publisher still running and not closing
+        running = {n for other in self.children if other.exit_code is None for n in other.names
+                   if n in files and not files[n].closing and not files[n].ended}
         for name in c.names:
             for topic in self.inputs.get(name, ()):
                 upstream = [p for t, names in self.publishers.items() if topic in ("*", t) for p in names]

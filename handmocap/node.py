@@ -613,6 +613,8 @@ class Node:
             Path(os.environ["HANDMOCAP_TRACE"], f"{self.name}.trace.json").write_text(json.dumps(self._trace))
         if self.info.publishes and not self._graph_ready and not self._stop.is_set():
             self.wait_for_subscribers(2.0)   # they must be connected to hear the end-of-stream
+        self.info.closing = True   # in the node file before the end of stream goes out (the launcher reads it)
+        self._announce()
         for topic in self.info.publishes:
             self.pub.send(topic, bus.EOS.decode(), f"{self.name}\0{self.info.eos_token}".encode())
         self._stop.set()

@@ -4,7 +4,8 @@ Source: a video file, a folder of images (sorted by name) or an MCAP bag (its /c
 messages; their stamps are replaced by the replay time, as a camera would stamp them).
 `rate` is a speed factor over the source's frame rate (1 = real time, 0 = as fast as the
 graph takes them: the next frame is decoded once fewer than AHEAD sent frames are still
-queued for or held by a subscriber); `start` skips that many seconds; `loop` restarts at the end. /camera/info
+queued for or held by a subscriber); `start` skips that many seconds; `loop` restarts at the end. A replay respawned by its launcher
+continues after the frames it had sent (Progress), with their sequence numbers. /camera/info
 comes from `calibration` (a file, see handmocap.camera_info) or, failing that, from the
 bag's own /camera/info, or from a default field of view (camera_info.DEFAULT_HFOV_DEG) that
 the message marks with source "default-fov". It is sent with every frame, so late subscribers
@@ -46,8 +47,9 @@ def check_params(params: dict) -> None:
     camera_info.check_calibration_param("replay", params.get("calibration"))
 
 
-def bag_frames(path: Path, start_s: float):
-    """(frame BGR, CameraInfo body or None) for each /camera/image of a bag."""
+def bag_frames(path: Path, start_s: float, skip: int = 0):
+    """(frame BGR, CameraInfo body or None) for each /camera/image of a bag (the first `skip`
+    images after `start_s` left out)."""
     from handmocap.bag import iter_messages
     info, t0 = None, None
     for topic, type_name, payload, log_ns in iter_messages(path):
@@ -58,7 +60,39 @@ def bag_frames(path: Path, start_s: float):
             t0 = log_ns if t0 is None else t0
             if (log_ns - t0) / 1e9 < start_s:
                 continue
+            if skip > 0:
+                skip -= 1
+                continue
             yield log_ns, frame_bgr(codec.decode(payload, type_name)), info
+
+
+class Progress:
+    """How many frames this replay has sent in this launch, in <run dir>/<node>.progress, so a
+    respawned replay continues where the killed one stopped (same frames, same sequence
+    numbers) instead of sending the recording again from its start. A new launch (another
+    HANDMOCAP_LAUNCH_ID) starts afresh; so does a replay outside handlaunch."""
+
+    def __init__(self, node: Node):
+        self.launch = os.environ.get("HANDMOCAP_LAUNCH_ID")
+        self.path = node.dir / f"{node.name}.progress"
+        self.file = None
+
+    def resume(self) -> int:
+        """Frames sent by an earlier process of this launch (0: none)."""
+        try:
+            launch, sent = self.path.read_text().split()
+            return int(sent) if self.launch and launch == self.launch else 0
+        except (OSError, ValueError):
+            return 0
+
+    def sent(self, n: int) -> None:
+        if self.launch is None:
+            return
+        if self.file is None:
+            self.file = open(self.path, "w")
+        self.file.seek(0)
+        self.file.write(f"{self.launch} {n:>12d}\n")   # fixed width: no stale tail after a shorter number
+        self.file.flush()                               # to the OS: survives this process being killed
 
 
 def for_frames(calib, w: int, h: int, path) -> camera_info.Intrinsics:
@@ -93,8 +127,14 @@ def replay(node: Node) -> None:
     calib = camera_info.load_calibration(p["calibration"]) if p["calibration"] else None
     rate = float(p["rate"])
     is_bag = source.suffix == ".mcap"
+    progress = Progress(node)
+    resume = 0 if p["loop"] else progress.resume()   # a looping replay starts its loop afresh
+    if resume:
+        node.log.warning("respawned: continuing after the %d frame(s) sent before", resume)
+        node.seq["/camera/image"] = node.seq["/camera/info"] = resume   # sequence numbers go on too
     if not is_bag:
         frames = open_frames(source, p["fps"], float(p["start"]))   # fails now on a bad source
+        frames.start_frame += resume
     if "HANDMOCAP_LAUNCH_ID" in os.environ:
         # wait for the graph here rather than in the first publish: the first stamp and the
         # pacing clock then start when every node is up (else frame 0's latency counts the
@@ -104,7 +144,7 @@ def replay(node: Node) -> None:
     own_info = {"width": None, "height": None}   # the CameraInfo body of our frame size (publish copies it)
     while node.ok():
         if is_bag:
-            seq = ((ns / 1e9, f, info) for ns, f, info in bag_frames(source, float(p["start"])))
+            seq = ((ns / 1e9, f, info) for ns, f, info in bag_frames(source, float(p["start"]), resume))
         else:
             seq = ((i / frames.fps, f, None) for i, f in frames)
         t_first = None
@@ -150,6 +190,7 @@ def replay(node: Node) -> None:
             node.publish("/camera/image", image_message(frame, p["jpeg_quality"]), stamp_ns=stamp, frame_id=p["frame_id"])
             node.publish("/camera/info", info, stamp_ns=stamp, frame_id=p["frame_id"])
             sent += 1
+            progress.sent(resume + sent)
         if not p["loop"] or t_first is None:
             break
     node.log.info("replayed %d frame(s) from %s", sent, source)

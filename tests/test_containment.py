@@ -63,7 +63,7 @@ def wire(obj):
     return msgpack.unpackb(codec.encode(obj), raw=False)
 
 
-leaves = (st.none() | st.booleans() | st.integers(-2**64, 2**64 - 1) | st.floats() | st.text(max_size=6)
+leaves = (st.none() | st.booleans() | st.integers(-2**63, 2**64 - 1) | st.floats() | st.text(max_size=6)
           | st.binary(max_size=24)
           | st.builds(lambda d, s, n: {"dtype": d, "shape": s, "data": bytes(n)},
                       st.sampled_from(["uint8", "float32", "int64", "bool", "complex64", 7]),

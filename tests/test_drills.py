@@ -209,3 +209,32 @@ def test_bad_input_is_one_clear_error_and_a_failed_graph(tmp_path, run_dir, case
     assert len(cause) == 1 and all(w in cause[0] for w in words), seen
     assert [line for line in errors if line not in cause] == \
         [f"[handlaunch] error: required node {node} failed (exit code 2); stopping the graph"], seen
+
+
+def test_a_respawned_replay_continues_where_it_stopped(tmp_path, run_dir):
+    """replay (respawn) -> recorder: the replay is SIGKILLed a second in; its successor goes on
+    after the frames already sent, so the bag holds every frame at most once, in order, with
+    one run of sequence numbers, and the clip's end ends the graph."""
+    from conftest import read_bag, write_test_video
+    clip, bag = tmp_path / "clip.mp4", tmp_path / "r.mcap"
+    write_test_video(clip, 90)
+    lf = tmp_path / "g.yaml"
+    lf.write_text(f"""
+nodes:
+  replay: {{node: replay, params: {{source: {clip}, rate: 1.0}}, respawn: true, respawn_delay: 0.2}}
+  recorder: {{node: recorder, params: {{output: {bag}, raw: true, topics: [/camera/image]}}, required: true}}
+""")
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        wait_until("20 frames", lambda: published(run_dir, "replay", "/camera/image") >= 20)
+        os.kill(node_file(run_dir, "replay")["pid"], signal.SIGKILL)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert "respawned: continuing after the" in out
+    seqs = [m["header"]["seq"] for m, _ in read_bag(bag)["/camera/image"]]
+    assert len(seqs) >= 80 and seqs == sorted(set(seqs)) and seqs[-1] == 89, seqs
