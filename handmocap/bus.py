@@ -144,12 +144,21 @@ class Publisher:
     """One XPUB socket per node. XPUB (not PUB) so that the node sees subscriptions arrive and
     can hold its first message until every subscriber of the graph is connected."""
 
-    def __init__(self, ctx: zmq.Context, endpoint: str):
+    def __init__(self, ctx: zmq.Context, endpoint: str, keys=None):
         self.sock = ctx.socket(zmq.XPUB)
         self.sock.setsockopt(zmq.SNDHWM, 0)       # keep-all subscribers must lose nothing
         self.sock.setsockopt(zmq.XPUB_VERBOSE, 1)  # count every subscriber, not each prefix once
         self.sock.setsockopt(zmq.LINGER, int(PUBLISHER_LINGER_S * 1000))   # flush a slow subscriber at close
-        self.sock.bind(endpoint)
+        if keys is not None and endpoint.startswith("tcp://"):
+            from . import keys as curve
+            curve.serve(self.sock, ctx, keys)
+        try:
+            self.sock.bind(endpoint)
+        except zmq.ZMQError as e:
+            self.sock.close(0)
+            taken = e.errno == zmq.EADDRINUSE
+            raise OSError(f"cannot listen on {endpoint}: " + ("the address is in use (another graph or program "
+                          "listens there, or a node of this graph still does)" if taken else e.strerror)) from None
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.subscriptions: Counter[bytes] = Counter()
         self.joined: Counter[bytes] = Counter()     # subscriptions ever made, per prefix
@@ -230,27 +239,40 @@ class Subscriber:
     """SUB sockets of one node: `latest` (drained on every wake-up, freshest message per topic
     kept; ZMQ_CONFLATE is no use here, it breaks multipart messages) and `all` (keep-all)."""
 
-    def __init__(self, ctx: zmq.Context):
+    def __init__(self, ctx: zmq.Context, keys=None):
         self.ctx = ctx
-        self.socks: dict[str, zmq.Socket] = {}
+        self.keys = keys   # handmocap.keys.Keys: tcp connections go through CURVE sockets of their own
+        self.socks: dict[str, zmq.Socket] = {}   # "latest", "all" and, with keys, "latest+tcp", "all+tcp"
+        self.prefixes: dict[str, list[bytes]] = {"latest": [], "all": []}
         self.connected: dict[str, set[str]] = {"latest": set(), "all": set()}
 
-    def socket(self, mode: str) -> zmq.Socket:
-        if mode not in self.socks:
+    def socket(self, mode: str, tcp: bool = False) -> zmq.Socket:
+        key = f"{mode}+tcp" if tcp else mode
+        if key not in self.socks:
             s = self.ctx.socket(zmq.SUB)
             s.setsockopt(zmq.RCVHWM, 0)   # latest-only drains eagerly; keep-all must lose nothing
             s.setsockopt(zmq.LINGER, 0)
-            self.socks[mode] = s
-        return self.socks[mode]
+            if tcp:   # CURVE applies to a socket's every connection: local ones keep their own socket
+                from . import keys as curve
+                curve.client(s, self.keys)
+                for prefix in self.prefixes[mode]:
+                    s.subscribe(prefix)
+            self.socks[key] = s
+        return self.socks[key]
 
     def subscribe(self, topic: str | None, mode: str) -> None:
         """topic None: every topic (the recorder's 'record all')."""
-        self.socket(mode).subscribe(b"" if topic is None else topic_frame(topic))
+        prefix = b"" if topic is None else topic_frame(topic)
+        self.prefixes[mode].append(prefix)
+        self.socket(mode)
+        for key, s in self.socks.items():
+            if key.split("+")[0] == mode:
+                s.subscribe(prefix)
 
     def connect(self, endpoint: str, mode: str) -> bool:
         if endpoint in self.connected[mode]:
             return False
-        self.socket(mode).connect(endpoint)
+        self.socket(mode, tcp=self.keys is not None and endpoint.startswith("tcp://")).connect(endpoint)
         self.connected[mode].add(endpoint)
         return True
 

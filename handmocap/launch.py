@@ -7,6 +7,8 @@ A launch file:
       input: {help: video file, image folder or bag}          # no default: required
       bag: {default: out.mcap}
     env: {OMP_NUM_THREADS: "1"}                               # for every node
+    keys: {secret: keys/a.key_secret, clients: keys/clients, server: keys/b.key}   # CURVE on tcp:// (handmocap/keys.py)
+    insecure: false           # true: tcp:// endpoints without keys (a warning at every start)
     nodes:
       replay:                 # node name (unique in the graph)
         node: replay          # module handmocap.nodes.replay (or a dotted module path)
@@ -74,12 +76,13 @@ from pathlib import Path
 import yaml
 
 from . import bus
+from .keys import ENV as KEYS_ENV, Keys, release as release_keys
 from .node import parse_cli_params
 
 NODE_KEYS = {"node", "params", "remap", "env", "respawn", "respawn_delay", "required", "bind", "connect", "if",
              "container"}
 FALSE_WORDS = {"", "false", "no", "off", "0", "null", "none"}
-TOP_KEYS = {"graph", "args", "env", "nodes"}
+TOP_KEYS = {"graph", "args", "env", "nodes", "keys", "insecure"}
 VAR = re.compile(r"\$\((var|env) ([A-Za-z_][A-Za-z0-9_]*)(?: ([^)]*))?\)")
 STARTUP_TIMEOUT_S = 120
 # a stopping process may wait out its publishers' linger (a subscriber in another process
@@ -162,6 +165,8 @@ class LaunchFile:
     path: Path
     graph: str | None
     nodes: list[NodeSpec]
+    keys: Keys | None = None      # CURVE key files for the graph's tcp endpoints (handmocap.keys)
+    insecure: list[str] = field(default_factory=list)   # tcp endpoints left open on purpose (insecure: true)
 
 
 def is_true(value) -> bool:
@@ -303,7 +308,36 @@ def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
                 if other.container == container and other.env != specs[-1].env:
                     raise err(kp + ("env",), f"node {name!r}: its environment differs from that of node "
                               f"{other.name!r} in the same container {container!r} (one process, one env)")
-    return LaunchFile(path=path, graph=doc.get("graph"), nodes=specs)
+    keys, insecure = _network_security(doc, specs, err, substitute)
+    return LaunchFile(path=path, graph=doc.get("graph"), nodes=specs, keys=keys, insecure=insecure)
+
+
+def _network_security(doc: dict, specs: list, err, substitute) -> tuple[Keys | None, list[str]]:
+    """The graph's `keys:` (checked: a tcp bind needs a key pair and its clients' public keys, a
+    tcp connect a key pair and the server's public key), or, with `insecure: true`, the list of
+    tcp endpoints left open. A tcp endpoint with neither is an error: it would let anyone who
+    can reach the port read the poses or feed forged ones."""
+    binds = [(n.name, n.bind) for n in specs if n.bind and n.bind.startswith("tcp://")]
+    connects = [(n.name, e) for n in specs for e in n.connect if str(e).startswith("tcp://")]
+    raw = substitute(doc.get("keys"), ("keys",)) if doc.get("keys") is not None else None
+    insecure = doc.get("insecure", False)
+    if not isinstance(insecure, bool):
+        raise err(("insecure",), f"'insecure' must be true or false, got {insecure!r}")
+    if raw is None:
+        if (binds or connects) and not insecure:
+            name, endpoint = (binds or connects)[0]
+            raise err(("nodes", name), f"node {name!r}: {endpoint} is a network endpoint without keys: add a "
+                      f"'keys:' block (make keys with `handkeys keys NAME ...`; handmocap/keys.py), or "
+                      f"'insecure: true' to leave it open to anyone who can reach it")
+        return None, [e for _, e in binds + connects]
+    if not isinstance(raw, dict) or set(raw) - {"secret", "clients", "server"}:
+        raise err(("keys",), "'keys' maps secret (this graph's .key_secret), clients (a folder of public "
+                  ".key files) and server (a publisher's public .key)")
+    keys = Keys(**{k: str(Path(str(v)).expanduser()) if v is not None else None for k, v in raw.items()})
+    problems = keys.check(bool(binds), bool(connects))
+    if problems:
+        raise err(("keys",), "; ".join(problems))
+    return keys, []
 
 
 def processes(nodes: list[NodeSpec]) -> list[NodeSpec | ContainerSpec]:
@@ -426,6 +460,9 @@ class Launcher:
         self.dir = bus.run_dir(launch.graph)
         self.id = f"launch-{uuid.uuid4().hex[:8]}"
         env = {**os.environ, "HANDMOCAP_RUN_DIR": str(self.dir), "HANDMOCAP_LAUNCH_ID": self.id}
+        env.pop(KEYS_ENV, None)
+        if launch.keys is not None:
+            env[KEYS_ENV] = launch.keys.to_env()
         self.children = [Child(s, env, self.print) for s in processes(launch.nodes)]
         self.stopping = False
         self.publishers: dict[str, list[str]] = {}   # topic -> node names, once every node is up
@@ -467,6 +504,10 @@ class Launcher:
     def run(self) -> int:
         self.lock_graph()
         self.check_names_free()
+        if self.launch.insecure:
+            self.print("handlaunch", f"warning: insecure: true: {', '.join(self.launch.insecure)} carry the graph "
+                       f"unencrypted and unauthenticated: anyone who can reach them can read the poses or send "
+                       f"forged ones (a 'keys:' block closes them)")
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: setattr(self, "stopping", True))
         for c in self.children:
@@ -493,7 +534,9 @@ class Launcher:
                         failed = "startup"
                         break
                 failed = self._supervise()
-                if failed or all(c.exit_code == 0 for c in self.children):
+                # ended: every process exited and none waits for a respawn (one that failed and is
+                # not required was reported; the graph still ends with the others)
+                if failed or all(c.exit_code is not None and c.restart_at is None for c in self.children):
                     break
                 time.sleep(0.05)
         finally:
@@ -696,6 +739,7 @@ def run_container(members: list[dict]) -> int:
             node_mod.stop_all()   # again and again: a node still starting up may open after a call
         for t in threads:
             t.join(0.05)
+    release_keys(ctx)   # a tcp bind's ZAP handler holds sockets of the context
     ctx.term()   # every node closed its sockets: flush what is queued, then end
     fatal = [(n, c) for n, c in failed if next(m for m in members if m["name"] == n)["fatal"]]
     return fatal[0][1] if fatal else 0

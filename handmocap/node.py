@@ -40,6 +40,8 @@ import yaml
 import zmq
 
 from . import bus, codec
+from . import keys
+from .keys import Keys
 
 SCAN_S = 0.2          # how often subscribers look for new publishers
 POLL_MS = 100         # longest a receive blocks before the loop looks at scans, ticks and stop
@@ -163,8 +165,9 @@ class Node:
         self._own_ctx = _SHARED["ctx"] is None
         self.ctx = zmq.Context() if self._own_ctx else _SHARED["ctx"]
         bind = _setting("HANDMOCAP_BIND") or f"ipc://{self.dir}/{self.name}.pub"
-        self.pub = bus.Publisher(self.ctx, bind)
-        self.sub = bus.Subscriber(self.ctx)
+        curve_keys = Keys.from_env()   # CURVE on tcp endpoints (handmocap.keys), as the launch file says
+        self.pub = bus.Publisher(self.ctx, bind, curve_keys)
+        self.sub = bus.Subscriber(self.ctx, curve_keys)
         self.extra_endpoints = json.loads(_setting("HANDMOCAP_CONNECT", "[]"))
         self.info = bus.NodeInfo(self.name, os.getpid(), self.pub.endpoint, observer=observer,
                                  eos_token=secrets.token_hex(8))
@@ -356,7 +359,7 @@ class Node:
 
     def _events(self, timeout, block):
         self.ready()
-        socks = {s: mode for mode, s in self.sub.socks.items()}
+        socks = {s: mode.split("+")[0] for mode, s in self.sub.socks.items()}   # "all+tcp": keep-all too
         poller = None
         if len(socks) == 1:
             (only, only_mode), = socks.items()
@@ -462,6 +465,8 @@ class Node:
         topic, type_name = names
         if type_b == _EOS:
             sender, _, token = bytes(payload).decode(errors="replace").partition("\0")
+            if sender not in self._eos_tokens and self.extra_endpoints:
+                return None   # a publisher on another host (connect:): its end does not end this node
             if not token or self._eos_tokens.get(sender) != token:   # not from the publisher it names
                 return self._drop(topic, "forged-eos", f"an end of stream that says it is from {sender!r} "
                                   f"but lacks that node's token", "an end of stream")
@@ -629,6 +634,7 @@ class Node:
         # Without term() the process may exit with its last messages still queued (a container
         # terms its shared Context once every node of it has closed).
         if self._own_ctx:
+            keys.release(self.ctx)   # a tcp bind's ZAP handler first: it holds sockets of the context
             self.ctx.term()
         for sig, handler in self._old_handlers.items():
             signal.signal(sig, handler)

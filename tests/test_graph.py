@@ -158,37 +158,106 @@ nodes:
         proc.communicate(timeout=30)
 
 
-def test_tcp_endpoints_connect_graphs_on_separate_hosts(tmp_path):
-    """Two graphs that cannot see each other's run dirs (as on two hosts): the publisher binds
-    tcp://127.0.0.1:PORT as its launch file says, the subscriber connects to it explicitly."""
+def free_port():
     import socket
-    import tempfile
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    dir_a, dir_b = (Path(tempfile.mkdtemp(prefix="hm")) for _ in range(2))
-    a = write(tmp_path, "a.yaml", f"""
+        return s.getsockname()[1]
+
+
+def two_hosts(tmp_path, port, a_keys="", b_keys="", b_name="sink", a_name="a"):
+    """Launch files of two graphs that cannot see each other's run dirs (as on two hosts): A's
+    ticker binds tcp://127.0.0.1:PORT, B's sink connects to it; each with its `keys:` text."""
+    a = write(tmp_path, f"{a_name}.yaml", f"""
+{a_keys}
 nodes:
-  ticker: {{node: graphnodes.ticker, params: {{count: 200, hz: 100}}, bind: "tcp://127.0.0.1:{port}"}}
+  ticker: {{node: graphnodes.ticker, params: {{count: 200, hz: 100}}, bind: "tcp://127.0.0.1:{port}", required: true}}
 """)
-    b = write(tmp_path, "b.yaml", f"""
+    b = write(tmp_path, f"{b_name}.yaml", f"""
+{b_keys}
 nodes:
-  sink: {{node: graphnodes.sink, params: {{mode: all, out: {tmp_path}/sink.json}}, connect: ["tcp://127.0.0.1:{port}"]}}
+  sink: {{node: graphnodes.sink, params: {{mode: all, out: {tmp_path}/{b_name}.json}}, connect: ["tcp://127.0.0.1:{port}"]}}
 """)
-    graph_b = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(b)], env=graph_env(dir_b),
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return a, b
+
+
+def run_two_hosts(a, b_files, tmp_path):
+    """Start every B graph, wait for its sink, run A to its end, stop the Bs; their outputs."""
+    import tempfile
+    dir_a = Path(tempfile.mkdtemp(prefix="hm"))
+    bs = []
+    for b in b_files:
+        d = Path(tempfile.mkdtemp(prefix="hm"))
+        bs.append((subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(b)], env=graph_env(d),
+                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True), d))
     try:
-        wait_for_node(dir_b, "sink")
+        for _, d in bs:
+            wait_for_node(d, "sink")
         r = handlaunch([a], dir_a)
-        assert r.returncode == 0, r.stdout
-        assert json.loads((dir_a / "ticker.json").read_text() if (dir_a / "ticker.json").exists() else "{}") == {}
         time.sleep(1.0)
-        assert graph_b.poll() is None   # a subscriber of a remote publisher is stopped, not ended
     finally:
-        graph_b.terminate()
-        graph_b.communicate(timeout=30)
+        outs = []
+        for proc, _ in bs:
+            proc.terminate()
+            outs.append(proc.communicate(timeout=30)[0])
+    return r, outs
+
+
+def test_tcp_with_keys_reaches_the_keyed_subscriber_only(tmp_path):
+    """Two "hosts" over tcp://127.0.0.1 with CURVE keys (handkeys): the subscriber with B's key
+    gets every message; one with another key pair is refused (the publisher's graph logs it)
+    and gets nothing; one without keys (insecure) gets nothing either."""
+    from handmocap.keys import main as handkeys
+    keys = tmp_path / "keys"
+    assert handkeys([str(keys), "a", "b", "stranger"]) == 0
+    (keys / "clients").mkdir()
+    (keys / "clients" / "b.key").write_bytes((keys / "b.key").read_bytes())
+    port = free_port()
+    a, b = two_hosts(tmp_path, port, a_keys=f"keys: {{secret: {keys}/a.key_secret, clients: {keys}/clients}}",
+                     b_keys=f"keys: {{secret: {keys}/b.key_secret, server: {keys}/a.key}}")
+    _, stranger = two_hosts(tmp_path, port, b_keys=f"keys: {{secret: {keys}/stranger.key_secret, server: {keys}/a.key}}",
+                            b_name="stranger", a_name="unused1")
+    _, open_sink = two_hosts(tmp_path, port, b_keys="insecure: true", b_name="open", a_name="unused2")
+    r, outs = run_two_hosts(a, [b, stranger, open_sink], tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
     seqs = sink_result(tmp_path / "sink.json")["seqs"]
     assert len(seqs) >= 150 and seqs == sorted(seqs) and seqs[-1] == 199
+    assert sink_result(tmp_path / "stranger.json")["seqs"] == []
+    assert sink_result(tmp_path / "open.json")["seqs"] == []
+    assert "refused a subscriber whose public key" in r.stdout, r.stdout
+    assert "warning: insecure: true: tcp://127.0.0.1" in outs[2]
+
+
+def test_a_forged_publisher_on_the_port_feeds_nothing(tmp_path):
+    """A process that holds the port with a key pair of its own: the keyed subscriber insists on
+    A's public key and takes nothing from it."""
+    from handmocap.keys import main as handkeys
+    keys = tmp_path / "keys"
+    assert handkeys([str(keys), "a", "b", "forger"]) == 0
+    (keys / "clients").mkdir()
+    (keys / "clients" / "b.key").write_bytes((keys / "b.key").read_bytes())
+    port = free_port()
+    forged, b = two_hosts(tmp_path, port, a_keys=f"keys: {{secret: {keys}/forger.key_secret, clients: {keys}/clients}}",
+                          b_keys=f"keys: {{secret: {keys}/b.key_secret, server: {keys}/a.key}}")
+    r, _ = run_two_hosts(forged, [b], tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert sink_result(tmp_path / "sink.json")["seqs"] == []
+
+
+def test_tcp_without_keys_is_refused_at_launch_and_a_taken_port_is_one_line(tmp_path, run_dir):
+    port = free_port()
+    a, _ = two_hosts(tmp_path, port)
+    r = handlaunch([a], run_dir)
+    assert r.returncode == 2 and "is a network endpoint without keys" in r.stderr, r.stderr
+    import socket
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", port))
+        holder.listen()
+        a, _ = two_hosts(tmp_path, port, a_keys="insecure: true")
+        r = handlaunch([a], run_dir)
+    out = r.stdout + r.stderr
+    assert r.returncode == 1 and f"cannot listen on tcp://127.0.0.1:{port}: the address is in use" in out, out
+    assert "Traceback" not in out
 
 
 def test_one_node_with_latest_and_keep_all_inputs_small_and_large(run_dir):
@@ -253,3 +322,19 @@ nodes:
     r = handlaunch([lf], run_dir)
     assert r.returncode == 1, r.stdout + r.stderr
     assert "error: sink ended while ticker, which publish its input /test/blob, still run" in r.stdout
+
+
+def test_a_graph_ends_when_its_nodes_have_ended_even_if_one_failed(tmp_path, run_dir):
+    """A node that is not required fails: it is reported and the rest of the graph runs to its
+    end; handlaunch then returns (it used to wait for ever for that node's exit code 0)."""
+    out = tmp_path / "sink.json"
+    lf = write(tmp_path, "g.yaml", f"""
+nodes:
+  ticker: {{node: graphnodes.ticker, params: {{count: 50, hz: 100}}, required: true}}
+  flaky: {{node: graphnodes.ticker, params: {{topic: /other, count: 50, fail_after: 3}}}}
+  sink: {{node: graphnodes.sink, params: {{mode: all, out: {out}}}}}
+""")
+    r = handlaunch([lf], run_dir, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "warning: node flaky failed" in r.stdout and "all nodes finished" in r.stdout
+    assert sink_result(out)["seqs"] == list(range(50))
