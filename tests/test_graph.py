@@ -203,15 +203,21 @@ def run_two_hosts(a, b_files, tmp_path):
     return r, outs
 
 
+def make_keys(tmp_path, other):
+    """Key pairs a, b and `other` (handkeys) in tmp_path/keys; b's public key is A's one client."""
+    from handmocap.keys import main as handkeys
+    keys = tmp_path / "keys"
+    assert handkeys([str(keys), "a", "b", other]) == 0
+    (keys / "clients").mkdir()
+    (keys / "clients" / "b.key").write_bytes((keys / "b.key").read_bytes())
+    return keys
+
+
 def test_tcp_with_keys_reaches_the_keyed_subscriber_only(tmp_path):
     """Two "hosts" over tcp://127.0.0.1 with CURVE keys (handkeys): the subscriber with B's key
     gets every message; one with another key pair is refused (the publisher's graph logs it)
     and gets nothing; one without keys (insecure) gets nothing either."""
-    from handmocap.keys import main as handkeys
-    keys = tmp_path / "keys"
-    assert handkeys([str(keys), "a", "b", "stranger"]) == 0
-    (keys / "clients").mkdir()
-    (keys / "clients" / "b.key").write_bytes((keys / "b.key").read_bytes())
+    keys = make_keys(tmp_path, "stranger")
     port = free_port()
     a, b = two_hosts(tmp_path, port, a_keys=f"keys: {{secret: {keys}/a.key_secret, clients: {keys}/clients}}",
                      b_keys=f"keys: {{secret: {keys}/b.key_secret, server: {keys}/a.key}}")
@@ -231,11 +237,7 @@ def test_tcp_with_keys_reaches_the_keyed_subscriber_only(tmp_path):
 def test_a_forged_publisher_on_the_port_feeds_nothing(tmp_path):
     """A process that holds the port with a key pair of its own: the keyed subscriber insists on
     A's public key and takes nothing from it."""
-    from handmocap.keys import main as handkeys
-    keys = tmp_path / "keys"
-    assert handkeys([str(keys), "a", "b", "forger"]) == 0
-    (keys / "clients").mkdir()
-    (keys / "clients" / "b.key").write_bytes((keys / "b.key").read_bytes())
+    keys = make_keys(tmp_path, "forger")
     port = free_port()
     forged, b = two_hosts(tmp_path, port, a_keys=f"keys: {{secret: {keys}/forger.key_secret, clients: {keys}/clients}}",
                           b_keys=f"keys: {{secret: {keys}/b.key_secret, server: {keys}/a.key}}")
