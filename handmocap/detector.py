@@ -80,11 +80,11 @@ DETNET_GREY = DETNET_FLOAT32.with_name("detnet_grey_int8.onnx")
 CENTRE = "centre"           # the fallback that tries the centre square of the frame
 # HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
 # so no birth threshold; a close-up the finder misses is tried on the centre square; each
-# hand read on its crop and 4 variants of it (chosen on training-side stills, models/README.md)
+# hand read on its crop and 4 variants of it (chosen on training-side stills, docs/models_history.md)
 PHOTO_SETTINGS = {"birth_confidence": 0.0, "fallback_path": CENTRE, "test_time_crops": 4}
 # HandDetector.load's keywords for video where accuracy is worth ~2.3x the time (offline
 # processing, a fast CPU): every tracked hand read on its crop and 4 variants on every frame
-# (chosen on training-side clips at three turns, models/README.md; 20 ms a frame against 9
+# (chosen on training-side clips at three turns, docs/models_history.md; 20 ms a frame against 9
 # on the AVX2 machine, MediaPipe 32)
 ACCURATE_VIDEO_SETTINGS = {"tracked_test_time_crops": 4}
 # (side factor, extra turn in degrees) of the crops a new track's reading is averaged over

@@ -148,7 +148,7 @@ class Head(nn.Module):
 class FineHeatmaps(nn.Module):
     """Heatmap logits at twice the grid (32x32, 4 px cells, for the fast backbones) for a
     finer 2D read-out: the 16 px heatmaps' cells are 8 px, and on held-out crops most of the
-    2D error lay within a cell of the peak (models/README.md, "Fine heatmaps").
+    2D error lay within a cell of the peak (docs/models_history.md, "Fine heatmaps").
 
     The coarse logits upsampled (bilinear: cell c of the fine grid is centred on pixel
     4c + 1.5, as the grid convention asks) plus a correction read from the fused 16 px
@@ -222,7 +222,7 @@ class DetNet(nn.Module):
 # ------------------------------------------------------------------ read-out
 REFINE = ("none", "soft3", "logquad", "softmax", "fine")
 # "softmax" read-out: sharper than the coordinate loss's softmax (1): the same mean error on
-# held-out crops, more joints within 4 px (models/README.md, "Read-out: a soft-argmax")
+# held-out crops, more joints within 4 px (docs/models_history.md, "Read-out: a soft-argmax")
 SOFTMAX_TEMPERATURE = 0.75
 
 
@@ -325,7 +325,7 @@ class DetNetExport(nn.Module):
 
 # uv_peak: the heatmap peaks (parabola read-out), which the detector follows from frame to
 # frame: where the maps are flat (no hand) they scatter and the track ends, where the
-# soft-argmax gathers them into a tidy hand that kept a track on a face (models/README.md,
+# soft-argmax gathers them into a tidy hand that kept a track on a face (docs/models_history.md,
 # "Read-out: a soft-argmax")
 OUTPUTS = ("uv", "xyz", "confidence", "presence", "handedness", "uv_peak")
 

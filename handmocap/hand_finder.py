@@ -31,7 +31,7 @@ GRID = INPUT_SIZE // STRIDE
 BORDER_VALUE = 114
 DEFAULT_PATH = Path(__file__).resolve().parent.parent / "models" / "finder.onnx"
 # trained with a fifth of its frames in grey: the detector runs it on grey frames (is_grey),
-# where the colour-trained finder finds about a quarter of the hands (models/README.md)
+# where the colour-trained finder finds about a quarter of the hands (docs/models_history.md)
 GREY_PATH = DEFAULT_PATH.with_name("finder_grey.onnx")
 
 

@@ -10,7 +10,7 @@ Two files of one network: models/iknet.onnx (float32, written by `handtrain ikne
 models/iknet_int8.onnx (static int8 with fixed activation ranges, made from it by
 `python -m handmocap.quantize_iknet`; each row of a batch is computed on its own). The
 int8 file is the default: a quarter of the weights to stream per hand (about 0.3 ms
-instead of 1 ms at batch 1) for about 0.1 deg more rotation error (models/README.md).
+instead of 1 ms at batch 1) for about 0.1 deg more rotation error (docs/models_history.md).
 
 Input encoding (the paper's I = [X, D, X_ref, D_ref], 4 x 21 x 3 = 252 values):
 X joints and X_ref rest joints, both root-relative (joint 9) and scale-normalized

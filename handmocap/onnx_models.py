@@ -111,7 +111,7 @@ def pad_depthwise_convs(model, multiple: int = 8) -> int:
     Why: onnxruntime's CPU kernels run a depthwise conv in blocks of 8 channels (AVX2); with
     another count it falls back to a generic grouped conv, 2.5x slower (DetNet's delta and
     location heads: 119 and 182 channels at 16x16, 0.36 / 0.52 ms against 0.15 / 0.20 padded
-    to 120 / 184; models/README.md, "Speed"). Convs whose weights are not plain
+    to 120 / 184; docs/models_history.md, "Speed"). Convs whose weights are not plain
     initializers (quantized ones) are left alone."""
     import numpy as np
     from onnx import helper, numpy_helper

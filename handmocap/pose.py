@@ -6,14 +6,14 @@ Per hand (pose_from_keypoints):
    (0.5) of the way onto the ones the 2D keypoints imply through K at DetNet's depths
    (translation.joints_through_keypoints): the heatmaps' 2D and the location maps' x, y err
    differently, and half of each measured better on held-out synthetic crops and on real
-   clips (models/README.md, "3D x, y from the 2D"). HandKeypoints' xyz_rel stays DetNet's.
+   clips (docs/models_history.md, "3D x, y from the 2D"). HandKeypoints' xyz_rel stays DetNet's.
 1. A left hand's xyz_rel (the hand as seen) is mirrored (x -> -x) into the right-hand model.
 2. IKNet (IKSolver; the static int8 file by default, "float32" on request) turns the joints
    into 21 global bone quaternions, given the rest pose of the person (the paper's X_ref,
    D_ref; the average hand until a shape is known). With clamp_to_limits the finger angles
    are then clipped into the anatomical limits of the average hand, down each finger,
    keeping each bone where IKNet points it as far as the limits allow
-   (ik_solver.clamp_to_limits; models/README.md, "The limits clamp keeps the bones").
+   (ik_solver.clamp_to_limits; docs/models_history.md, "The limits clamp keeps the bones").
 3. Optional One Euro smoothing per track of the quaternions (sign-aligned with the last
    output, renormalized) and of the root translation; a track's filters are reset when the
    track is missing from a keypoints message or unseen for `reset_after_s`.
@@ -43,7 +43,7 @@ from .skeleton import DEFAULT_HAND_LENGTH_M, REF_BONE, ROOT
 from .translation import camera_joints_from_keypoints, joints_through_keypoints, root_fitting_keypoints
 
 # Settings of PoseEstimator (the ik node's parameters): filter cut-offs in Hz (handmocap/one_euro.py),
-# chosen on the detector's output on real clips by scripts/tune_smoothing.py (model card,
+# chosen on the detector's output on real clips by scripts/tune_smoothing.py (docs/models_history.md,
 # "Pose smoothing"): the root's min cut-off 0.5 Hz, first set on synthetic jitter, lagged
 # behind real motion (median 11 mm from the motion's zero-phase estimate, 6 mm unsmoothed); at
 # 2 Hz it is 7 mm with a jitter 7x below the unsmoothed output's. The rotations' were kept.

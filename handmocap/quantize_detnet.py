@@ -7,7 +7,7 @@
 
 Why: DetNet is the largest cost of a tracked frame. With its convolutions in int8
 (onnxruntime's QLinearConv / VNNI kernels) the fast-deep network takes about 1.4 ms per
-crop on this CPU instead of 2.3 (a quiet hour; models/README.md), and the file is half
+crop on this CPU instead of 2.3 (a quiet hour; docs/models_history.md), and the file is half
 the size.
 
 How (onnxruntime.quantization.quantize_static, QDQ format, fused into int8 kernels at load):

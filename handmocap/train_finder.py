@@ -6,7 +6,7 @@
     handtrain finder --export-only
     handtrain finder --val-only --run-dir runs/finder_v2   # a run's last.pt on the held-out sets
     handtrain finder --val-only --onnx models/finder.onnx  # an exported finder on them
-(the shipped finder's full command is in models/README.md)
+(the shipped finder's full command is in docs/models_history.md)
 
 Data (each batch half real, half synthetic):
 * real frames of shared/data/video (webcam, dex_retargeting, tfjs_asl_hand; every n-th

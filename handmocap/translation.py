@@ -210,7 +210,7 @@ def joints_through_keypoints(K, uv, xyz_rel, weight=1.0):
     joint 9 it is a (r_i - r_9) + z_i r_i, with the one unknown a = Z_9 / s (the distance
     in reference bones) fitted to xyz_rel's x, y by least squares; z stays z_i. DetNet's
     2D is read from heatmaps, its x, y from location maps: on held-out synthetic crops
-    and real clips (models/README.md, "3D x, y from the 2D") half of each beats either.
+    and real clips (docs/models_history.md, "3D x, y from the 2D") half of each beats either.
     Joints with a non-finite pixel keep xyz_rel's x, y; so does a hand whose fit fails."""
     p = np.asarray(xyz_rel, dtype=np.float64)
     r = back_project(_k_matrix(K)[..., None, :, :], uv)[..., :2]             # rays' x, y (z = 1), K per hand

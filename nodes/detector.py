@@ -15,10 +15,10 @@ finder; "none": `finder` on every frame), grey_detnet (the DetNet run on grey fr
 default models/detnet_grey_int8.onnx with the bundled int8 DetNet; "none": `detnet` on every
 frame), threads (onnxruntime
 intra-op threads per network), max_hands, finder_threshold (the hand finder's boxes from this
-score on are proposed; lower it for a dim or distant camera: models/README.md), presence_threshold
+score on are proposed; lower it for a dim or distant camera: docs/models_history.md), presence_threshold
 (a track ends below it),
 min_confidence (a track ends below this mean heatmap peak; 0 = off), birth_confidence (a found
-hand becomes a track only from this mean heatmap peak on; see models/README.md),
+hand becomes a track only from this mean heatmap peak on; see docs/models_history.md),
 unborn_retry (frames until the finder looks again after a hand was refused), evict_margin
 (with every track slot taken, a found hand replaces the track with the lowest running heatmap
 peak when its own peak is this much higher; null = never), opposite_hands (two tracks at

@@ -31,7 +31,7 @@ same hands seen from a camera above a desk (K=2: hanging down) or held sideways.
 --shrink F: every frame (and its labels) scaled by F < 1 first: the same hands further away.
 --noise S: Gaussian noise of S levels added to every frame (fixed seed): a dark room's sensor.
 --stills-every N: every Nth frame as a still (default 4; 1 gives 4x the stills and half the
-noise of their figures: models/README.md, "How much of a tracked figure is noise").
+noise of their figures: docs/models_history.md, "How much of a tracked figure is noise").
 """
 import argparse
 from pathlib import Path

@@ -24,7 +24,7 @@ scale about the centroid), and then, with the labels scaled to its size, its off
 the wrist -> middle MCP bone at the wrist, along the metacarpal (towards the wrist) at each
 MCP, along the last bone (inwards) at each fingertip, and along the proximal bone at the
 index and middle PIP, in units of |0-9|. On the engine's crops this is where MediaPipe's
-landmark convention differs from the hand model's joints (models/README.md, Evaluation).
+landmark convention differs from the hand model's joints (docs/models_history.md, Evaluation).
 """
 import argparse
 import json

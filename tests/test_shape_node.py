@@ -9,7 +9,7 @@ from handmocap.hand_model import HandModel
 from handmocap.shape import ShapeEstimator
 from handmocap.skeleton import normalize_joints
 
-# coefficients that bone ratios can see (hand_size, finger_thickness, wrist_girth cannot: models/README.md)
+# coefficients that bone ratios can see (hand_size, finger_thickness, wrist_girth cannot: docs/models_history.md)
 OBSERVABLE = [1, 2, 3, 4, 5, 6, 9]
 
 
