@@ -32,7 +32,10 @@ def main():
     robot = RobotHand(sys.argv[2] if len(sys.argv) > 2 else TOY_HAND, sys.argv[3] if len(sys.argv) > 3 else None)
     run_dir = os.environ.get("HANDMOCAP_RUN_DIR") or os.path.join(
         tempfile.gettempdir(), f"handmocap-{os.getuid()}", os.environ.get("HANDMOCAP_GRAPH", "default"))
-    endpoint = sys.argv[4] if len(sys.argv) > 4 else json.load(open(os.path.join(run_dir, "ik.json")))["endpoint"]
+    info = os.path.join(run_dir, "ik.json")
+    if len(sys.argv) < 5 and not os.path.exists(info):
+        sys.exit(f"no ik node runs in {run_dir}: start a graph (handlaunch launch/teleop.yaml) or give an endpoint")
+    endpoint = sys.argv[4] if len(sys.argv) > 4 else json.load(open(info))["endpoint"]
     sock = zmq.Context().socket(zmq.SUB)
     sock.connect(endpoint)
     sock.subscribe(b"/hand/pose\0")

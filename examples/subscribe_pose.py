@@ -8,7 +8,10 @@ import msgpack, numpy as np, zmq
 # Each node says where it publishes in <run dir>/<node>.json (run dir as handmocap.bus.run_dir).
 run_dir = os.environ.get("HANDMOCAP_RUN_DIR") or os.path.join(
     tempfile.gettempdir(), f"handmocap-{os.getuid()}", os.environ.get("HANDMOCAP_GRAPH", "default"))
-endpoint = sys.argv[1] if len(sys.argv) > 1 else json.load(open(os.path.join(run_dir, "ik.json")))["endpoint"]
+info = os.path.join(run_dir, "ik.json")
+if len(sys.argv) < 2 and not os.path.exists(info):
+    sys.exit(f"no ik node runs in {run_dir}: start a graph (handlaunch launch/demo.yaml) or give an endpoint")
+endpoint = sys.argv[1] if len(sys.argv) > 1 else json.load(open(info))["endpoint"]
 sock = zmq.Context().socket(zmq.SUB)
 sock.connect(endpoint)
 sock.subscribe(b"/hand/pose\0")                 # frames: [topic + NUL, type name, msgpack payload]

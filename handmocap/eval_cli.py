@@ -166,10 +166,11 @@ def score(pred, gt):
     uv = np.where(found[:, None, None], uv, np.nan)
     has_gt = np.isfinite(gt_uv).any(axis=(1, 2))
     out = {"images": int(has_gt.sum()), "found": float(np.mean(found[has_gt])), "2d": metrics.score_2d(uv, gt_uv, valid)}
-    if "handedness" in gt:       # the person's hand, "" where unknown
-        known = found & has_gt & (np.asarray(gt["handedness"]) != "")
+    if "handedness" in gt:       # the person's hand, "" where unknown; one for a whole clip (the demo's)
+        gt_side = np.broadcast_to(np.asarray(gt["handedness"]), found.shape)
+        known = found & has_gt & (gt_side != "")
         if known.any():
-            out["handedness_acc"] = float(np.mean(np.asarray(handedness)[known] == np.asarray(gt["handedness"])[known]))
+            out["handedness_acc"] = float(np.mean(np.asarray(handedness)[known] == gt_side[known]))
     gt_xyz = gt.get("xyz")
     if gt_xyz is not None and np.isfinite(gt_xyz).any():
         has = np.all(np.isfinite(gt_xyz), axis=(1, 2))
@@ -520,14 +521,29 @@ def add_model_arguments(p):
     p.add_argument("--detnet", help="DetNet: int8 (default, models/detnet_int8.onnx), float32 "
                                      "(models/detnet.onnx) or an ONNX path")
     p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx; 'none': centre square)")
-    p.add_argument("--iknet", help="IKNet ONNX (default models/iknet.onnx)")
+    p.add_argument("--iknet", help="IKNet: int8 (default, models/iknet_int8.onnx), float32 (models/iknet.onnx) "
+                                   "or an ONNX path")
     p.add_argument("--set", nargs="+", metavar="KEY=VALUE",
                    help="detector settings (HandDetector keywords), e.g. tracked_test_time_crops=4")
 
 
+def _arrays(path, need, what):
+    """The arrays of an .npz file, with the keys `need` (ValueError naming the file and what
+    is missing: a PRED comes from `handeval predict`, a GT holds at least uv (N,21,2))."""
+    try:
+        with np.load(path) as f:
+            arrays = {k: f[k] for k in f.files}
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: not a readable .npz file ({e})") from None
+    missing = [k for k in need if k not in arrays]
+    if missing:
+        raise ValueError(f"{path}: a {what} file needs {', '.join(need)}; it lacks {', '.join(missing)}")
+    return arrays
+
+
 def cmd_score(args):
-    with np.load(args.pred) as p, np.load(args.gt) as g:
-        pred, gt = {k: p[k] for k in p.files}, {k: g[k] for k in g.files}
+    pred = _arrays(args.pred, ("found", "uv", "xyz", "xyz_rel", "handedness"), "prediction (handeval predict --out)")
+    gt = _arrays(args.gt, ("uv",), "ground-truth")
     if len(pred["found"]) != len(gt["uv"]):
         raise SystemExit(f"error: {args.pred} has {len(pred['found'])} images, {args.gt} {len(gt['uv'])}")
     s = score(pred, gt)
@@ -590,8 +606,8 @@ def main(argv=None):
     args = parser.parse_args(argv)
     try:
         args.run(args)
-    except (ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
+    except (ValueError, OSError) as e:
+        print(f"handeval: error: {e}", file=sys.stderr)
         return 2
     return 0
 

@@ -6,6 +6,7 @@ A launch file:
     args:                     # settable on the command line as name:=value
       input: {help: video file, image folder or bag}          # no default: required
       bag: {default: out.mcap}
+      clip: {default: $(dirname)/clip.mp4}                    # $(dirname): this file's folder
     env: {OMP_NUM_THREADS: "1"}                               # for every node
     keys: {secret: keys/a.key_secret, clients: keys/clients, server: keys/b.key}   # CURVE on tcp:// (handmocap/keys.py)
     insecure: false           # true: tcp:// endpoints without keys (a warning at every start)
@@ -105,6 +106,9 @@ def _load_yaml_with_lines(path: Path) -> tuple[object, dict]:
         raise LaunchError(f"{path}: no such launch file") from None
     except OSError as e:
         raise LaunchError(f"{path}: cannot read: {e.strerror}") from None
+    # $(dirname): the launch file's own folder (as in ROS 2 launch files), so a file can name
+    # files beside it however the user's shell got there
+    text = text.replace("$(dirname)", str(path.resolve().parent))
     try:
         root = yaml.compose(text)
     except yaml.YAMLError as e:

@@ -38,8 +38,39 @@ def topics_table(nodes: dict[str, bus.NodeInfo]) -> dict[str, dict]:
     return dict(sorted(table.items()))
 
 
+class NoGraph(Exception):
+    """No node of a graph runs in the run dir."""
+
+
+def live_nodes() -> dict[str, bus.NodeInfo]:
+    """The graph's live nodes (tools that only observe left out); NoGraph when there are none."""
+    d = bus.run_dir()
+    nodes = {n: i for n, i in bus.read_node_files(d).items() if not i.observer}
+    if not nodes:
+        raise NoGraph(f"no graph is running in {d}: start one with handlaunch, or pick it with --graph NAME "
+                      f"(or HANDMOCAP_GRAPH / HANDMOCAP_RUN_DIR)")
+    return nodes
+
+
+def check_topic(topic: str) -> None:
+    """Say on stderr, once, when no node publishes `topic` now (a misspelt name would else wait
+    in silence), with the closest published names; then keep waiting: a publisher may come."""
+    import difflib
+    try:
+        table = topics_table(live_nodes())
+    except NoGraph as e:
+        print(f"handtopic: {e}. Waiting for one (Ctrl-C to stop).", file=sys.stderr, flush=True)
+        return
+    published = [t for t, row in table.items() if row["publishers"]]
+    if topic not in published:
+        close = difflib.get_close_matches(topic, published, n=3, cutoff=0.5)
+        print(f"handtopic: no node publishes {topic} now" + (f" (did you mean {', '.join(close)}?)" if close else "")
+              + f"; published: {', '.join(published) or 'nothing'}. Waiting for it (Ctrl-C to stop).",
+              file=sys.stderr, flush=True)
+
+
 def cmd_list(args) -> int:
-    table = topics_table(bus.read_node_files(bus.run_dir()))
+    table = topics_table(live_nodes())
     for topic, row in table.items():
         if args.verbose:
             print(f"{topic} [{row['type']}]  pub: {', '.join(row['publishers']) or '-'}  "
@@ -50,6 +81,7 @@ def cmd_list(args) -> int:
 
 
 def cmd_nodes(args) -> int:
+    live_nodes()   # NoGraph when nothing runs
     for n in sorted(bus.read_node_files(bus.run_dir(), alive_only=False).values(), key=lambda n: n.name):
         age = (time.time_ns() - n.heartbeat_ns) / 1e9
         state = "alive" if n.alive else ("ended" if n.ended else "dead")
@@ -75,6 +107,7 @@ def _summarise(obj, full: bool):
 
 def cmd_echo(args) -> int:
     import yaml
+    check_topic(args.topic)
     node = _observer(args.topic, "all")
     n = 0
     for msg in node.events(timeout=args.duration):
@@ -91,6 +124,7 @@ def cmd_echo(args) -> int:
 
 
 def _periodic(args, mode, on_message, report) -> int:
+    check_topic(args.topic)
     node = _observer(args.topic, mode)
     end = time.monotonic() + args.duration if args.duration else None
     next_report = time.monotonic() + 1.0
@@ -162,6 +196,9 @@ def main(argv: list[str] | None = None) -> int:
         return handlers[args.cmd](args)
     except KeyboardInterrupt:
         return 0
+    except (NoGraph, bus.RunDirError) as e:
+        print(f"handtopic: {e}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -1,10 +1,10 @@
-"""Train DetNet on CPU and export it to models/detnet.onnx (`handtrain detnet`).
+"""Train DetNet on CPU and export it (`handtrain detnet`; to RUN_DIR/detnet.onnx unless --export says where).
 
     handsynth generate -n 8192 -o runs/detnet_data/synth_train_0 --seed 1000   # (and _1, _2, ...)
     handsynth generate -n 1024 -o runs/detnet_data/synth_val --seed 424242
     handtrain detnet                          # fast backbone, from scratch (runs/detnet/fast/)
     handtrain detnet --resume --iters 30000   # continue runs/detnet/fast/last.pt
-    handtrain detnet --export-only            # write the ONNX file from last.pt
+    handtrain detnet --export-only            # write the ONNX file from last.pt (--export models/detnet.onnx ships it)
     handtrain detnet --backbone fast-deep --init-from runs/detnet/fast3/last.pt   # grow a trained net
     handtrain detnet --backbone fast-deep --init-from models/detnet.onnx        # ... or the shipped one
 
@@ -55,7 +55,7 @@ import cv2
 import numpy as np
 
 from . import real_data
-from .detector import DETNET_FLOAT32, hand_angle
+from .detector import hand_angle
 from .pose_data import SHARED_DATA
 from .skeleton import ROOT, normalize_joints
 from .training import warmup_cosine_lr
@@ -131,7 +131,9 @@ def add_arguments(p):
     p.add_argument("--val-every", type=int, default=250)
     p.add_argument("--ckpt-every", type=int, default=50)
     p.add_argument("--run-dir", type=Path, default=None, help="default runs/detnet/<backbone>")
-    p.add_argument("--export", type=Path, default=DETNET_FLOAT32, help="ONNX output (default %(default)s)")
+    p.add_argument("--export", type=Path, default=None,
+                   help="ONNX output (default RUN_DIR/detnet.onnx: the shipped models/detnet.onnx is replaced only "
+                        "when you name it)")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
     p.add_argument("--export-only", action="store_true", help="export RUN_DIR/last.pt and stop")
     p.add_argument("--init-from", type=Path, default=None,
@@ -890,6 +892,8 @@ def main(args):
         raise SystemExit(f"--device {args.device}: torch {torch.__version__} sees no CUDA device here; "
                          f"train on the CPU with --device cpu")
     run_dir = args.run_dir or RUN_DIR / args.backbone
+    if args.export is None:   # never the shipped model by default: a trial run must not replace it
+        args.export = run_dir / "detnet.onnx"
     net = DetNet(args.backbone, fine=args.fine_head).to(device, memory_format=torch.channels_last)
     trained = dict(net.named_parameters())
     if args.train_only:

@@ -71,7 +71,9 @@ def add_arguments(p):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--ckpt-every", type=int, default=200)
     p.add_argument("--run-dir", type=Path, default=RUN_DIR)
-    p.add_argument("--export", type=Path, default=DEFAULT_EXPORT)
+    p.add_argument("--export", type=Path, default=None,
+                   help=f"ONNX output (default RUN_DIR/finder.onnx: the shipped {DEFAULT_EXPORT.name} is replaced "
+                        f"only when you name it)")
     p.add_argument("--real-part", choices=("train", "all"), default="train",
                    help="frames of the training videos: the first 85%% (the tails validate) or all of them "
                         "(default %(default)s)")
@@ -377,6 +379,8 @@ def export(model, path):
 
 
 def main(args):
+    if args.export is None:   # never the shipped model by default: a trial run must not replace it
+        args.export = args.run_dir / "finder.onnx"
     import torch
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)

@@ -1,4 +1,4 @@
-"""Train IKNet on CPU and export it to models/iknet.onnx (`handtrain iknet`).
+"""Train IKNet on CPU and export it (`handtrain iknet`; to RUN_DIR/iknet.onnx unless --export says where).
 
     handtrain iknet                      # from scratch (runs/iknet/ is replaced)
     handtrain iknet --resume             # continue runs/iknet/last.pt to --iters
@@ -53,8 +53,10 @@ def add_arguments(p):
     p.add_argument("--val-every", type=int, default=1000)
     p.add_argument("--ckpt-every", type=int, default=250)
     p.add_argument("--run-dir", type=Path, default=RUN_DIR)
-    p.add_argument("--export", type=Path, default=FLOAT32_MODEL,
-                   help="ONNX output (default %(default)s; its static int8 copy NAME_int8.onnx is written beside it)")
+    p.add_argument("--export", type=Path, default=None,
+                   help=f"ONNX output (default RUN_DIR/iknet.onnx: the shipped {FLOAT32_MODEL.name} is replaced only "
+                        f"when you name it, --export models/iknet.onnx); its static int8 copy NAME_int8.onnx "
+                        f"is written beside it")
     p.add_argument("--float16", action="store_true", help="store the ONNX weights in float16")
     p.add_argument("--int8", action="store_true",
                    help="export with int8 dynamic quantization (activation ranges per batch: a hand's output "
@@ -143,6 +145,8 @@ def validate(net, model, val):
 
 
 def main(args):
+    if args.export is None:   # never the shipped model by default: a trial run must not replace it
+        args.export = args.run_dir / "iknet.onnx"
     import torch
     from tqdm import tqdm
 

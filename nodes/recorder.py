@@ -1,8 +1,9 @@
 """recorder: writes topics of the graph to an MCAP bag, payloads as received (images compressed).
 
 Params: `output` (bag path; parent folders are made; an existing file is an error unless
-`overwrite` is true, and is replaced only when the first message arrives: a graph that fails
-before sending anything leaves the earlier recording as it was), `topics` (list; empty =
+`overwrite` is true; the file is written, or an earlier one replaced, only when the first
+message arrives: a graph that fails before sending anything leaves no empty bag and the
+earlier recording as it was), `topics` (list; empty =
 every topic of the graph), `raw` and `jpeg_quality`: images (Image messages in bgr8, rgb8 or
 mono8) are stored as JPEG of that quality (benchmarks/bench_recording.py measures the size),
 unless `raw` is true or jpeg_quality null (lossless, byte for byte). Subscriptions are
@@ -75,9 +76,9 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
         topics = [topics]
     try:
         path = output_path(str(p["output"]), bool(p["overwrite"]))
-        # an earlier recording is replaced by the first message, not at start: a graph whose
-        # source fails at once (a mistyped input) must not leave an empty bag in its place
-        bag = None if path.exists() else open_output(str(path), True)
+        # the bag is made (or an earlier one replaced) by the first message, not at start: a
+        # graph that fails at once must leave neither an empty bag nor a replaced recording
+        bag = None
     except Exception:
         node.close()
         raise
@@ -88,7 +89,7 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
         else:
             node.subscribe(None, None, mode="all")
         node.log.info("recording %s to %s%s", ", ".join(topics) or "every topic", path,
-                      " (replacing it once the first message arrives)" if bag is None else "")
+                      " (replacing it once the first message arrives)" if path.exists() else "")
         refused: set[str] = set()   # topics seen with a second message type (a graph bug)
         for msg in node.events(timeout=IDLE_TICK_S):
             if msg is None:
@@ -108,7 +109,7 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
                     node.log.warning("not recording some messages: %s", e)
     finally:
         if bag is None:
-            node.log.info("recorded nothing: %s left as it was", path)
+            node.log.info("recorded nothing: %s", f"{path} left as it was" if path.exists() else f"no {path} written")
         else:
             bag.close()
             node.log.info("%s", summary_line(bag.counts, bag.path))

@@ -169,3 +169,9 @@ def test_ref_value_as_dex_retargetings_examples_form_it():
     np.testing.assert_allclose(np.linalg.norm(vectors, axis=1),
                                np.linalg.norm(hand["xyz"][tips] - hand["xyz"][0], axis=1), atol=1e-6)
     np.testing.assert_allclose(dex.ref_value(jp, tips, "POSITION"), jp[tips])
+
+
+def test_the_subscriber_without_a_graph_says_so(tmp_path):
+    out = subprocess.run([sys.executable, str(EXAMPLES / "subscribe_pose.py")], capture_output=True, text=True,
+                         timeout=30, env={**__import__("os").environ, "HANDMOCAP_RUN_DIR": str(tmp_path)})
+    assert out.returncode == 1 and "no ik node runs in" in out.stderr and "Traceback" not in out.stderr

@@ -2,6 +2,7 @@
 analytic baseline, the palm frame and the One Euro filter."""
 import numpy as np
 import pytest
+from conftest import ROOT
 
 from handmocap.hand_model import HandModel
 from handmocap.ik_solver import (DEFAULT_MODEL, FLOAT32_MODEL, INT8_MODEL, IKSolver, _unit, analytic_ik,
@@ -313,3 +314,18 @@ def test_eval_iknet_pairs_scores_a_detectors_output_alone_and_through_iknet(tmp_
     alone_mm = np.linalg.norm(normalize_joints(noisy) - normalize_joints(d["xyz"]), axis=-1).mean() * REF_MM
     np.testing.assert_allclose(noisy_rows["the detector's joints (DetNet alone)"][0], alone_mm, rtol=1e-9)
     assert noisy_rows["IKNet + FK"][0] > exact["IKNet + FK"][0]
+
+
+def test_training_never_replaces_the_shipped_model_unless_told(tmp_path):
+    """`handtrain iknet` without --export writes into its run dir; models/iknet*.onnx stay as
+    they were (a trial run used to overwrite the shipped model)."""
+    pytest.importorskip("torch", reason="training needs torch (the `train` extra)")
+    import subprocess
+    import sys
+    shipped = [ROOT / "models" / "iknet.onnx", ROOT / "models" / "iknet_int8.onnx"]
+    before = [(p.stat().st_mtime_ns, p.stat().st_size) for p in shipped]
+    r = subprocess.run([sys.executable, "-m", "handmocap.train_cli", "iknet", "--iters", "2", "--run-dir",
+                        str(tmp_path), "--no-real", "--threads", "1"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (tmp_path / "iknet.onnx").is_file() and (tmp_path / "iknet_int8.onnx").is_file()
+    assert [(p.stat().st_mtime_ns, p.stat().st_size) for p in shipped] == before

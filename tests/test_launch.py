@@ -3,6 +3,7 @@ import subprocess
 import sys
 
 import pytest
+from pathlib import Path
 
 from conftest import ROOT
 from handmocap.launch import LaunchError, load_launch_file
@@ -206,3 +207,12 @@ def test_topic_cycle_finds_cycles_and_only_cycles():
     assert topic_cycle(chain) is None
     assert topic_cycle({**chain, "back": node("back", ["/a"], ["/b"])}) == "back -[/a]-> m -[/b]-> back"
     assert topic_cycle({"self": node("self", ["/x"], ["*"])}) == "self -[/x]-> self"
+
+
+def test_product_launch_files_work_from_any_folder(tmp_path, monkeypatch):
+    """$(dirname) makes the files a launch file names beside it (the demo clip, the toy robot)
+    resolve from wherever handlaunch is started, not only from the repository's root."""
+    monkeypatch.chdir(tmp_path)
+    demo = load_launch_file(ROOT / "launch" / "demo.yaml", {})
+    source = next(n for n in demo.nodes if n.name == "replay").params["source"]
+    assert Path(source).is_file() and Path(source).resolve() == (ROOT / "data/demo/hand_clip.mp4").resolve()

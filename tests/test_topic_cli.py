@@ -36,3 +36,21 @@ nodes:
     finally:
         graph.terminate()
         graph.communicate(timeout=20)
+
+
+def test_no_graph_and_unknown_topics_are_said_not_silent(tmp_path, monkeypatch, capsys):
+    """list / nodes without a graph: one line and exit 1 (they used to print nothing); echo of a
+    topic nobody publishes: a line naming the close ones, then it waits (it used to wait mutely)."""
+    from handmocap import topic_cli
+    monkeypatch.setenv("HANDMOCAP_RUN_DIR", str(tmp_path / "empty"))
+    for cmd in ("list", "nodes"):
+        assert topic_cli.main([cmd]) == 1
+        assert "no graph is running in" in capsys.readouterr().err
+    from handmocap.bus import NodeInfo, write_node_file, run_dir
+    import os
+    write_node_file(run_dir(), NodeInfo("ik", os.getpid(), "ipc:///nowhere", {"/hand/pose": "HandPose"}))
+    topic_cli.check_topic("/hand/poze")
+    err = capsys.readouterr().err
+    assert "no node publishes /hand/poze now (did you mean /hand/pose?)" in err and "Waiting" in err
+    topic_cli.check_topic("/hand/pose")
+    assert capsys.readouterr().err == ""
