@@ -68,7 +68,7 @@ def frame_body():
 
 def bus_subscriber(run_dir, topic, type_name, n, q):
     os.environ["HANDMOCAP_RUN_DIR"] = run_dir
-    from handmocap.node import Node
+    from handmocap.runtime.node import Node
     node = Node("bench_sub", argv=[])
     node.subscribe(topic, type_name, mode="all")
     lat = []
@@ -98,12 +98,12 @@ def bare_subscriber(endpoint, n, q):
 def one_round(kind, n, hz):
     """Both paths, interleaved message by message; returns (bare, bus) latencies in us."""
     type_name, body = small_body() if kind == "small" else frame_body()
-    from handmocap import codec
+    from handmocap.runtime import codec
     size = len(codec.encode({"header": codec.header(0), **body}))   # bare sends as many bytes
     payload = os.urandom(size)
     run_dir = tempfile.mkdtemp(prefix="hmb")
     os.environ["HANDMOCAP_RUN_DIR"] = run_dir
-    from handmocap.node import Node
+    from handmocap.runtime.node import Node
     node = Node("bench_pub", argv=[])
     topic = node.advertise("/bench", type_name)
     ctx = zmq.Context()

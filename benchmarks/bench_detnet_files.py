@@ -14,8 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.frames import read_video
-from handmocap.tracker import HandTracker
+from handmocap.runtime.frames import read_video
+from handmocap.perception.tracker import HandTracker
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -72,7 +72,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.frames import read_video
+from handmocap.runtime.frames import read_video
 
 ROOT = Path(__file__).resolve().parent.parent
 CLIP = ROOT / "data" / "demo" / "hand_clip.mp4"
@@ -107,7 +107,7 @@ def decode_cpu_ms(path: Path) -> float:
     0.7 and 3.5 ms from run to run: it also counted OpenCV's worker threads, still busy
     after writing the clip."""
     code = ("import sys, time\n"
-            "from handmocap.frames import open_frames\n"
+            "from handmocap.runtime.frames import open_frames\n"
             "frames = open_frames(sys.argv[1])\n"
             "c = time.process_time()\n"
             "n = sum(1 for _ in frames)\n"
@@ -123,8 +123,8 @@ def in_process_with_decoding_cpu_ms(path: Path, max_hands: int) -> float:
     without subtracting a decoding time measured apart (and mean against mean: the
     in-process row is a median)."""
     code = ("import sys, time\n"
-            "from handmocap.frames import open_frames\n"
-            "from handmocap.tracker import HandTracker\n"
+            "from handmocap.runtime.frames import open_frames\n"
+            "from handmocap.perception.tracker import HandTracker\n"
             "t = HandTracker(max_hands=int(sys.argv[2]))\n"
             "for _, f in open_frames(sys.argv[1]): t.process(f)\n"
             "t.reset()\n"
@@ -147,8 +147,8 @@ def run_graph(tmp: Path, clip: Path, rate: float, record_all: bool, name: str, m
               container: str | None = "source", trace: Path | None = None) -> dict:
     """Launch the chain on `clip`; return pose stamps and receipt times (ns), the CPU seconds
     of the launcher and all its nodes, and the wall time of the run."""
-    from handmocap.bag import iter_messages
-    from handmocap import codec
+    from handmocap.runtime.bag import iter_messages
+    from handmocap.runtime import codec
     bag = tmp / f"{name}.mcap"
     topics = "" if record_all else ", topics: [/hand/pose]"
     c = ", container: perception" if container else ""
@@ -169,7 +169,7 @@ nodes:
         env["HANDMOCAP_TRACE"] = str(trace)
     cpu0, t0 = children_cpu_s(), time.monotonic()
     try:
-        r = subprocess.run([sys.executable, "-m", "handmocap.launch", str(tmp / f"{name}.yaml")], env=env,
+        r = subprocess.run([sys.executable, "-m", "handmocap.runtime.launch", str(tmp / f"{name}.yaml")], env=env,
                            capture_output=True, text=True, timeout=600)
     finally:
         shutil.rmtree(run_dir, ignore_errors=True)
@@ -250,7 +250,7 @@ def in_process(frames: list[np.ndarray], max_hands: int, fps: float | None = Non
     """HandTracker.process per frame: wall and CPU ms, after a warm-up pass; back to back,
     or with fps, each frame started on a 1/fps clock as a camera would deliver it (a
     process that waits between frames wakes with cold caches: slower per frame)."""
-    from handmocap.tracker import HandTracker
+    from handmocap.perception.tracker import HandTracker
     tracker = HandTracker(max_hands=max_hands)
     for f in frames[:60]:
         tracker.process(f)

@@ -7,10 +7,10 @@ import time
 
 import numpy as np
 
-from handmocap.hand_model import HandModel
-from handmocap.joint_limits import JointLimits
-from handmocap.shape import ShapeFitter, ShapeTracker, bone_ratios
-from handmocap.translation import camera_joints_from_keypoints, root_fitting_keypoints
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.joint_limits import JointLimits
+from handmocap.perception.shape import ShapeFitter, ShapeTracker, bone_ratios
+from handmocap.perception.translation import camera_joints_from_keypoints, root_fitting_keypoints
 
 
 def timed(fn, repeat):
@@ -55,7 +55,7 @@ def main():
     print(f"forward, batch of 256:    {timed(lambda: model.forward(poses, betas), 5) * 1e3:.1f} ms")
 
     # per-frame fit on clean synthetic hands: random beta ~ N(0,1), random plausible poses; hand_size
-    # 0: the size comes from hand_length (HandModel.sized), ratios do not fit it (handmocap/shape.py)
+    # 0: the size comes from hand_length (HandModel.sized), ratios do not fit it (handmocap/perception/shape.py)
     size = names.index("hand_size")
     betas = rng.normal(size=(args.hands, 10))
     betas[:, size] = 0.0

@@ -20,12 +20,12 @@ import time
 
 import numpy as np
 
-from handmocap.hand_model import HandModel
-from handmocap.ik_solver import IKSolver, analytic_ik, clamp_to_limits, iknet_inputs, model_path
-from handmocap.joint_limits import JointLimits
-from handmocap.kinematics import relative_to_global_quats
-from handmocap.pose import pose_fields, pose_from_keypoints
-from handmocap.pose_data import PoseSampler, corrupt_joints
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.ik_solver import IKSolver, analytic_ik, clamp_to_limits, iknet_inputs, model_path
+from handmocap.perception.joint_limits import JointLimits
+from handmocap.perception.kinematics import relative_to_global_quats
+from handmocap.perception.pose import pose_fields, pose_from_keypoints
+from handmocap.training.pose_data import PoseSampler, corrupt_joints
 
 
 def median_ms(fn, repeat):

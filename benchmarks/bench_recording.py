@@ -25,8 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_CLIP = ROOT.parent / "shared" / "data" / "video" / "webcam" / "lujunwang_hand2.mp4"
 FPS = 30
 
-from handmocap import codec  # noqa: E402
-from handmocap.bag import iter_messages  # noqa: E402
+from handmocap.runtime import codec  # noqa: E402
+from handmocap.runtime.bag import iter_messages  # noqa: E402
 
 
 def write_frames(clip: Path, out: Path, count: int) -> int:
@@ -46,7 +46,7 @@ def write_frames(clip: Path, out: Path, count: int) -> int:
 
 def run(frames: Path, bag: Path, *args: str) -> dict:
     """Replay the frames through replay.yaml into `bag`; per frame stamp its number of hands."""
-    cmd = [sys.executable, "-m", "handmocap.launch", str(ROOT / "launch" / "replay.yaml"), f"input:={frames}",
+    cmd = [sys.executable, "-m", "handmocap.runtime.launch", str(ROOT / "launch" / "replay.yaml"), f"input:={frames}",
            f"bag:={bag}", *args]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)
     if done.returncode != 0:

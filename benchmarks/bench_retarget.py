@@ -4,7 +4,7 @@ dex-retargeting (pip install -e '.[retarget]') ships its clip's MediaPipe input
 (`human_joint_right.pkl`: per frame the (21,3) joint_pos its SingleHandDetector feeds to the
 retargeting, metres, wrist frame). Here the same clip goes through HandTracker (the graph's
 code path: detector, shape, IKNet, translation), each frame's right hand becomes joint_pos
-exactly as the retarget node makes it (handmocap.retarget), and both inputs drive one
+exactly as the retarget node makes it (handmocap.perception.retarget), and both inputs drive one
 dex-retargeting instance each per robot config (ours with the node's time budget max_ms). Printed per robot: the mean absolute
 difference of the robot joints (rad), the median per-joint correlation over time, and the
 retargeting time per call (ms, p50/p95); and the hand's wrist -> middle-knuckle length
@@ -28,8 +28,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.retarget import ref_value, retargeting_joint_pos
-from handmocap.tracker import HandTracker
+from handmocap.perception.retarget import ref_value, retargeting_joint_pos
+from handmocap.perception.tracker import HandTracker
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -103,7 +103,7 @@ def main():
     RetargetingConfig.set_default_urdf_dir(str(args.urdf_dir))
     configs = Path(dex_retargeting.__file__).parent / "configs" / "teleop"
 
-    from handmocap.pose import POSE_DEFAULTS
+    from handmocap.perception.pose import POSE_DEFAULTS
     hand_length = POSE_DEFAULTS["hand_length"] if args.hand_length is None else args.hand_length
     if args.max_ms is None:
         from handmocap.nodes.retarget import PARAMS

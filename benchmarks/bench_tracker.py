@@ -40,7 +40,7 @@ MAX_FRAMES = 200
 
 def default_videos():
     """The demo clip, and the REAL_CLIPS of the data pack where it is beside the repository."""
-    from handmocap.pose_data import SHARED_DATA
+    from handmocap.training.pose_data import SHARED_DATA
     return [ROOT / "data" / "demo" / "hand_clip.mp4"] + [SHARED_DATA / c for c in REAL_CLIPS
                                                           if (SHARED_DATA / c).is_file()]
 
@@ -58,8 +58,8 @@ def mediapipe_ms(video, max_hands):
 
 def matched(videos, max_hands_list, args, settings):
     """Rows (dicts) of the matched comparison, and its markdown table."""
-    from handmocap.frames import read_video
-    from handmocap.tracker import HandTracker
+    from handmocap.runtime.frames import read_video
+    from handmocap.perception.tracker import HandTracker
     rows = []
     for video in videos:
         frames = [f for _, f in zip(range(MAX_FRAMES), read_video(str(video)))]
@@ -90,7 +90,7 @@ def matched(videos, max_hands_list, args, settings):
 def stage_cpu_ms(tracker, frames):
     """CPU ms per frame of HandTracker.process and of its stages, from one pass over frames
     with the stages' functions wrapped in timers (restored afterwards)."""
-    import handmocap.pose as pose
+    import handmocap.perception.pose as pose
     spent = {}
 
     def wrap(owner, name, key):
@@ -179,17 +179,17 @@ def main():
     p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
                    help="detector settings (HandDetector keywords), e.g. tracked_test_time_crops=4")
     args = p.parse_args()
-    from handmocap.eval_cli import detector_settings
+    from handmocap.training.eval_cli import detector_settings
     settings = detector_settings(args.set)
-    from handmocap.detector import HandDetector
-    from handmocap.frames import read_video
-    from handmocap.tracker import HandTracker
+    from handmocap.perception.detector import HandDetector
+    from handmocap.runtime.frames import read_video
+    from handmocap.perception.tracker import HandTracker
 
     videos = args.videos or default_videos()
     rows, table = matched(videos, args.max_hands, args, settings)
     max_hands = args.max_hands[0]
     frames = [f for _, f in zip(range(MAX_FRAMES), read_video(str(videos[0])))]
-    from handmocap.ik_solver import model_path
+    from handmocap.perception.ik_solver import model_path
     results = {"matched": rows, "frames": len(frames), "load_avg": os.getloadavg()[0], "threads": args.threads,
                "video": str(videos[0]), "max_hands": max_hands, "iknet": str(model_path(args.iknet)),
                "settings": settings}

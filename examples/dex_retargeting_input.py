@@ -2,7 +2,7 @@
 
 The retarget node does this inside a graph (launch/teleop.yaml); this is the same loop as a
 plain subscriber, to copy into a robot program: every /hand/pose message, the hand of one side
-turned into dex-retargeting's input (handmocap.retarget.retargeting_joint_pos: its joint order,
+turned into dex-retargeting's input (handmocap.perception.retarget.retargeting_joint_pos: its joint order,
 wrist frame and metres) and retargeted onto a robot hand, whose joint names and positions are
 printed.
 
@@ -22,7 +22,7 @@ import msgpack
 import numpy as np
 import zmq
 
-from handmocap.retarget import RobotHand
+from handmocap.perception.retarget import RobotHand
 
 TOY_HAND = Path(__file__).resolve().parent / "robot_hand" / "toy_hand_right.yml"
 

@@ -7,11 +7,11 @@ import sys
 import cv2
 
 from handmocap import HandTracker
-from handmocap.detector import PHOTO_SETTINGS
+from handmocap.perception.detector import PHOTO_SETTINGS
 
 video_path = sys.argv[1] if len(sys.argv) > 1 else "data/demo/hand_clip.mp4"
 video = HandTracker()                        # a video or camera stream: tracks and smooths
-# HandTracker(**ACCURATE_VIDEO_SETTINGS) (handmocap.detector): each hand read on five crops a
+# HandTracker(**ACCURATE_VIDEO_SETTINGS) (handmocap.perception.detector): each hand read on five crops a
 # frame: 12-17% lower median 2D error for ~2.3x the time (detector node: tracked_test_time_crops 4)
 # HandTracker(handedness="right"): only that hand is filmed; every hand is read as that side, so
 # no handedness mistakes (detector node: handedness; webcam.yaml hand:=right)

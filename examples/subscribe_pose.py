@@ -5,7 +5,7 @@
 import json, os, sys, tempfile
 import msgpack, numpy as np, zmq
 
-# Each node says where it publishes in <run dir>/<node>.json (run dir as handmocap.bus.run_dir).
+# Each node says where it publishes in <run dir>/<node>.json (run dir as handmocap.runtime.bus.run_dir).
 run_dir = os.environ.get("HANDMOCAP_RUN_DIR") or os.path.join(
     tempfile.gettempdir(), f"handmocap-{os.getuid()}", os.environ.get("HANDMOCAP_GRAPH", "default"))
 info = os.path.join(run_dir, "ik.json")

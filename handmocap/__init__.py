@@ -9,9 +9,9 @@ for node processes:
 import importlib
 
 _ENTRY_POINTS = {
-    "HandModel": "handmocap.hand_model",
-    "IKSolver": "handmocap.ik_solver",
-    "HandTracker": "handmocap.tracker",
+    "HandModel": "handmocap.perception.hand_model",
+    "IKSolver": "handmocap.perception.ik_solver",
+    "HandTracker": "handmocap.perception.tracker",
 }
 
 __all__ = list(_ENTRY_POINTS)

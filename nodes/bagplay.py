@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from handmocap.bag_cli import CliError, play_messages, playable_topics
-from handmocap.node import Node, check_bool_param, check_number_param, run
+from handmocap.runtime.bag_cli import CliError, play_messages, playable_topics
+from handmocap.runtime.node import Node, check_bool_param, check_number_param, run
 
 PARAMS = {"file": None, "rate": 1.0, "loop": False, "topics": []}
 

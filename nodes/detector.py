@@ -1,6 +1,6 @@
 """detector: every hand's 2D and normalized 3D keypoints. /camera/image -> /hand/keypoints.
 
-A thin loop over handmocap.detector.HandDetector (hand finder when a track is lost or every
+A thin loop over handmocap.perception.detector.HandDetector (hand finder when a track is lost or every
 `redetect_every` frames, DetNet on a 128 px crop per tracked hand, crops tracked from the
 previous 2D joints, left hands mirrored into the right-hand network, stable track ids).
 Takes the freshest image only (latest-only: a live camera never builds a backlog), or with
@@ -49,10 +49,10 @@ from typing import Callable
 
 import numpy as np
 
-from handmocap.detector import CROP, DETNET_GREY, HandDetector, detnet_path
-from handmocap.frames import frame_bgr
-from handmocap.hand_finder import DEFAULT_PATH as FINDER_PATH, GREY_PATH as GREY_FINDER_PATH
-from handmocap.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
+from handmocap.perception.detector import CROP, DETNET_GREY, HandDetector, detnet_path
+from handmocap.runtime.frames import frame_bgr
+from handmocap.perception.hand_finder import DEFAULT_PATH as FINDER_PATH, GREY_PATH as GREY_FINDER_PATH
+from handmocap.runtime.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
 
 # HandDetector's settings, with its own defaults (one place for them: the class)
 TUNABLE = ("max_hands", "finder_threshold", "presence_threshold", "min_confidence", "birth_confidence",

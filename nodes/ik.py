@@ -3,7 +3,7 @@
 subscriber asks for it by name (the posed mesh costs ~0.4 ms a hand: not computed for
 nobody, nor for catch-all subscribers such as the recorder).
 
-A thin loop over handmocap.pose.PoseEstimator (IKNet per hand, left hands mirrored into the
+A thin loop over handmocap.perception.pose.PoseEstimator (IKNet per hand, left hands mirrored into the
 right-hand model, FK at the track's shape, Eq. 5 translation, One Euro smoothing per
 track; its module docstring has the steps). /hand/shape gives each track's rest pose (the
 paper's X_ref, D_ref); the bundled average hand until a shape is known. K from
@@ -11,7 +11,7 @@ paper's X_ref, D_ref); the bundled average hand until a shape is known. K from
 
 Params: model (hand model path, default bundled), iknet ("int8", the default:
 models/iknet_int8.onnx; "float32": models/iknet.onnx; or an ONNX path), threads (onnxruntime intra-op threads), and PoseEstimator's settings
-(handmocap.pose.POSE_DEFAULTS): xy_from_keypoints (0.5: how far the x, y of the joints IKNet
+(handmocap.perception.pose.POSE_DEFAULTS): xy_from_keypoints (0.5: how far the x, y of the joints IKNet
 reads move from DetNet's onto those the 2D keypoints imply through K; 0: DetNet's as they
 are), hand_length (metres, wrist crease to middle fingertip: the size of every hand, 0.183 by
 default, the adult average), clamp_to_limits, smooth, rot_min_cutoff Hz / rot_beta on
@@ -25,11 +25,11 @@ from typing import Callable
 
 import numpy as np
 
-from handmocap import camera_info
-from handmocap.hand_model import HandModel
-from handmocap.ik_solver import IKSolver
-from handmocap.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
-from handmocap.pose import POSE_DEFAULTS, PoseEstimator, mesh_message
+from handmocap.runtime import camera_info
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.ik_solver import IKSolver
+from handmocap.runtime.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
+from handmocap.perception.pose import POSE_DEFAULTS, PoseEstimator, mesh_message
 
 PARAMS = {"model": None, "iknet": None, "threads": 1, **POSE_DEFAULTS}
 

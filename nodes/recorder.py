@@ -15,10 +15,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from handmocap import codec
-from handmocap.bag import BagWriter
-from handmocap.frames import compressed
-from handmocap.node import Node, check_bool_param, check_jpeg_param, run
+from handmocap.runtime import codec
+from handmocap.runtime.bag import BagWriter
+from handmocap.runtime.frames import compressed
+from handmocap.runtime.node import Node, check_bool_param, check_jpeg_param, run
 
 PARAMS = {"output": "out.mcap", "topics": [], "overwrite": False, "raw": False, "jpeg_quality": 90}
 IDLE_TICK_S = 0.5   # when nothing arrives this long, close the open chunk if it is old
@@ -30,7 +30,7 @@ def output_path(output: str, overwrite: bool) -> Path:
     if path.exists() and not overwrite:
         cut = ""
         try:
-            from handmocap.bag import bag_info
+            from handmocap.runtime.bag import bag_info
             if bag_info(path)["truncated"]:
                 cut = f"; it was cut short (its recorder was killed): `handbag repair {path}` makes it whole"
         except (OSError, ValueError):

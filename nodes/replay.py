@@ -6,7 +6,7 @@ messages; their stamps are replaced by the replay time, as a camera would stamp 
 graph takes them: the next frame is decoded once fewer than AHEAD sent frames are still
 queued for or held by a subscriber); `start` skips that many seconds; `loop` restarts at the end. A replay respawned by its launcher
 continues after the frames it had sent (Progress), with their sequence numbers. /camera/info
-comes from `calibration` (a file, see handmocap.camera_info) or, failing that, from the
+comes from `calibration` (a file, see handmocap.runtime.camera_info) or, failing that, from the
 bag's own /camera/info, or from a default field of view (camera_info.DEFAULT_HFOV_DEG) that
 the message marks with source "default-fov". It is sent with every frame, so late subscribers
 get it at once (a latched topic by repetition). `jpeg_quality` (1-100) publishes JPEG images
@@ -19,9 +19,9 @@ import time
 from collections import deque
 from pathlib import Path
 
-from handmocap import camera_info, codec
-from handmocap.frames import frame_bgr, image_message, open_frames
-from handmocap.node import Node, check_bool_param, check_jpeg_param, check_number_param, run
+from handmocap.runtime import camera_info, codec
+from handmocap.runtime.frames import frame_bgr, image_message, open_frames
+from handmocap.runtime.node import Node, check_bool_param, check_jpeg_param, check_number_param, run
 
 JIT_MARGIN_S = 0.002   # decode the next frame this long plus twice its recent decoding time before it is due
 AHEAD = 3   # at rate 0, frames sent and not yet taken by every subscriber before the next is decoded
@@ -50,7 +50,7 @@ def check_params(params: dict) -> None:
 def bag_frames(path: Path, start_s: float, skip: int = 0):
     """(frame BGR, CameraInfo body or None) for each /camera/image of a bag (the first `skip`
     images after `start_s` left out)."""
-    from handmocap.bag import iter_messages
+    from handmocap.runtime.bag import iter_messages
     info, t0 = None, None
     for topic, type_name, payload, log_ns in iter_messages(path):
         if type_name == "CameraInfo":

@@ -1,6 +1,6 @@
 """retarget: robot hands that follow the tracked hands. /hand/pose -> /robot/joint_states.
 
-A thin loop over handmocap.retarget.RobotHand (dex-retargeting; the `retarget` extra). One
+A thin loop over handmocap.perception.retarget.RobotHand (dex-retargeting; the `retarget` extra). One
 robot per side, each its own dex-retargeting config and URDF, as the launch file names them:
 
     retarget:
@@ -24,8 +24,8 @@ from typing import Callable
 
 import numpy as np
 
-from handmocap.node import Message, Node, check_number_param, run, spin
-from handmocap.retarget import RobotHand
+from handmocap.runtime.node import Message, Node, check_number_param, run, spin
+from handmocap.perception.retarget import RobotHand
 
 PARAMS = {"right": None, "left": None, "urdf_dir": None, "max_ms": 4.0}
 SIDES = ("right", "left")

@@ -1,6 +1,6 @@
 """shape: a running hand-shape estimate per track (paper Eq. 8). /hand/keypoints -> /hand/shape.
 
-A thin loop over handmocap.shape.ShapeEstimator.
+A thin loop over handmocap.perception.shape.ShapeEstimator.
 
 Per track id one ShapeTracker accumulates the bone lengths of the detector's normalized 3D
 joints (bone lengths do not change under the mirroring of left hands); the fitted beta,
@@ -14,9 +14,9 @@ from __future__ import annotations
 import time
 from typing import Callable
 
-from handmocap.hand_model import HandModel
-from handmocap.node import Message, Node, check_file_param, check_number_param, run, spin
-from handmocap.shape import ShapeEstimator
+from handmocap.perception.hand_model import HandModel
+from handmocap.runtime.node import Message, Node, check_file_param, check_number_param, run, spin
+from handmocap.perception.shape import ShapeEstimator
 
 PARAMS = {"model": None, "forget_after_s": 2.0, "window": 600}
 

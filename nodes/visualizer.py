@@ -1,8 +1,8 @@
 """visualizer: annotated frames. /camera/image (+ /camera/info, /hand/keypoints, /hand/pose)
 -> /viz/image, and optionally an MP4.
 
-A thin loop over handmocap.frame_sync.FrameSync (pairs each frame with the pose and keypoints
-of its stamp; in a video, a frame the detector skipped gets the previous frame's) and handmocap.overlay.Overlay (the posed hand mesh of every hand, rendered once
+A thin loop over handmocap.runtime.frame_sync.FrameSync (pairs each frame with the pose and keypoints
+of its stamp; in a video, a frame the detector skipped gets the previous frame's) and handmocap.perception.overlay.Overlay (the posed hand mesh of every hand, rendered once
 per frame with the camera's K and alpha-blended; the 2D skeleton with per-finger colours;
 handedness, score and track id; a side-view inset). A frame whose pose never comes (no hand
 pipeline, or the detector skipped it and no earlier pose is held) is drawn without overlay; a
@@ -18,7 +18,7 @@ Params:
   set); false: latest-only, a live view that never lags (frames the detector skipped are
   not drawn).
 - publish: publish /viz/image (Image, bgr8).
-- mesh, alpha, side, joints3d: see handmocap.overlay.Overlay (mesh:=false needs no OpenGL).
+- mesh, alpha, side, joints3d: see handmocap.perception.overlay.Overlay (mesh:=false needs no OpenGL).
 - model: hand model path (default bundled); timeout: seconds a frame waits for its pose
   while no pose arrives at all (default 0.5 live, 5 with every_frame).
 """
@@ -31,12 +31,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap import camera_info
-from handmocap.frame_sync import FrameSync
-from handmocap.frames import frame_bgr, image_message
-from handmocap.hand_model import HandModel
-from handmocap.node import Node, check_bool_param, check_file_param, check_number_param, run
-from handmocap.overlay import Overlay
+from handmocap.runtime import camera_info
+from handmocap.runtime.frame_sync import FrameSync
+from handmocap.runtime.frames import frame_bgr, image_message
+from handmocap.perception.hand_model import HandModel
+from handmocap.runtime.node import Node, check_bool_param, check_file_param, check_number_param, run
+from handmocap.perception.overlay import Overlay
 
 PARAMS = {"video": None, "fps": 30.0, "every_frame": None, "publish": True, "mesh": True, "alpha": 0.6,
           "side": 0.33, "joints3d": True, "model": None, "timeout": None}

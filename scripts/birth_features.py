@@ -21,8 +21,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from detector_thresholds import clips, labels_near  # noqa: E402
 
-from handmocap.detector import HandDetector  # noqa: E402
-from handmocap.pose_data import SHARED_DATA  # noqa: E402
+from handmocap.perception.detector import HandDetector  # noqa: E402
+from handmocap.training.pose_data import SHARED_DATA  # noqa: E402
 
 
 class RecordingDetector(HandDetector):

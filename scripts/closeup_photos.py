@@ -23,7 +23,7 @@ import glob
 import cv2
 import numpy as np
 
-from handmocap.detector import CENTRE, PHOTO_SETTINGS, HandDetector
+from handmocap.perception.detector import CENTRE, PHOTO_SETTINGS, HandDetector
 
 
 def score(detector, images, labels, sides=None):
@@ -48,7 +48,7 @@ def real_closeups(size=224, seed=0):
     """BGR close-ups (size,size,3), their labels (21,2) px and sides, cut from the
     training-side held-out clips of scripts/detector_thresholds.py (see the module doc)."""
     from detector_thresholds import clips
-    from handmocap.pose_data import SHARED_DATA
+    from handmocap.training.pose_data import SHARED_DATA
     if not SHARED_DATA.is_dir():
         raise SystemExit(f"--real needs the shared data pack at {SHARED_DATA}")
     rng = np.random.default_rng(seed)

@@ -38,10 +38,10 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap import real_data
-from handmocap.detector import HandDetector
-from handmocap.pose_data import SHARED_DATA
-from handmocap.train_finder import VAL_VIDEOS
+from handmocap.training import real_data
+from handmocap.perception.detector import HandDetector
+from handmocap.training.pose_data import SHARED_DATA
+from handmocap.training.train_finder import VAL_VIDEOS
 
 HELD_OUT_VIDEO = f"video/{VAL_VIDEOS[0]}.mp4"
 
@@ -172,7 +172,7 @@ def main():
         rng = np.random.default_rng(0)
         data = [(name, noisy(frames, args.noise, rng)) for name, frames in data]
     if args.grey:
-        from handmocap.hand_finder import greyed
+        from handmocap.perception.hand_finder import greyed
         data = [(name, [(greyed(image), labels, sides) for image, labels, sides in frames]) for name, frames in data]
     if args.compare is not None:    # `--compare` alone: the defaults' row only
         settings = [("defaults", {})] + [(c, parse_setting(c)) for c in args.compare]

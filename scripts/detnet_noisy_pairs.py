@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap.hand_model import HandModel
-from handmocap.quantize_detnet import OnnxNet, quarter_turned
-from handmocap.skeleton import normalize_joints
-from handmocap.synth.dataset import SynthDataset
-from handmocap.train_detnet import shown_as_right
+from handmocap.perception.hand_model import HandModel
+from handmocap.training.quantize_detnet import OnnxNet, quarter_turned
+from handmocap.perception.skeleton import normalize_joints
+from handmocap.training.synth.dataset import SynthDataset
+from handmocap.training.train_detnet import shown_as_right
 
 
 def pairs(detnet, shard, model, batch=128):

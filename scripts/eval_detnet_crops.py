@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.detector import DetNetRunner, HandDetector, crop_for_joints, logit
+from handmocap.perception.detector import DetNetRunner, HandDetector, crop_for_joints, logit
 
 UPRIGHT_STEP = inspect.signature(HandDetector).parameters["upright_step"].default
 

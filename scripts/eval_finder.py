@@ -14,8 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.detector import square_box
-from handmocap.hand_finder import HandFinder, box_iou
+from handmocap.perception.detector import square_box
+from handmocap.perception.hand_finder import HandFinder, box_iou
 
 
 def evaluate(finder, split_dir, threshold):

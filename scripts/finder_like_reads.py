@@ -16,8 +16,8 @@ import argparse
 import numpy as np
 
 from detector_thresholds import clips
-from handmocap.detector import CropTransform, DetNetRunner, crop_for_joints
-from handmocap.pose_data import SHARED_DATA
+from handmocap.perception.detector import CropTransform, DetNetRunner, crop_for_joints
+from handmocap.training.pose_data import SHARED_DATA
 
 
 def errors(detnet, hands, boxes):

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap import real_data
-from handmocap.detector import hand_angle, logit
-from handmocap.pose_data import SHARED_DATA
-from handmocap.quantize_detnet import OnnxNet
-from handmocap.train_detnet import CTX, CTX_SCALE, load_real
+from handmocap.training import real_data
+from handmocap.perception.detector import hand_angle, logit
+from handmocap.training.pose_data import SHARED_DATA
+from handmocap.training.quantize_detnet import OnnxNet
+from handmocap.training.train_detnet import CTX, CTX_SCALE, load_real
 
 
 def heldout_crops(real):

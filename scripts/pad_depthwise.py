@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from handmocap.onnx_models import file_sha256, open_session, pad_depthwise_convs
+from handmocap.perception.onnx_models import file_sha256, open_session, pad_depthwise_convs
 
 
 def largest_difference(before: Path, after: Path) -> float:

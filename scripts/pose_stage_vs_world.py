@@ -24,19 +24,19 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap import camera_info
-from handmocap.detector import DetNetRunner, HandDetector
-from handmocap.frames import read_video
-from handmocap.hand_model import HandModel
-from handmocap.ik_solver import IKSolver
-from handmocap.joint_limits import FINGER_JOINTS, JointLimits
-from handmocap.kinematics import global_quats_to_relative
-from handmocap.metrics import PCK_THRESHOLDS_MM, align_to_ground_truth, auc, joint_errors, pck
-from handmocap.pose import PoseEstimator, joints_for_iknet, solve_rotations
-from handmocap.pose_data import SHARED_DATA
-from handmocap.shape import ShapeEstimator
-from handmocap.skeleton import normalize_joints
-from handmocap.translation import joints_through_keypoints
+from handmocap.runtime import camera_info
+from handmocap.perception.detector import DetNetRunner, HandDetector
+from handmocap.runtime.frames import read_video
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.ik_solver import IKSolver
+from handmocap.perception.joint_limits import FINGER_JOINTS, JointLimits
+from handmocap.perception.kinematics import global_quats_to_relative
+from handmocap.training.metrics import PCK_THRESHOLDS_MM, align_to_ground_truth, auc, joint_errors, pck
+from handmocap.perception.pose import PoseEstimator, joints_for_iknet, solve_rotations
+from handmocap.training.pose_data import SHARED_DATA
+from handmocap.perception.shape import ShapeEstimator
+from handmocap.perception.skeleton import normalize_joints
+from handmocap.perception.translation import joints_through_keypoints
 
 WEIGHTS = (0.0, 0.25, 0.4, 0.5, 0.6, 0.75, 1.0)
 

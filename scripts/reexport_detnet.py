@@ -3,7 +3,7 @@ the network recovered from the file (`train_detnet.state_from_onnx`), so its map
 they were and only the read-out inside the graph changes.
 
     python scripts/reexport_detnet.py models/detnet.onnx [--out models/detnet.onnx] [--refine softmax]
-    python -m handmocap.quantize_detnet          # then the int8 copy, from the new float file
+    python -m handmocap.training.quantize_detnet          # then the int8 copy, from the new float file
 
 Prints the largest output differences against the file as it was, on 64 crops.
 """
@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap.detector import DetNetRunner
-from handmocap.detnet import REFINE, DetNet, export_onnx
-from handmocap.train_detnet import state_from_onnx
+from handmocap.perception.detector import DetNetRunner
+from handmocap.training.detnet import REFINE, DetNet, export_onnx
+from handmocap.training.train_detnet import state_from_onnx
 
 
 def crops(n=64, seed=0):

@@ -7,7 +7,7 @@ metres (`xyz`, (N,21,3)), their pixels (`uv`, (N,21,2)), the relative pose (`pos
 `beta` (10,), `K` (3,3) and `handedness`. A right hand, palm to the camera, fingers up,
 opening and closing (flat, fist, pointing, spread) while it drifts and turns; the background
 is a smooth procedural texture. `launch/demo.yaml` replays it; end-to-end tests compare the
-graph's output with the npz. Needs moderngl with EGL (handmocap/render.py).
+graph's output with the npz. Needs moderngl with EGL (handmocap/perception/render.py).
 """
 import argparse
 from pathlib import Path
@@ -15,11 +15,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.camera_info import default_K
-from handmocap.hand_model import HandModel
-from handmocap.joint_limits import named_pose
-from handmocap.render import MeshRenderer
-from handmocap.rotations import axis_angle_to_matrix, axis_angle_to_quat, quat_slerp, quat_to_axis_angle
+from handmocap.runtime.camera_info import default_K
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.joint_limits import named_pose
+from handmocap.perception.render import MeshRenderer
+from handmocap.perception.rotations import axis_angle_to_matrix, axis_angle_to_quat, quat_slerp, quat_to_axis_angle
 
 W, H, FPS = 640, 480, 30
 GESTURES = ("flat", "fist", "pointing", "spread", "flat")

@@ -4,7 +4,7 @@
 
 Row 1: the average hand (beta = 0) and beta_k = -2 / +2 on two coefficients.
 Row 2: three poses of the average hand (fist, pointing, spread) and the back of the hand.
-Needs moderngl with EGL (see handmocap/render.py).
+Needs moderngl with EGL (see handmocap/perception/render.py).
 """
 import argparse
 from pathlib import Path
@@ -12,10 +12,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.hand_model import HandModel
-from handmocap.joint_limits import named_pose
-from handmocap.render import MeshRenderer
-from handmocap.rotations import axis_angle_to_matrix
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.joint_limits import named_pose
+from handmocap.perception.render import MeshRenderer
+from handmocap.perception.rotations import axis_angle_to_matrix
 
 TILE = 360
 

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap import codec
-from handmocap.bag import iter_messages
-from handmocap.pose_data import SHARED_DATA
+from handmocap.runtime import codec
+from handmocap.runtime.bag import iter_messages
+from handmocap.training.pose_data import SHARED_DATA
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -51,7 +51,7 @@ def main():
     print("| clip | frames | show a hand | with a /hand/pose hand | share | poses on hand-free frames |\n|---|---|---|---|---|---|")
     for clip in clips:
         bag = out / f"{clip.stem}.mcap"
-        run = subprocess.run([sys.executable, "-m", "handmocap.launch", str(ROOT / "launch" / "replay.yaml"),
+        run = subprocess.run([sys.executable, "-m", "handmocap.runtime.launch", str(ROOT / "launch" / "replay.yaml"),
                               f"input:={clip}", f"bag:={bag}"], cwd=ROOT, capture_output=True, text=True)
         if run.returncode != 0:
             print(f"| {clip.stem} | replay failed (exit {run.returncode}): {run.stderr.strip().splitlines()[-1:]} |")

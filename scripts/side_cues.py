@@ -25,8 +25,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.detector import DetNetRunner, crop_for_joints, logit, nearby_crops
-from handmocap.hand_finder import HandFinder
+from handmocap.perception.detector import DetNetRunner, crop_for_joints, logit, nearby_crops
+from handmocap.perception.hand_finder import HandFinder
 
 SPLITS = ["temugeb_cam0", "temugeb_cam1", "howiema_040", "cmu_sample", "mmpose_freihand", "mmpose_rhd",
           "mmpose_interhand", "mmpose_panoptic"]

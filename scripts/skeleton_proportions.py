@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap import metrics
-from handmocap.hand_model import HandModel
+from handmocap.training import metrics
+from handmocap.perception.hand_model import HandModel
 
 BONES = [(0, 9), (0, 5), (0, 17), (5, 17), (0, 1), (1, 2), (2, 3), (3, 4), (5, 6), (6, 7), (7, 8),
          (9, 10), (10, 11), (11, 12)]

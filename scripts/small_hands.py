@@ -19,10 +19,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.detector import PHOTO_SETTINGS, HandDetector
-from handmocap.hand_finder import HandFinder
-from handmocap.pose_data import SHARED_DATA
-from handmocap.real_data import HOWIEMA_HELD_OUT, HOWIEMA_TRAIN_SUBJECT
+from handmocap.perception.detector import PHOTO_SETTINGS, HandDetector
+from handmocap.perception.hand_finder import HandFinder
+from handmocap.training.pose_data import SHARED_DATA
+from handmocap.training.real_data import HOWIEMA_HELD_OUT, HOWIEMA_TRAIN_SUBJECT
 
 W, H = 640, 480
 FRACTIONS = (0.05, 0.07, 0.1, 0.15, 0.2, 0.3)

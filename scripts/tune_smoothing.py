@@ -2,7 +2,7 @@
 
     python scripts/tune_smoothing.py [--shared ../shared/data] [--sigma 1 1.5 2]
 
-The filter defaults (handmocap.pose.POSE_DEFAULTS) were first set on synthetic jitter. Here
+The filter defaults (handmocap.perception.pose.POSE_DEFAULTS) were first set on synthetic jitter. Here
 the detector and the shape estimate run once over the real clips of shared/data/video that
 DetNet's and the finder's training used (real_data.TRAIN_VIDEOS; no evaluation split: this
 chooses a filter, it measures no accuracy), every frame in order at the file's frame rate;
@@ -24,13 +24,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap import camera_info, real_data
-from handmocap.detector import HandDetector
-from handmocap.hand_model import HandModel
-from handmocap.ik_solver import IKSolver
-from handmocap.pose import POSE_DEFAULTS, PoseEstimator
-from handmocap.pose_data import SHARED_DATA
-from handmocap.shape import ShapeEstimator
+from handmocap.runtime import camera_info
+from handmocap.training import real_data
+from handmocap.perception.detector import HandDetector
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.ik_solver import IKSolver
+from handmocap.perception.pose import POSE_DEFAULTS, PoseEstimator
+from handmocap.training.pose_data import SHARED_DATA
+from handmocap.perception.shape import ShapeEstimator
 
 ROT = [(c, b) for c in (0.5, 1.0, 2.0, 4.0) for b in (0.5, 1.5, 5.0)]
 ROOT = [(c, b) for c in (0.25, 0.5, 1.0, 2.0) for b in (0.5, 2.0, 8.0)]

@@ -47,7 +47,7 @@ def write_test_video(path, n, size=(320, 240), fourcc="MJPG", draw=draw_bar_and_
     import cv2
     import numpy as np
 
-    from handmocap.frames import read_video
+    from handmocap.runtime.frames import read_video
     w, h = size
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 30, (w, h))
     if folder is not None:
@@ -65,7 +65,7 @@ def write_test_video(path, n, size=(320, 240), fourcc="MJPG", draw=draw_bar_and_
 
 
 def handlaunch(args, run_dir, timeout=60, **kw):
-    return subprocess.run([sys.executable, "-m", "handmocap.launch", *map(str, args)], env=graph_env(run_dir),
+    return subprocess.run([sys.executable, "-m", "handmocap.runtime.launch", *map(str, args)], env=graph_env(run_dir),
                           capture_output=True, text=True, timeout=timeout, **kw)
 
 
@@ -97,8 +97,8 @@ nodes:
 
 def read_bag(path):
     """{topic: [(decoded message, log time ns = the recorder's receive time)]} of a bag, in order."""
-    from handmocap import codec
-    from handmocap.bag import iter_messages
+    from handmocap.runtime import codec
+    from handmocap.runtime.bag import iter_messages
     out = {}
     for topic, type_name, payload, log_ns in iter_messages(path):
         out.setdefault(topic, []).append((codec.decode(payload, type_name), log_ns))

@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from handmocap.node import Node
+from handmocap.runtime.node import Node
 
 TOPICS = {"/camera/image": "Image", "/camera/info": "CameraInfo"}
 

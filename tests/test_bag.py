@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from handmocap import bag, bus, codec
-from handmocap.bag_cli import main as handbag
-from handmocap.frames import frame_bgr
-from handmocap.skeleton import BONES
+from handmocap.runtime import bag, bus, codec
+from handmocap.runtime.bag_cli import main as handbag
+from handmocap.runtime.frames import frame_bgr
+from handmocap.perception.skeleton import BONES
 
 T0 = 1_700_000_000_000_000_000   # ns, a fixed epoch for stamps in synthetic bags
 
@@ -83,7 +83,7 @@ def write_sample_bag(path: Path, extra_frames: int = 0) -> list[tuple[str, str, 
 
 
 def run_handbag(*args: str, env=None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "handmocap.bag_cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "handmocap.runtime.bag_cli", *args], capture_output=True,
                           text=True, timeout=60, env=env)
 
 
@@ -134,7 +134,7 @@ def test_not_a_bag(tmp_path):
 
 KILLED_WRITER = textwrap.dedent("""
     import sys, numpy as np
-    from handmocap import bag, codec
+    from handmocap.runtime import bag, codec
     w = bag.BagWriter(sys.argv[1], chunk_bytes=64 * 1024)
     i = 0
     while True:   # until SIGKILL
@@ -253,7 +253,7 @@ def test_export_foxglove(tmp_path):
 def test_export_foxglove_shows_hand_meshes_as_triangles(tmp_path):
     """/hand/mesh becomes a SceneUpdate of triangles with the faces of the first message that
     carries them, the messages before it too (a left hand's winding reversed)."""
-    from handmocap.foxglove_export import export_foxglove
+    from handmocap.runtime.foxglove_export import export_foxglove
     src, dst = tmp_path / "m.mcap", tmp_path / "fox.mcap"
     rng = np.random.default_rng(2)
     faces = np.array([[0, 1, 2], [1, 3, 2]], np.int32)

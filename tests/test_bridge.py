@@ -17,10 +17,10 @@ import pytest
 
 from conftest import graph_env
 from graphnodes.pose_source import W, H, synthetic_pose_hands
-from handmocap import camera_info, codec, foxglove_live as fl
-from handmocap.frames import image_message
-from handmocap.hand_model import HandModel
-from handmocap.rotations import quat_to_matrix
+from handmocap.runtime import camera_info, codec, foxglove_live as fl
+from handmocap.runtime.frames import image_message
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.rotations import quat_to_matrix
 
 MODEL = HandModel.load()
 K = camera_info.default_K(W, H)
@@ -191,7 +191,7 @@ nodes:
   pose_source: {{node: graphnodes.pose_source, params: {{hz: 20, handedness: left, track_id: 7}}}}
   bridge: {{node: bridge, params: {{port: {port}}}}}
 """)
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         with connect(port, time.monotonic() + 60) as ws:

@@ -1,4 +1,4 @@
-"""Intrinsics (handmocap.camera_info) and the webcam node (nodes/camera.py)."""
+"""Intrinsics (handmocap.runtime.camera_info) and the webcam node (nodes/camera.py)."""
 from __future__ import annotations
 
 import json
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
-from handmocap import codec
-from handmocap.camera_info import (Intrinsics, camera_info_message, default_K, intrinsics_for_frames,
+from handmocap.runtime import codec
+from handmocap.runtime.camera_info import (Intrinsics, camera_info_message, default_K, intrinsics_for_frames,
                                    load_calibration, scale_K)
 from handmocap.nodes import camera
 from conftest import write_test_video

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from handmocap import codec
+from handmocap.runtime import codec
 
 
 def keypoints_msg(n_hands=1):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from conftest import DEMO_CLIP, graph_env, handlaunch, node_file, published, read_bag, wait_until
-from handmocap.launch import ContainerSpec, LaunchError, load_launch_file, processes
+from handmocap.runtime.launch import ContainerSpec, LaunchError, load_launch_file, processes
 
 
 def chain(bag, rate=0, loop=False, container="perception", detector="", shape="", ik="", source_inside=False,
@@ -68,7 +68,7 @@ def test_bad_containers_are_rejected_with_file_and_line(tmp_path, replace, words
 
 
 def start_graph(lf, run_dir):
-    return subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+    return subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
@@ -211,7 +211,7 @@ def test_source_in_the_container_sends_every_frame_to_a_recorder_outside_it(tmp_
     assert "started 5 node(s)" in out and "in 2 processes" in out and "Traceback" not in out, out
     assert pids["replay"] == pids["detector"] == pids["ik"] != pids["recorder"]
     msgs = read_bag(bag)
-    from handmocap.frames import read_video
+    from handmocap.runtime.frames import read_video
     frames = read_video(DEMO_CLIP)
     assert len(msgs["/camera/image"]) == len(frames) == 90
     for (m, _), f in zip(msgs["/camera/image"][::15], frames[::15]):

@@ -11,8 +11,8 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from conftest import handlaunch
 from graphnodes.killers import image_killers, nan_keypoints
-from handmocap import codec
-from handmocap.bag import iter_messages
+from handmocap.runtime import codec
+from handmocap.runtime.bag import iter_messages
 
 
 def test_the_four_killers_are_malformed_messages():
@@ -152,7 +152,7 @@ nodes:
 
 
 def test_a_handler_that_fails_drops_only_that_message(tmp_path, monkeypatch):
-    from handmocap.node import Message, Node
+    from handmocap.runtime.node import Message, Node
     monkeypatch.setenv("HANDMOCAP_RUN_DIR", str(tmp_path / "run"))
     node = Node("handler_test", params={}, argv=[])
     seen = []

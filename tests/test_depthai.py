@@ -14,7 +14,7 @@ import pytest
 
 dai = pytest.importorskip("depthai", reason="depthai is an optional extra: pip install 'handmocap[depthai]'")
 
-from handmocap import codec  # noqa: E402
+from handmocap.runtime import codec  # noqa: E402
 from handmocap.nodes import depthai as oak  # noqa: E402
 from conftest import write_test_video  # noqa: E402
 from source_nodes import run_failing, run_source  # noqa: E402

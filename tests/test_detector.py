@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, graph_env
-from handmocap.hand_finder import FoundHand
-from handmocap.detector import CENTRE, CropTransform, HandDetector, Track, crop_for_joints
-from handmocap.rotations import mirror_points
-from handmocap.skeleton import normalize_joints
+from handmocap.perception.hand_finder import FoundHand
+from handmocap.perception.detector import CENTRE, CropTransform, HandDetector, Track, crop_for_joints
+from handmocap.perception.rotations import mirror_points
+from handmocap.perception.skeleton import normalize_joints
 
 W, H = 640, 480
 DETNET = ROOT / "models" / "detnet.onnx"
@@ -165,7 +165,7 @@ def turned_hand(centre, size, angle, right=True):
 @pytest.mark.parametrize("angle", [np.pi, np.pi / 2, -2.2])
 def test_an_upright_crop_shows_a_turned_hand_upright_and_its_joints_come_back_in_frame_axes(angle):
     uv_true = turned_hand((320, 240), 150, angle)
-    from handmocap.detector import hand_angle
+    from handmocap.perception.detector import hand_angle
     assert abs(np.angle(np.exp(1j * (hand_angle(uv_true) - angle)))) < 1e-9
     crop = crop_for_joints(uv_true, upright_step=0)
     in_crop = crop.to_crop(uv_true)
@@ -259,7 +259,7 @@ def test_a_new_hand_whose_side_turns_on_its_first_frame_is_read_again_as_that_si
 def test_grey_frames_go_to_the_grey_finder_and_colour_frames_to_the_other():
     """A mono camera's frames (three equal channels, give or take a few levels of video
     chroma) are searched by `grey_finder`; colour frames by `finder`, as before."""
-    from handmocap.hand_finder import is_grey
+    from handmocap.perception.hand_finder import is_grey
     rng = np.random.default_rng(0)
     colour = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160))
     grey = np.repeat(cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY)[..., None], 3, -1)
@@ -562,8 +562,8 @@ def test_real_models_find_the_rendered_hand_in_grey_with_the_grey_finder():
 def test_detector_node_publishes_one_keypoints_message_per_frame(tmp_path, run_dir):
     """replay -> detector -> recorder on the rendered clip: one /hand/keypoints per frame,
     each with the stamp of its image (every_frame: keep-all, so a slow machine loses none)."""
-    from handmocap import codec
-    from handmocap.bag import iter_messages
+    from handmocap.runtime import codec
+    from handmocap.runtime.bag import iter_messages
     bag = tmp_path / "out.mcap"
     lf = tmp_path / "g.yaml"
     lf.write_text(f"""
@@ -572,7 +572,7 @@ nodes:
   detector: {{node: detector, params: {{every_frame: true}}, required: true}}
   recorder: {{node: recorder, params: {{output: {bag}, overwrite: true}}, required: true}}
 """)
-    r = subprocess.run([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+    r = subprocess.run([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
     stamps = {"Image": [], "HandKeypoints": []}
@@ -645,7 +645,7 @@ def test_two_sure_hands_that_both_read_right_become_a_left_and_a_right():
 def test_a_second_hand_beside_a_tracked_one_is_a_new_track_not_the_tracks_own():
     """Clapping: hand B's centre lies inside tracked hand A's crop (1.5x its joint box). The
     finder's box on A is A's; the box on B starts a new track, and A is not re-seeded."""
-    from handmocap.detector import square_box
+    from handmocap.perception.detector import square_box
     a = canonical_hand((250, 300), 120)
     box_a = square_box(a)
     b = a + (0.65 * (box_a[2] - box_a[0]), 0.0)                # joint boxes' IoU 0.21
@@ -834,7 +834,7 @@ def test_second_look_reads_a_hand_again_when_its_size_jumps():
 
 
 def test_crop_and_frame_camera_axes_are_inverse_for_mirrored_and_turned_crops():
-    from handmocap.detector import crop_to_frame_xyz, frame_to_crop_xyz
+    from handmocap.perception.detector import crop_to_frame_xyz, frame_to_crop_xyz
     xyz = np.random.default_rng(5).normal(size=(21, 3))
     for mirrored in (False, True):
         for angle in (0.0, 0.4, -2.0):
@@ -843,7 +843,7 @@ def test_crop_and_frame_camera_axes_are_inverse_for_mirrored_and_turned_crops():
 
 
 def test_with_duplicate_joints_two_overlapping_hands_are_kept_and_one_hand_twice_is_not():
-    from handmocap.detector import CropTransform, Track
+    from handmocap.perception.detector import CropTransform, Track
     right = canonical_hand((300, 300), 150)
     left = right.copy()                                           # clasped: the same box, other joints
     left[:, 0] = right[:, 0].min() + right[:, 0].max() - right[:, 0]

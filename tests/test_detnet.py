@@ -14,7 +14,7 @@ def _torch():
 @pytest.mark.parametrize("backbone,grid", [("fast", 16), ("fast-deep", 16), ("paper", 32)])
 def test_forward_shapes(backbone, grid):
     torch = _torch()
-    from handmocap.detnet import DetNet
+    from handmocap.training.detnet import DetNet
     net = DetNet(backbone).eval()
     with torch.no_grad():
         out = net(torch.rand(2, 3, 128, 128))
@@ -28,8 +28,8 @@ def test_forward_shapes(backbone, grid):
 def test_a_fast_net_grown_into_fast_deep_computes_the_same_until_trained():
     """--init-from: the fast-deep blocks a fast checkpoint lacks start as the identity."""
     torch = _torch()
-    from handmocap.detnet import DetNet
-    from handmocap.train_detnet import identity_init_new_blocks, load_matching
+    from handmocap.training.detnet import DetNet
+    from handmocap.training.train_detnet import identity_init_new_blocks, load_matching
     torch.manual_seed(0)
     small = DetNet("fast")
     for m in small.modules():                   # non-trivial BN statistics, as a trained net has
@@ -54,8 +54,8 @@ def test_an_exported_net_becomes_trainable_again(tmp_path):
     """--init-from model.onnx: the recovered net computes what the file does, in eval mode
     exactly and with batch statistics (training) on the calibration crops nearly."""
     torch = _torch()
-    from handmocap.detnet import DetNet, export_onnx
-    from handmocap.train_detnet import state_from_onnx
+    from handmocap.training.detnet import DetNet, export_onnx
+    from handmocap.training.train_detnet import state_from_onnx
     torch.manual_seed(1)
     trained = DetNet("fast")
     for m in trained.modules():                 # folded BN must be undone, so give it something to fold
@@ -92,8 +92,8 @@ def test_a_fine_head_starts_as_the_coarse_read_out_and_trains_alone_on_a_frozen_
     soft-argmax did; training them moves nothing else (BatchNorm statistics included), and
     the exported file becomes a trainable fine net again."""
     torch = _torch()
-    from handmocap.detnet import DetNet, export_onnx, read_out
-    from handmocap.train_detnet import LOSS_WEIGHTS, detnet_losses, state_from_onnx
+    from handmocap.training.detnet import DetNet, export_onnx, read_out
+    from handmocap.training.train_detnet import LOSS_WEIGHTS, detnet_losses, state_from_onnx
     torch.manual_seed(0)
     net = DetNet("fast", fine=True)
     x = torch.rand(4, 3, 128, 128)
@@ -156,7 +156,7 @@ def _gaussian_maps(cells, grid):
 
 def test_read_out_argmax_and_subpixel():
     torch = _torch()
-    from handmocap.detnet import read_out, uv_to_cell
+    from handmocap.training.detnet import read_out, uv_to_cell
     rng = np.random.default_rng(0)
     grid, stride = 16, 8
     cells = rng.uniform(1.5, grid - 2.5, (3, 21, 2))
@@ -180,7 +180,7 @@ def test_read_out_softmax_is_the_expected_cell():
     """"softmax": the mean cell under softmax(logits / T) over the whole map, and the
     location maps averaged with the same weights."""
     torch = _torch()
-    from handmocap.detnet import SOFTMAX_TEMPERATURE, read_out
+    from handmocap.training.detnet import SOFTMAX_TEMPERATURE, read_out
     rng = np.random.default_rng(1)
     grid, stride = 16, 8
     logits = rng.normal(0.0, 2.0, (2, 21, grid, grid)).astype(np.float32)
@@ -205,7 +205,7 @@ def test_onnx_export_matches_torch(tmp_path):
     torch = _torch()
     ort = pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
-    from handmocap.detnet import DetNet, DetNetExport, export_onnx
+    from handmocap.training.detnet import DetNet, DetNetExport, export_onnx
     torch.manual_seed(0)
     net = DetNet("fast")
     with torch.no_grad():                       # non-trivial BN statistics
@@ -228,8 +228,8 @@ def test_onnx_export_matches_torch(tmp_path):
 
 def test_training_step_decreases_loss():
     torch = _torch()
-    from handmocap.detnet import DetNet
-    from handmocap.train_detnet import LOSS_WEIGHTS, detnet_losses
+    from handmocap.training.detnet import DetNet
+    from handmocap.training.train_detnet import LOSS_WEIGHTS, detnet_losses
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     n = 4
@@ -254,8 +254,8 @@ def test_training_step_decreases_loss():
 
 def test_augmentation_keeps_2d_and_3d_consistent():
     """Rotating/mirroring the crop and the 3D label together keeps the 3D label the crop's."""
-    from handmocap import real_data
-    from handmocap.train_detnet import rotate_mirror_3d
+    from handmocap.training import real_data
+    from handmocap.training.train_detnet import rotate_mirror_3d
     rng = np.random.default_rng(1)
     xyz = rng.normal(size=(21, 3))
     for angle, mirror in ((30.0, False), (-75.0, True)):
@@ -272,7 +272,7 @@ def test_grey_batches_grey_the_asked_share_of_crops_and_nothing_else():
     """handtrain detnet --grey P: about P of the crops come out with three equal channels
     (luma); the labels are untouched."""
     _torch()
-    from handmocap.train_detnet import to_torch
+    from handmocap.training.train_detnet import to_torch
     rng = np.random.default_rng(0)
     n = 400
     image = np.zeros((n, 128, 128, 3), np.uint8)
@@ -290,7 +290,7 @@ def test_degraded_batches_change_the_asked_share_of_hand_crops_and_no_negative()
     """handtrain detnet --degrade P: about P of the hand crops come out changed (a pasted
     patch, a lower resolution or noise), the same ones for the same generator; negatives and
     the other hand crops are untouched."""
-    from handmocap.train_detnet import degrade
+    from handmocap.training.train_detnet import degrade
     rng = np.random.default_rng(0)
     n = 400
     image = rng.integers(0, 256, (n, 128, 128, 3), dtype=np.uint8)
@@ -305,8 +305,8 @@ def test_degraded_batches_change_the_asked_share_of_hand_crops_and_no_negative()
 def test_upright_batches_show_every_hand_upright_within_the_spread():
     """--upright D: each synthetic crop is turned so its hand's wrist is below its middle
     finger's base, then by at most D degrees (mirrored crops too)."""
-    from handmocap.detector import hand_angle
-    from handmocap.train_detnet import BatchMaker
+    from handmocap.perception.detector import hand_angle
+    from handmocap.training.train_detnet import BatchMaker
     rng = np.random.default_rng(2)
     n = 16
     uv = np.tile(rng.uniform(30, 98, (1, 21, 2)), (n, 1, 1))
@@ -326,8 +326,8 @@ def test_real_3d_labels_turn_and_mirror_with_their_crops():
     """--real-3d: a real crop's 3D label (MediaPipe's world landmarks, normalized) is turned
     and mirrored as its 2D is; it trains the 3D heads only on crops shown as right hands,
     weighted by W x the label's score, and not at all without W or without a 3D label."""
-    from handmocap.skeleton import normalize_joints
-    from handmocap.train_detnet import CTX, BatchMaker
+    from handmocap.perception.skeleton import normalize_joints
+    from handmocap.training.train_detnet import CTX, BatchMaker
     rng = np.random.default_rng(3)
     n = 64
     world = rng.normal(size=(n, 21, 3))
@@ -357,7 +357,7 @@ def test_left_2d_trains_the_heatmaps_of_crops_shown_as_left_hands_but_never_thei
     """--left-2d W: a crop shown as a left hand (mirrored the wrong way for the keypoint
     heads) trains the 2D heads with weight W (x the label's score for real crops), its 2D
     label mirrored with it; the 3D heads still learn from right-shown crops only."""
-    from handmocap.train_detnet import CTX, BatchMaker
+    from handmocap.training.train_detnet import CTX, BatchMaker
     rng = np.random.default_rng(4)
     n = 32
     uv = rng.uniform(40, 90, (n, 21, 2)).astype(np.float32)
@@ -396,8 +396,8 @@ def test_committed_model_interface(path):
 
 
 def test_arm_negatives_hold_no_keypoint_and_lie_beyond_the_wrist():
-    from handmocap import real_data
-    from handmocap.train_detnet import arm_crop
+    from handmocap.training import real_data
+    from handmocap.training.train_detnet import arm_crop
     rng = np.random.default_rng(0)
     for k in range(50):
         hand = rng.uniform(-1, 1, (21, 2)) * 40 + 300
@@ -414,8 +414,8 @@ def test_part_negatives_show_part_of_a_hand_too_close_to_be_a_whole_one():
     """part_crop: a square 0.25-0.5 of the hand's crop side around one of its joints (never
     the whole hand), None where it would be a blur of under 40 frame px; BatchMaker with
     --part-neg P takes about P of its negatives from the part crops, labelled no hand."""
-    from handmocap import real_data
-    from handmocap.train_detnet import BatchMaker, part_crop
+    from handmocap.training import real_data
+    from handmocap.training.train_detnet import BatchMaker, part_crop
     rng = np.random.default_rng(0)
     for k in range(50):
         hand = rng.uniform(-1, 1, (21, 2)) * 80 + 300
@@ -451,8 +451,8 @@ def cv_inverse(M):
 def _demo_crops(n=24):
     """(n,128,128,3) uint8 RGB crops of the project's own demo clip, cut where the float32
     DetNet tracks the hand (so both models see a real hand crop, not noise)."""
-    from handmocap.detector import HandDetector
-    from handmocap.frames import read_video
+    from handmocap.perception.detector import HandDetector
+    from handmocap.runtime.frames import read_video
     det = HandDetector.load("float32", max_hands=1)
     crops = []
     for frame in read_video(Path(__file__).resolve().parent.parent / "data" / "demo" / "hand_clip.mp4"):
@@ -466,14 +466,14 @@ def _demo_crops(n=24):
 
 def test_a_missing_detnet_file_is_one_error_naming_it_and_how_to_make_it(tmp_path):
     """Outside a launch file (HandTracker, handeval, a node started by hand) the load itself says it."""
-    from handmocap.detector import DetNetRunner
+    from handmocap.perception.detector import DetNetRunner
     with pytest.raises(FileNotFoundError, match=r"nope\.onnx not found; make it with `handtrain detnet`"):
         DetNetRunner.load(tmp_path / "nope.onnx")
 
 
 def test_int8_detnet_is_close_to_float32_and_made_from_the_shipped_float32():
-    from handmocap.detector import DETNET_INT8, DetNetRunner
-    from handmocap.onnx_models import stale_quantization
+    from handmocap.perception.detector import DETNET_INT8, DetNetRunner
+    from handmocap.perception.onnx_models import stale_quantization
     int8, f32 = DetNetRunner.load("int8"), DetNetRunner.load("float32")
     crops = _demo_crops()
     a, b = int8(crops), f32(crops)
@@ -484,16 +484,16 @@ def test_int8_detnet_is_close_to_float32_and_made_from_the_shipped_float32():
     # on an AVX2 AMD EPYC: mean 0.023, max 0.18 over these crops; 0.1 max held with VNNI)
     gap = np.abs(a["confidence"] - b["confidence"])
     assert gap.mean() < 0.05 and gap.max() < 0.3, (gap.mean(), gap.max())
-    assert stale_quantization(int8.session, DETNET_INT8, "") is None, "run python -m handmocap.quantize_detnet"
+    assert stale_quantization(int8.session, DETNET_INT8, "") is None, "run python -m handmocap.training.quantize_detnet"
 
 
 def test_quantize_makes_an_int8_copy_that_agrees_and_knows_its_source(tmp_path):
     torch = _torch()
     pytest.importorskip("onnx")
-    from handmocap.detector import DetNetRunner
-    from handmocap.detnet import DetNet, export_onnx
-    from handmocap.onnx_models import stale_quantization
-    from handmocap.quantize_detnet import quantize
+    from handmocap.perception.detector import DetNetRunner
+    from handmocap.training.detnet import DetNet, export_onnx
+    from handmocap.perception.onnx_models import stale_quantization
+    from handmocap.training.quantize_detnet import quantize
     import onnx
     torch.manual_seed(2)
     src, out = tmp_path / "detnet.onnx", tmp_path / "detnet_int8.onnx"
@@ -510,8 +510,8 @@ def test_quantize_makes_an_int8_copy_that_agrees_and_knows_its_source(tmp_path):
 
 
 def test_quarter_turned_held_out_crops_keep_labels_on_their_pixels_and_hands_upright():
-    from handmocap.detector import hand_angle
-    from handmocap.quantize_detnet import quarter_turned
+    from handmocap.perception.detector import hand_angle
+    from handmocap.training.quantize_detnet import quarter_turned
     rng = np.random.default_rng(5)
     n = 12
     uv = rng.uniform(20, 108, (n, 21, 2))
@@ -536,7 +536,7 @@ def test_padding_depthwise_convs_keeps_the_function():
     import onnx
     import onnxruntime as ort
     from onnx import TensorProto, helper, numpy_helper
-    from handmocap.onnx_models import pad_depthwise_convs
+    from handmocap.perception.onnx_models import pad_depthwise_convs
     rng = np.random.default_rng(3)
 
     def model(c):
@@ -574,11 +574,11 @@ def test_handtrain_detnet_batches_are_the_same_made_ahead_by_workers_and_amp_tra
     import subprocess
     import sys
     shards = tmp_path / "synth"
-    r = subprocess.run([sys.executable, "-m", "handmocap.synth.cli", "generate", "-n", "48", "-o", str(shards),
+    r = subprocess.run([sys.executable, "-m", "handmocap.training.synth.cli", "generate", "-n", "48", "-o", str(shards),
                         "--procedural", "--workers", "1", "--quiet"], capture_output=True, text=True)
     if r.returncode:
         pytest.skip(f"no synthetic crops (no EGL context?): {r.stderr[-200:]}")
-    from handmocap.train_cli import main
+    from handmocap.training.train_cli import main
 
     def run(name, *extra):
         main(["detnet", "--backbone", "fast", "--data", str(shards), "--val", str(shards), "--shared",

@@ -30,7 +30,7 @@ def test_killed_detector_respawns_and_poses_resume(tmp_path, run_dir):
     bag = tmp_path / "drill.mcap"
     lf = tmp_path / "g.yaml"
     lf.write_text(chain_yaml(DEMO_CLIP, bag, rate=1.0, loop=True, detector="respawn: true, respawn_delay: 0.2"))
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_until("30 poses", lambda: published(run_dir, "ik", "/hand/pose") >= 30)
@@ -224,7 +224,7 @@ nodes:
   replay: {{node: replay, params: {{source: {clip}, rate: 1.0}}, respawn: true, respawn_delay: 0.2}}
   recorder: {{node: recorder, params: {{output: {bag}, raw: true, topics: [/camera/image]}}, required: true}}
 """)
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_until("20 frames", lambda: published(run_dir, "replay", "/camera/image") >= 20)

@@ -7,7 +7,7 @@ Everything is read back from the recorded bag.
 Metrics (one hand in the clip; per frame the published hand nearest to the truth in the
 image, by mean 2D joint distance, is the one scored; the others count as extra hands):
 - 3D error, mm: mean over the 21 joints of |xyz - truth| after root and scale alignment
-  (handmocap.metrics.align_to_ground_truth: the prediction normalized to |joint 0 - joint 9|
+  (handmocap.training.metrics.align_to_ground_truth: the prediction normalized to |joint 0 - joint 9|
   = 1, scaled by the truth's |0-9| and moved onto the truth's joint 9; the paper's and
   `handeval score`'s protocol), then averaged over frames. Of /hand/pose `xyz` (IKNet + FK)
   and, for comparison, of /hand/keypoints `xyz_rel` (DetNet's own 3D).
@@ -37,9 +37,9 @@ import numpy as np
 import pytest
 
 from conftest import DEMO_CLIP, DEMO_TRUTH, chain_yaml, handlaunch, pose_latencies_ms, read_bag
-from handmocap.hand_model import HandModel
-from handmocap.metrics import align_to_ground_truth
-from handmocap.skeleton import ROOT, normalize_joints
+from handmocap.perception.hand_model import HandModel
+from handmocap.training.metrics import align_to_ground_truth
+from handmocap.perception.skeleton import ROOT, normalize_joints
 
 # -- tolerances (measured with models/detnet.onnx of 2026-11-21 20:47, 16,000 iterations) ------
 MAX_MEAN_3D_MM = 35.0          # pose xyz, root+scale aligned; measured 24.6 (DetNet's own xyz_rel: 24.3)
@@ -149,7 +149,7 @@ def test_graph_keypoints_equal_the_in_process_detector(demo):
     """The graph adds transport, not arithmetic: the same HandDetector run in this process
     on the same decoded frames gives the same keypoints (catches frames lost, reordered or
     paired with the wrong stamp)."""
-    from handmocap.detector import HandDetector
+    from handmocap.perception.detector import HandDetector
     _, msgs = demo
     detector = HandDetector.load()
     cap = cv2.VideoCapture(str(DEMO_CLIP))

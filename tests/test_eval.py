@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, SHARED_DATA
-from handmocap import eval_cli, metrics
-from handmocap.detector import HandDetector
-from handmocap.pose_data import PoseSampler
-from handmocap.hand_model import HandModel
-from handmocap.tracker import HandTracker
+from handmocap.training import eval_cli, metrics
+from handmocap.perception.detector import HandDetector
+from handmocap.training.pose_data import PoseSampler
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.tracker import HandTracker
 from test_detector import DOT_TOL, FakeDetNet, FakeFinder, canonical_hand, draw
 
 MODEL = HandModel.load()

@@ -1,5 +1,5 @@
 """The examples: examples/subscribe_pose.py against a real running graph, the dex-retargeting
-input conversion (handmocap.retarget) on known poses, and examples/in_process.py (HandTracker on a video and a
+input conversion (handmocap.perception.retarget) on known poses, and examples/in_process.py (HandTracker on a video and a
 photo); the README shows the first and the last as they are."""
 import importlib.util
 import json
@@ -13,10 +13,10 @@ import pytest
 
 from conftest import ROOT, graph_env
 from graphnodes.pose_source import synthetic_pose_hands
-from handmocap import camera_info
-from handmocap.hand_model import HandModel
-from handmocap import retarget as dex
-from handmocap.rotations import mirror_points
+from handmocap.runtime import camera_info
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception import retarget as dex
+from handmocap.perception.rotations import mirror_points
 
 EXAMPLES = ROOT / "examples"
 SOURCE_ROOT = [0.02, -0.01, 0.5]   # where the graph's pose source puts the hand's root, metres
@@ -52,7 +52,7 @@ def test_subscribe_pose_prints_the_hands_of_a_running_graph(tmp_path, run_dir):
 nodes:
   ik: {{node: graphnodes.pose_source, params: {{hz: 20, handedness: left, root: {SOURCE_ROOT}}}}}
 """)
-    graph = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+    graph = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     outputs = []
     try:

@@ -1,4 +1,4 @@
-"""handmocap.executor: several nodes of a container called in turn by one thread."""
+"""handmocap.runtime.executor: several nodes of a container called in turn by one thread."""
 import threading
 import time
 import uuid
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import zmq
 
-from handmocap import executor
-from handmocap import node as nm
+from handmocap.runtime import executor
+from handmocap.runtime import node as nm
 
 
 @pytest.fixture
@@ -118,7 +118,7 @@ def test_a_handler_that_raises_loses_that_message_only(container, caplog):
 
 def test_a_node_that_fails_to_start_is_closed_and_reported(container, tmp_path, monkeypatch):
     mod = tmp_path / "failing_node.py"
-    mod.write_text("from handmocap.node import Node\n"
+    mod.write_text("from handmocap.runtime.node import Node\n"
                    "def start():\n"
                    "    node = Node('failing')\n"
                    "    node.advertise('/x', 'Blob')\n"

@@ -6,8 +6,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from handmocap import codec
-from handmocap.frames import image_message
+from handmocap.runtime import codec
+from handmocap.runtime.frames import image_message
 
 
 def frame_payload(extra=None, view=False):
@@ -29,7 +29,7 @@ def slow_decode(payload, type_name):
 def image_subscriber(name, subscribed, on_message):
     """A node thread `name` in this process: keep-all /camera/image, `subscribed` set once it
     listens, on_message(msg) for each image until the node closes."""
-    from handmocap import node as nm
+    from handmocap.runtime import node as nm
     nm._local.settings = {"HANDMOCAP_NODE_NAME": name}
     with nm.Node(name) as n:
         n.subscribe("/camera/image", "Image", mode="all")
@@ -118,7 +118,7 @@ def test_in_a_container_the_detector_reads_the_sources_own_buffer(run_dir, monke
 
     import zmq
 
-    from handmocap import node as nm
+    from handmocap.runtime import node as nm
     ctx = zmq.Context()
     monkeypatch.setitem(nm._SHARED, "ctx", ctx)
     monkeypatch.setitem(nm._SHARED, "token", uuid.uuid4().hex)
@@ -180,7 +180,7 @@ def test_a_large_payload_is_in_flight_until_every_receiver_lets_go():
 
     import zmq
 
-    from handmocap import bus
+    from handmocap.runtime import bus
     ctx = zmq.Context()
     pub = bus.Publisher(ctx, "inproc://flight")
     sub = ctx.socket(zmq.SUB)
@@ -214,7 +214,7 @@ def test_replay_at_rate_0_runs_only_a_few_frames_ahead_of_a_slow_subscriber(run_
     import zmq
 
     from conftest import DEMO_CLIP
-    from handmocap import node as nm
+    from handmocap.runtime import node as nm
     from handmocap.nodes import replay
     ctx = zmq.Context()
     monkeypatch.setitem(nm._SHARED, "ctx", ctx)

@@ -85,7 +85,7 @@ nodes:
   ticker: {{node: graphnodes.ticker, params: {{count: 100000, hz: 50}}, respawn: true, respawn_delay: 0.2}}
   sink: {{node: graphnodes.sink, params: {{mode: all, out: {tmp_path}/sink.json}}}}
 """)
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         first = wait_for_node(run_dir, "ticker")
@@ -147,7 +147,7 @@ nodes:
   ticker: {{node: graphnodes.ticker, params: {{count: 300, hz: 100}}}}
   sink: {{node: graphnodes.sink, params: {{mode: all, out: {tmp_path}/sink.json}}}}
 """)
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=graph_env(run_dir),
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for_node(run_dir, "ticker")
@@ -188,7 +188,7 @@ def run_two_hosts(a, b_files, tmp_path):
     bs = []
     for b in b_files:
         d = Path(tempfile.mkdtemp(prefix="hm"))
-        bs.append((subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(b)], env=graph_env(d),
+        bs.append((subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(b)], env=graph_env(d),
                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True), d))
     try:
         for _, d in bs:
@@ -205,7 +205,7 @@ def run_two_hosts(a, b_files, tmp_path):
 
 def make_keys(tmp_path, other):
     """Key pairs a, b and `other` (handkeys) in tmp_path/keys; b's public key is A's one client."""
-    from handmocap.keys import main as handkeys
+    from handmocap.runtime.keys import main as handkeys
     keys = tmp_path / "keys"
     assert handkeys([str(keys), "a", "b", other]) == 0
     (keys / "clients").mkdir()
@@ -266,8 +266,8 @@ def test_one_node_with_latest_and_keep_all_inputs_small_and_large(run_dir):
     """In one process: a node that subscribes to one topic keep-all and another latest-only
     (two sockets, polled) gets every small message in order and the freshest large one, with
     the wire bytes unchanged (large payloads are received into zmq frames without a copy)."""
-    from handmocap import codec
-    from handmocap.node import Node
+    from handmocap.runtime import codec
+    from handmocap.runtime.node import Node
     pub = Node("pub", argv=[])
     pub.advertise("/small", "Blob")
     pub.advertise("/big", "Blob")

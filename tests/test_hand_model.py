@@ -5,11 +5,11 @@ import types
 import numpy as np
 import pytest
 
-from handmocap import kinematics as kin
-from handmocap.hand_model import BUNDLED_MODEL, MANO_TIP_VERTICES, HandModel
-from handmocap.joint_limits import NAMED_POSES, JointLimits, named_pose
-from handmocap.rotations import mirror_points
-from handmocap.skeleton import MANO_ORDER, NUM_JOINTS
+from handmocap.perception import kinematics as kin
+from handmocap.perception.hand_model import BUNDLED_MODEL, MANO_TIP_VERTICES, HandModel
+from handmocap.perception.joint_limits import NAMED_POSES, JointLimits, named_pose
+from handmocap.perception.rotations import mirror_points
+from handmocap.perception.skeleton import MANO_ORDER, NUM_JOINTS
 
 MODEL = HandModel.load()
 
@@ -191,7 +191,7 @@ def test_rejects_bad_pose_shape():
 
 def test_renderer_projects_like_the_camera_model():
     pytest.importorskip("moderngl")
-    from handmocap.render import MeshRenderer
+    from handmocap.perception.render import MeshRenderer
     try:
         renderer = MeshRenderer(160, 120)
     except Exception as exc:     # no EGL driver on this machine

@@ -4,15 +4,15 @@ import numpy as np
 import pytest
 
 from conftest import handlaunch
-from handmocap import camera_info, codec
-from handmocap.bag import iter_messages
-from handmocap.hand_model import HandModel
-from handmocap.ik_solver import IKSolver
-from handmocap.pose_data import PoseSampler
-from handmocap.rotations import mirror_points, quat_angle_between
-from handmocap.skeleton import normalize_joints
+from handmocap.runtime import camera_info, codec
+from handmocap.runtime.bag import iter_messages
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.ik_solver import IKSolver
+from handmocap.training.pose_data import PoseSampler
+from handmocap.perception.rotations import mirror_points, quat_angle_between
+from handmocap.perception.skeleton import normalize_joints
 
-from handmocap import pose as ik
+from handmocap.perception import pose as ik
 MODEL = HandModel.load()
 SOLVER = IKSolver.load()
 W, H = 640, 480
@@ -151,7 +151,7 @@ def test_a_topic_is_wanted_only_by_subscribers_that_name_it():
     import time
 
     import zmq
-    from handmocap.bus import Publisher, Subscriber
+    from handmocap.runtime.bus import Publisher, Subscriber
     ctx = zmq.Context()
     pub = Publisher(ctx, "inproc://named-subscribers")
     everything, named = Subscriber(ctx), Subscriber(ctx)

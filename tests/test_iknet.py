@@ -4,17 +4,17 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-from handmocap.hand_model import HandModel
-from handmocap.ik_solver import (DEFAULT_MODEL, FLOAT32_MODEL, INT8_MODEL, IKSolver, _unit, analytic_ik,
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.ik_solver import (DEFAULT_MODEL, FLOAT32_MODEL, INT8_MODEL, IKSolver, _unit, analytic_ik,
                                  canonical_frame, clamp_to_limits, iknet_inputs, iknet_outputs, model_path,
                                  stale_quantization)
-from handmocap.joint_limits import JointLimits
-from handmocap.kinematics import forward_kinematics, relative_to_global_quats
-from handmocap.one_euro import OneEuroFilter
-from handmocap.pose import posed_joints
-from handmocap.pose_data import PoseSampler, corrupt_joints
-from handmocap.rotations import matrix_to_quat, quat_angle_between, quat_normalize, quat_to_matrix
-from handmocap.skeleton import normalize_joints
+from handmocap.perception.joint_limits import JointLimits
+from handmocap.perception.kinematics import forward_kinematics, relative_to_global_quats
+from handmocap.perception.one_euro import OneEuroFilter
+from handmocap.perception.pose import posed_joints
+from handmocap.training.pose_data import PoseSampler, corrupt_joints
+from handmocap.perception.rotations import matrix_to_quat, quat_angle_between, quat_normalize, quat_to_matrix
+from handmocap.perception.skeleton import normalize_joints
 
 MODEL = HandModel.load()
 REF_MM = 95.0        # reference bone 0 -> 9 in mm for reporting errors
@@ -31,7 +31,7 @@ def fk_error_mm(quats, d):
 # ------------------------------------------------------------------ torch (training extra)
 def test_torch_fk_equals_numpy_fk_and_hand_model():
     torch = pytest.importorskip("torch", reason="torch is the training extra")
-    from handmocap.iknet import forward_kinematics as fk_torch
+    from handmocap.training.iknet import forward_kinematics as fk_torch
     d = samples(64, 0)
     ours = fk_torch(torch.tensor(d["quats"]), torch.tensor(d["rest"])).numpy()
     np.testing.assert_allclose(ours, forward_kinematics(d["quats"], d["rest"]), atol=1e-12)
@@ -46,7 +46,7 @@ def test_torch_fk_equals_numpy_fk_and_hand_model():
 
 def test_losses_vanish_at_the_target_and_ignore_the_quaternion_sign():
     torch = pytest.importorskip("torch", reason="torch is the training extra")
-    from handmocap.iknet import iknet_losses
+    from handmocap.training.iknet import iknet_losses
     d = samples(32, 2)
     q, xyz, rest = (torch.tensor(d[k]) for k in ("quats", "xyz", "rest"))
     has = torch.ones(32, dtype=torch.bool)
@@ -63,7 +63,7 @@ def test_losses_vanish_at_the_target_and_ignore_the_quaternion_sign():
 def test_export_folds_batchnorm_and_matches_torch(tmp_path):
     torch = pytest.importorskip("torch", reason="torch is the training extra")
     pytest.importorskip("onnx", reason="onnx is the training extra")
-    from handmocap.iknet import IKNet, export_onnx
+    from handmocap.training.iknet import IKNet, export_onnx
     torch.manual_seed(0)
     net = IKNet(width=64, depth=2)
     for m in net.modules():               # BatchNorm with non-trivial statistics
@@ -147,7 +147,7 @@ def test_int8_is_close_to_float32_and_made_from_the_shipped_float32():
         # the bounds hold int8 kernels without AVX-512 VNNI too (an AVX2 AMD EPYC: mean 0.94,
         # 99th percentile 3.2 deg; under 1 and 3 with VNNI)
         assert angle.mean() < 1.2 and np.percentile(angle, 99) < 4.0, (angle.mean(), np.percentile(angle, 99))
-    assert stale_quantization(int8.session, INT8_MODEL) is None, "run python -m handmocap.quantize_iknet"
+    assert stale_quantization(int8.session, INT8_MODEL) is None, "run python -m handmocap.training.quantize_iknet"
 
 
 def _tiny_iknet(path, width=32, seed=0):
@@ -175,7 +175,7 @@ def _tiny_iknet(path, width=32, seed=0):
 
 
 def test_quantize_command_output(tmp_path):
-    from handmocap.quantize_iknet import quantize
+    from handmocap.training.quantize_iknet import quantize
     src, out = tmp_path / "iknet.onnx", tmp_path / "iknet_int8.onnx"
     _tiny_iknet(src)
     d = samples(600, 35)
@@ -298,10 +298,10 @@ def test_one_euro_smooths_still_signals_and_follows_fast_ones():
 
 
 def test_eval_iknet_pairs_scores_a_detectors_output_alone_and_through_iknet(tmp_path):
-    """`python -m handmocap.eval_iknet --pairs`: the paper's Table 2 on (prediction, truth)
+    """`python -m handmocap.training.eval_iknet --pairs`: the paper's Table 2 on (prediction, truth)
     pairs. The detector's own row is the plain joint error; exact predictions give AUC 1
     alone and nearly 1 through IKNet + FK (the model posed by IKNet's rotations)."""
-    from handmocap.eval_iknet import evaluate_pairs
+    from handmocap.training.eval_iknet import evaluate_pairs
     d = samples(300, 11)
     noisy = corrupt_joints(d["xyz"], np.random.default_rng(12))
     solver = IKSolver.load()
@@ -324,7 +324,7 @@ def test_training_never_replaces_the_shipped_model_unless_told(tmp_path):
     import sys
     shipped = [ROOT / "models" / "iknet.onnx", ROOT / "models" / "iknet_int8.onnx"]
     before = [(p.stat().st_mtime_ns, p.stat().st_size) for p in shipped]
-    r = subprocess.run([sys.executable, "-m", "handmocap.train_cli", "iknet", "--iters", "2", "--run-dir",
+    r = subprocess.run([sys.executable, "-m", "handmocap.training.train_cli", "iknet", "--iters", "2", "--run-dir",
                         str(tmp_path), "--no-real", "--threads", "1"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert (tmp_path / "iknet.onnx").is_file() and (tmp_path / "iknet_int8.onnx").is_file()

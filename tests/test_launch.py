@@ -6,7 +6,7 @@ import pytest
 from pathlib import Path
 
 from conftest import ROOT
-from handmocap.launch import LaunchError, load_launch_file
+from handmocap.runtime.launch import LaunchError, load_launch_file
 
 GOOD = """\
 args:
@@ -97,7 +97,7 @@ def test_bad_files_are_rejected_with_file_and_line(tmp_path, text, args, line, w
 
 
 def test_missing_file_and_cli_exit_code(tmp_path, run_dir):
-    r = subprocess.run([sys.executable, "-m", "handmocap.launch", str(tmp_path / "nope.yaml")],
+    r = subprocess.run([sys.executable, "-m", "handmocap.runtime.launch", str(tmp_path / "nope.yaml")],
                        capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.strip() == f"handlaunch: error: {tmp_path / 'nope.yaml'}: no such launch file"
@@ -106,7 +106,7 @@ def test_missing_file_and_cli_exit_code(tmp_path, run_dir):
 
 def test_bad_file_starts_no_process(tmp_path, run_dir):
     path = write(tmp_path, GOOD.replace("node: recorder", "node: nope"))
-    r = subprocess.run([sys.executable, "-m", "handmocap.launch", str(path), "input:=x"],
+    r = subprocess.run([sys.executable, "-m", "handmocap.runtime.launch", str(path), "input:=x"],
                        capture_output=True, text=True)
     assert r.returncode == 2 and "unknown node type 'nope'" in r.stderr
     assert "Traceback" not in r.stderr and not list(run_dir.iterdir())
@@ -175,7 +175,7 @@ def test_product_launch_files_are_valid(name, monkeypatch):
 
 def test_an_argument_given_twice_is_an_error_naming_both(tmp_path, run_dir):
     path = write(tmp_path, GOOD)
-    r = subprocess.run([sys.executable, "-m", "handmocap.launch", str(path), "input:=a.mp4", "rate:=1", "rate:=2"],
+    r = subprocess.run([sys.executable, "-m", "handmocap.runtime.launch", str(path), "input:=a.mp4", "rate:=1", "rate:=2"],
                        capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.strip() == "handlaunch: error: rate is given twice: rate:=1 and 'rate:=2'"
@@ -199,8 +199,8 @@ nodes:
 
 
 def test_topic_cycle_finds_cycles_and_only_cycles():
-    from handmocap.bus import NodeInfo
-    from handmocap.launch import topic_cycle
+    from handmocap.runtime.bus import NodeInfo
+    from handmocap.runtime.launch import topic_cycle
     node = lambda name, pub=(), sub=(), **kw: NodeInfo(name, 1, "", {t: "Blob" for t in pub}, {t: "all" for t in sub}, **kw)
     chain = {"s": node("s", ["/a"]), "m": node("m", ["/b"], ["/a"]), "rec": node("rec", [], ["*"]),
              "echo": node("echo", [], ["*"], observer=True)}

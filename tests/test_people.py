@@ -1,10 +1,10 @@
 """People never trained on: the pseudo-label filter, the held-back split, and the scoring of
-`handeval people` (handmocap/eval_people.py)."""
+`handeval people` (handmocap/training/eval_people.py)."""
 import numpy as np
 import pytest
 
 from conftest import DEMO_CLIP, DEMO_TRUTH, SHARED_DATA
-from handmocap import eval_people, real_data
+from handmocap.training import eval_people, real_data
 
 needs_wild = pytest.mark.skipif(not (SHARED_DATA / "video" / "wild").is_dir(),
                                 reason="the data pack's second drop (shared/data/video/wild) is not beside the repo")
@@ -73,7 +73,7 @@ def test_scoring_counts_found_false_and_wrong_sides():
     far away (never found) and the side swapped (all wrong)."""
     import cv2
 
-    from handmocap.detector import HandDetector
+    from handmocap.perception.detector import HandDetector
     truth = np.load(DEMO_TRUTH)
     cap = cv2.VideoCapture(str(DEMO_CLIP))
     frames = []
@@ -104,7 +104,7 @@ def test_merge_and_summary_arithmetic():
 
 
 def test_handeval_people_without_the_second_drop_is_one_clear_error(tmp_path, capsys):
-    from handmocap.eval_cli import main
+    from handmocap.training.eval_cli import main
     assert main(["people", "--data", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "video/wild" in err and "Traceback" not in err

@@ -3,14 +3,14 @@ import numpy as np
 import pytest
 
 from conftest import SHARED_DATA
-from handmocap.hand_model import HandModel
-from handmocap.joint_limits import FINGER_JOINTS, JointLimits
-from handmocap.kinematics import forward_kinematics
-from handmocap.pose_data import (
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.joint_limits import FINGER_JOINTS, JointLimits
+from handmocap.perception.kinematics import forward_kinematics
+from handmocap.training.pose_data import (
     _FINGER_ROWS, _GESTURE_STATES, _STATE_TABLE, GESTURES, REAL_DUPLICATES, REAL_EVAL, REAL_TRAIN,
     PositionPairs, PoseSampler, corrupt_joints, load_real_sequences, read_sequence,
 )
-from handmocap.skeleton import normalize_joints
+from handmocap.perception.skeleton import normalize_joints
 
 MODEL = HandModel.load()
 

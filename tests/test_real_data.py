@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from handmocap import real_data
-from handmocap.real_data import SHARED_DATA
+from handmocap.training import real_data
+from handmocap.training.real_data import SHARED_DATA
 
 needs_data = pytest.mark.skipif(not (SHARED_DATA / "labelled2d").exists(),
                                 reason=f"no real data pack at {SHARED_DATA}")

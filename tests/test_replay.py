@@ -21,7 +21,7 @@ def clip(tmp_path_factory):
 
 
 def bag_counts(bag):
-    r = subprocess.run([sys.executable, "-m", "handmocap.bag_cli", "info", str(bag), "--json"],
+    r = subprocess.run([sys.executable, "-m", "handmocap.runtime.bag_cli", "info", str(bag), "--json"],
                        capture_output=True, text=True, check=True)
     info = json.loads(r.stdout)
     return {t: v["count"] for t, v in info["topics"].items()}, info
@@ -45,8 +45,8 @@ def test_replay_with_calibration_file_publishes_its_K(clip, tmp_path, run_dir):
     r = handlaunch([ROOT / "launch/replay.yaml", f"input:={clip / 'clip.mp4'}", f"bag:={bag}",
                     f"calibration:={calib}"], run_dir)
     assert r.returncode == 0, r.stdout + r.stderr
-    from handmocap import codec
-    from handmocap.bag import iter_messages
+    from handmocap.runtime import codec
+    from handmocap.runtime.bag import iter_messages
     infos = [codec.decode(p, t) for _, t, p, _ in iter_messages(bag, topics=["/camera/info"])]
     assert len(infos) == 90 and infos[0]["source"] == "calibration"
     np.testing.assert_allclose(infos[0]["K"], [[500, 0, 159.5], [0, 500, 119.5], [0, 0, 1]])
@@ -56,9 +56,9 @@ def test_jpeg_source_and_compressed_bag_replay_again(clip, tmp_path, run_dir):
     """jpeg:=90 makes the source publish JPEG frames (the detector decodes them); the bag, which
     stores images as JPEG by default, is a source itself: replaying it gives the same frames
     (nearly the same pixels) again."""
-    from handmocap import codec
-    from handmocap.bag import iter_messages
-    from handmocap.frames import frame_bgr
+    from handmocap.runtime import codec
+    from handmocap.runtime.bag import iter_messages
+    from handmocap.runtime.frames import frame_bgr
     first, second = tmp_path / "first.mcap", tmp_path / "second.mcap"
     r = handlaunch([ROOT / "launch/replay.yaml", f"input:={clip / 'frames'}", f"bag:={first}", "jpeg:=90"], run_dir)
     assert r.returncode == 0, r.stdout + r.stderr

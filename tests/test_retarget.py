@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from conftest import DEMO_CLIP, ROOT, handlaunch
-from handmocap import codec
-from handmocap.bag import iter_messages
-from handmocap.hand_model import HandModel
+from handmocap.runtime import codec
+from handmocap.runtime.bag import iter_messages
+from handmocap.perception.hand_model import HandModel
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("dex_retargeting") is None,
                                 reason="dex-retargeting not installed (pip install -e '.[retarget]')")
@@ -24,7 +24,7 @@ def posed(curl):
 
 
 def test_robot_follows_the_hand_open_and_closed():
-    from handmocap.retarget import RobotHand
+    from handmocap.perception.retarget import RobotHand
     robot = RobotHand(TOY)
     assert robot.joint_names == ["index_mcp", "index_pip", "middle_mcp", "middle_pip", "thumb_mcp", "thumb_ip"]
     settle = lambda xyz, side="right": [robot.retarget(xyz, side) for _ in range(20)][-1]
@@ -44,7 +44,7 @@ def test_a_missing_config_urdf_or_library_is_one_clear_error():
         retarget.check_params({"right": "nowhere/robot.yml"})
     with pytest.raises(ValueError, match="urdf_dir: no such folder"):
         retarget.check_params({"right": str(TOY), "urdf_dir": "/nonexistent"})
-    from handmocap.retarget import RobotHand
+    from handmocap.perception.retarget import RobotHand
     with pytest.raises(FileNotFoundError, match="allegro_hand_right"):
         RobotHand("no_such_robot")
 
@@ -61,7 +61,7 @@ def test_teleop_graph_retargets_every_pose(tmp_path):
     poses, robots = read("/hand/pose"), read("/robot/joint_states")
     assert len(poses) >= 60 and len(robots) == len(poses)
     assert [m["header"]["stamp_ns"] for m in robots] == [m["header"]["stamp_ns"] for m in poses]
-    from handmocap.retarget import RobotHand
+    from handmocap.perception.retarget import RobotHand
     offline = {side: RobotHand(TOY) for side in ("right", "left")}
     moved = 0
     for pose, robot in zip(poses, robots):

@@ -9,12 +9,12 @@ import pytest
 import yaml
 
 from graphnodes.pose_source import synthetic_pose_hands
-from handmocap import bag, camera_info, codec
-from handmocap.bag_cli import main as handbag
-from handmocap.hand_model import HandModel
-from handmocap.joint_limits import JointLimits
-from handmocap.rotations import mirror_points, quat_rotate
-from handmocap.skeleton import JOINT_NAMES, PARENTS
+from handmocap.runtime import bag, camera_info, codec
+from handmocap.runtime.bag_cli import main as handbag
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.joint_limits import JointLimits
+from handmocap.perception.rotations import mirror_points, quat_rotate
+from handmocap.perception.skeleton import JOINT_NAMES, PARENTS
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("rosbags") is None,
                                 reason="rosbags not installed (pip install -e '.[ros2]')")
@@ -155,7 +155,7 @@ def test_every_message_reads_back_with_rosbags_and_matches_the_source(exported):
 
 
 def _mul(a, b):
-    from handmocap.rotations import quat_multiply
+    from handmocap.perception.rotations import quat_multiply
     return quat_multiply(np.asarray(a, float), np.asarray(b, float))
 
 

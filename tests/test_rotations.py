@@ -2,10 +2,10 @@ import numpy as np
 from hypothesis import given, settings, strategies as st
 from hypothesis.extra.numpy import arrays
 
-from handmocap import kinematics as kin
-from handmocap import rotations as rot
-from handmocap.hand_model import HandModel
-from handmocap.skeleton import MANO_ORDER, FROM_MANO_ORDER, NUM_JOINTS
+from handmocap.perception import kinematics as kin
+from handmocap.perception import rotations as rot
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.skeleton import MANO_ORDER, FROM_MANO_ORDER, NUM_JOINTS
 
 finite = st.floats(-3.0, 3.0, allow_nan=False, width=64)
 quats = arrays(np.float64, (4,), elements=finite).filter(lambda q: np.linalg.norm(q) > 1e-3)
@@ -91,7 +91,7 @@ def test_relative_global_relative(pose):
 @settings(deadline=None, max_examples=30)
 @given(poses16)
 def test_fk_preserves_bone_lengths(pose):
-    from handmocap.shape import bone_lengths
+    from handmocap.perception.shape import bone_lengths
     rest = MODEL.rest_joints()
     assert np.allclose(bone_lengths(kin.forward_kinematics_relative(pose, rest)), bone_lengths(rest))
 

@@ -25,7 +25,7 @@ def write_graph(tmp_path, count=50, hz=100):
 
 def test_made_private_and_its_node_files_too(tmp_path):
     run = tmp_path / "run"
-    cmd = [sys.executable, "-m", "handmocap.launch", str(write_graph(tmp_path, count=300))]
+    cmd = [sys.executable, "-m", "handmocap.runtime.launch", str(write_graph(tmp_path, count=300))]
     graph = subprocess.Popen(cmd, env=graph_env(run), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 30
@@ -59,7 +59,7 @@ def test_two_launches_of_one_graph_cannot_both_start(tmp_path):
     """The second, 0.3 s after the first, is refused with one line; the first runs to its end."""
     run = tmp_path / "run"
     lf = write_graph(tmp_path, count=300, hz=100)
-    cmd = [sys.executable, "-m", "handmocap.launch", str(lf)]
+    cmd = [sys.executable, "-m", "handmocap.runtime.launch", str(lf)]
     first = subprocess.Popen(cmd, env=graph_env(run), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(0.3)
     second = handlaunch([lf], run)

@@ -1,9 +1,9 @@
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from handmocap.hand_model import HandModel
-from handmocap.joint_limits import JointLimits
-from handmocap.shape import RecentRows, ShapeFitter, ShapeTracker, _column_median, _median_of, _middle, bone_ratios
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.joint_limits import JointLimits
+from handmocap.perception.shape import RecentRows, ShapeFitter, ShapeTracker, _column_median, _median_of, _middle, bone_ratios
 
 MODEL = HandModel.load()
 FITTER = ShapeFitter(MODEL)
@@ -145,8 +145,8 @@ def test_refitting_beta_every_few_frames_holds_it_in_between_and_changes_it_litt
 
 def test_estimator_never_publishes_more_shapes_than_its_schema_takes():
     """Many short tracks within forget_after_s: the 16 seen last are kept (HandShape maxItems 16)."""
-    from handmocap import codec
-    from handmocap.shape import MAX_SHAPES, ShapeEstimator
+    from handmocap.runtime import codec
+    from handmocap.perception.shape import MAX_SHAPES, ShapeEstimator
     est = ShapeEstimator(MODEL)
     xyz = (MODEL.rest_joints() - MODEL.rest_joints()[9]) / MODEL.ref_bone_length()
     for t in range(40):

@@ -3,11 +3,11 @@ import numpy as np
 
 from conftest import handlaunch
 from graphnodes.keypoints_source import synthetic_hands
-from handmocap import codec
-from handmocap.bag import iter_messages
-from handmocap.hand_model import HandModel
-from handmocap.shape import ShapeEstimator
-from handmocap.skeleton import normalize_joints
+from handmocap.runtime import codec
+from handmocap.runtime.bag import iter_messages
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.shape import ShapeEstimator
+from handmocap.perception.skeleton import normalize_joints
 
 # coefficients that bone ratios can see (hand_size, finger_thickness, wrist_girth cannot: docs/models_history.md)
 OBSERVABLE = [1, 2, 3, 4, 5, 6, 9]

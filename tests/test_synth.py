@@ -5,15 +5,15 @@ import json
 import numpy as np
 import pytest
 
-from handmocap.hand_model import HandModel
-from handmocap.skeleton import REF_BONE, ROOT
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.skeleton import REF_BONE, ROOT
 
 MODEL = HandModel.load()
 
 
 def _engine(**overrides):
     pytest.importorskip("moderngl")
-    from handmocap.synth.engine import SynthConfig, SynthEngine
+    from handmocap.training.synth.engine import SynthConfig, SynthEngine
     config = SynthConfig(backgrounds="procedural", **overrides)
     try:
         return SynthEngine(config, model=MODEL, log=lambda *a: None)
@@ -67,8 +67,8 @@ def test_pose_and_shape_labels_reproduce_the_joints(batch):
 
 def test_visibility_agrees_with_an_independent_depth_test():
     """Hands alone (no occluders, no second hand): re-render each labelled hand with
-    handmocap.render from its pose/shape labels, and depth-test every joint."""
-    from handmocap.render import MeshRenderer
+    handmocap.perception.render from its pose/shape labels, and depth-test every joint."""
+    from handmocap.perception.render import MeshRenderer
     engine = _engine(occluder=0.0, second_hand=0.0)
     data = engine.batch(np.random.default_rng(11), 24)
     radius = engine.radius
@@ -103,8 +103,8 @@ def test_visibility_agrees_with_an_independent_depth_test():
 
 
 def test_visibility_rules_on_a_constructed_depth_map():
-    from handmocap.synth.mesh import SynthHand
-    from handmocap.synth.scene import joint_visibility
+    from handmocap.training.synth.mesh import SynthHand
+    from handmocap.training.synth.scene import joint_visibility
     adjacent = SynthHand.joint_parts()
     tile = 16
     depth = np.full((1, tile, tile), 0.50, np.float32)
@@ -128,8 +128,8 @@ def test_visibility_rules_on_a_constructed_depth_map():
 
 def test_dataset_is_reproducible_and_reads_back(tmp_path):
     _engine()                                                   # skips without EGL
-    from handmocap.synth.dataset import SynthDataset, generate
-    from handmocap.synth.engine import SynthConfig
+    from handmocap.training.synth.dataset import SynthDataset, generate
+    from handmocap.training.synth.engine import SynthConfig
     config = SynthConfig(backgrounds="procedural")
     generate(tmp_path / "a", 20, seed=5, config=config, shard_size=12, workers=1, progress=False)
     generate(tmp_path / "b", 20, seed=5, config=config, shard_size=12, workers=1, progress=False)
@@ -149,7 +149,7 @@ def test_dataset_is_reproducible_and_reads_back(tmp_path):
 def test_procedural_backgrounds_without_shared_data(tmp_path, monkeypatch):
     monkeypatch.setenv("HANDMOCAP_SHARED_DATA", str(tmp_path / "none"))
     monkeypatch.setenv("HANDMOCAP_CACHE", str(tmp_path / "cache"))
-    from handmocap.synth.backgrounds import BackgroundSource, load_real_backgrounds
+    from handmocap.training.synth.backgrounds import BackgroundSource, load_real_backgrounds
     assert load_real_backgrounds(log=lambda *a: None) is None
     source = BackgroundSource(np.random.default_rng(0), None, pool_size=8)
     bg, real = source.sample(np.random.default_rng(1), 6, 64)
@@ -158,7 +158,7 @@ def test_procedural_backgrounds_without_shared_data(tmp_path, monkeypatch):
 
 
 def test_real_background_crops_avoid_hands(tmp_path):
-    from handmocap.synth.backgrounds import _hand_boxes, shared_data_dir, video_background_crops
+    from handmocap.training.synth.backgrounds import _hand_boxes, shared_data_dir, video_background_crops
     shared = shared_data_dir()
     if shared is None:
         pytest.skip("no shared/data/video beside the repository")
@@ -173,7 +173,7 @@ def test_real_background_crops_avoid_hands(tmp_path):
 def test_sheet_command_writes_a_png(tmp_path):
     _engine()
     import cv2
-    from handmocap.synth.cli import main
+    from handmocap.training.synth.cli import main
     out = tmp_path / "sheet.png"
     assert main(["sheet", "-n", "8", "-o", str(out), "--procedural", "--cols", "4"]) == 0
     img = cv2.imread(str(out))
@@ -184,9 +184,9 @@ def test_decimated_draw_mesh_covers_the_full_silhouette():
     """The draw mesh (~1500 triangles) is a closed mesh on a subset of the model's
     vertices that skin exactly like them, and its silhouette matches the full mesh's."""
     pytest.importorskip("moderngl")
-    from handmocap.render import MeshRenderer
-    from handmocap.synth.mesh import SynthHand
-    from handmocap.synth.poses import PoseSampler
+    from handmocap.perception.render import MeshRenderer
+    from handmocap.training.synth.mesh import SynthHand
+    from handmocap.training.synth.poses import PoseSampler
     full, draw = SynthHand(MODEL, draw_faces=0), SynthHand(MODEL)
     assert len(draw.faces) <= 1500 < len(full.faces)
     edges = np.sort(np.concatenate([draw.faces[:, [0, 1]], draw.faces[:, [1, 2]], draw.faces[:, [2, 0]]]), 1)

@@ -14,11 +14,11 @@ nodes:
   sink: {{node: graphnodes.sink, params: {{mode: all, out: {tmp_path}/sink.json}}}}
 """)
     env = graph_env(run_dir)
-    graph = subprocess.Popen([sys.executable, "-m", "handmocap.launch", str(lf)], env=env,
+    graph = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=env,
                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         def handtopic(*args):
-            return subprocess.run([sys.executable, "-m", "handmocap.topic_cli", *args], env=env,
+            return subprocess.run([sys.executable, "-m", "handmocap.runtime.topic_cli", *args], env=env,
                                   capture_output=True, text=True, timeout=30).stdout
 
         deadline = time.monotonic() + 20
@@ -41,12 +41,12 @@ nodes:
 def test_no_graph_and_unknown_topics_are_said_not_silent(tmp_path, monkeypatch, capsys):
     """list / nodes without a graph: one line and exit 1 (they used to print nothing); echo of a
     topic nobody publishes: a line naming the close ones, then it waits (it used to wait mutely)."""
-    from handmocap import topic_cli
+    from handmocap.runtime import topic_cli
     monkeypatch.setenv("HANDMOCAP_RUN_DIR", str(tmp_path / "empty"))
     for cmd in ("list", "nodes"):
         assert topic_cli.main([cmd]) == 1
         assert "no graph is running in" in capsys.readouterr().err
-    from handmocap.bus import NodeInfo, write_node_file, run_dir
+    from handmocap.runtime.bus import NodeInfo, write_node_file, run_dir
     import os
     write_node_file(run_dir(), NodeInfo("ik", os.getpid(), "ipc:///nowhere", {"/hand/pose": "HandPose"}))
     topic_cli.check_topic("/hand/poze")

@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from handmocap import camera_info, codec
-from handmocap.detector import HandDetector
-from handmocap.hand_model import HandModel
-from handmocap.pose_data import PoseSampler
-from handmocap.rotations import mirror_points
-from handmocap.skeleton import normalize_joints
-from handmocap.tracker import HandTracker
+from handmocap.runtime import camera_info, codec
+from handmocap.perception.detector import HandDetector
+from handmocap.perception.hand_model import HandModel
+from handmocap.training.pose_data import PoseSampler
+from handmocap.perception.rotations import mirror_points
+from handmocap.perception.skeleton import normalize_joints
+from handmocap.perception.tracker import HandTracker
 from test_detector import DOT_TOL, FakeDetNet, FakeFinder, draw
 
 W, H = 640, 480

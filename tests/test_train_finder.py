@@ -1,8 +1,8 @@
 """The hand finder's training data: turned frames keep their boxes on the hand."""
 import numpy as np
 
-from handmocap.hand_finder import INPUT_SIZE
-from handmocap.train_finder import augment, rotate90, targets
+from handmocap.perception.hand_finder import INPUT_SIZE
+from handmocap.training.train_finder import augment, rotate90, targets
 
 
 def drawn_box(image):
@@ -39,7 +39,7 @@ def test_augment_with_turns_keeps_boxes_on_the_hand_and_turns_some_frames():
 
 
 def test_grey_frames_are_luma_in_three_equal_channels_and_only_the_asked_share_is_grey():
-    from handmocap.hand_finder import greyed
+    from handmocap.perception.hand_finder import greyed
     rng = np.random.default_rng(0)
     image = np.zeros((160, 160, 3), np.uint8)
     image[30:71, 100:141] = (40, 120, 220)            # a skin-like BGR patch

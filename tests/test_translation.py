@@ -1,14 +1,14 @@
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from handmocap.hand_model import HandModel
-from handmocap.joint_limits import JointLimits
-from handmocap.rotations import axis_angle_to_matrix
-from handmocap.translation import (
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.joint_limits import JointLimits
+from handmocap.perception.rotations import axis_angle_to_matrix
+from handmocap.perception.translation import (
     DEFAULT_DEPTH_M, camera_joints_from_keypoints, depth_from_hand_size, joints_through_keypoints,
     root_depth_from_intrinsics, root_fitting_keypoints,
 )
-from handmocap.skeleton import normalize_joints
+from handmocap.perception.skeleton import normalize_joints
 
 MODEL = HandModel.load()
 LIMITS = JointLimits.for_model(MODEL)
@@ -92,7 +92,7 @@ def test_fallback_depth_is_close_for_a_fronto_parallel_hand():
 def test_camera_joints_pick_the_root_that_reprojects_best():
     """The same result as solving Eq. 5 twice (far root; nearer root) and comparing the
     reprojection of both (how camera_joints_from_keypoints first did it)."""
-    from handmocap.translation import _reprojection_error
+    from handmocap.perception.translation import _reprojection_error
     rng = np.random.default_rng(21)
     xyz = np.stack([hand_in_camera(rng, d) for d in rng.uniform(0.1, 1.5, 200)])
     ref = np.linalg.norm(xyz[:, 0] - xyz[:, 9], axis=-1)

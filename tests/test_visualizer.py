@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, graph_env, handlaunch
-from handmocap.camera_info import project
-from handmocap.frame_sync import FrameSync
-from handmocap.hand_model import HandModel
-from handmocap.overlay import FINGER_COLOURS, Overlay, composite, draw_skeleton, side_view_transform
-from handmocap.pose import hand_mesh
-from handmocap.pose_data import PoseSampler
-from handmocap.rotations import mirror_points
-from handmocap.skeleton import ROOT as ROOT_JOINT
+from handmocap.runtime.camera_info import project
+from handmocap.runtime.frame_sync import FrameSync
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.overlay import FINGER_COLOURS, Overlay, composite, draw_skeleton, side_view_transform
+from handmocap.perception.pose import hand_mesh
+from handmocap.training.pose_data import PoseSampler
+from handmocap.perception.rotations import mirror_points
+from handmocap.perception.skeleton import ROOT as ROOT_JOINT
 
 MODEL = HandModel.load()
 W, H = 640, 480
@@ -28,7 +28,7 @@ CLIP_FRAMES = 90   # data/demo/hand_clip.mp4
 
 
 def pose_hand(quats, beta, root, handedness="right", track_id=0):
-    """A HandPose hand as the ik node builds it (handmocap.pose.pose_fields): xyz = root +
+    """A HandPose hand as the ik node builds it (handmocap.perception.pose.pose_fields): xyz = root +
     (model joints - joint 9), mirrored for a left hand."""
     _, joints = MODEL.forward(quats, beta)
     rel = joints - joints[ROOT_JOINT]
@@ -226,7 +226,7 @@ def test_webcam_graph_writes_every_camera_frame(tmp_path, run_dir):
 
 def test_sigint_leaves_a_finished_mp4(tmp_path, run_dir):
     video = tmp_path / "cut.mp4"
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.launch", ROOT / "launch/demo.yaml", f"video:={video}",
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", ROOT / "launch/demo.yaml", f"video:={video}",
                              f"bag:={tmp_path / 'cut.mcap'}", "rate:=0.5"], env=graph_env(run_dir),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 60

@@ -1,7 +1,7 @@
 """Test node: once the graph is up, sends forged end-of-stream marks on `topic` naming
 `victim` (without a token, and with a wrong one), then ends normally."""
-from handmocap import bus
-from handmocap.node import Node, run
+from handmocap.runtime import bus
+from handmocap.runtime.node import Node, run
 
 PARAMS = {"topic": "/test/blob", "victim": "ticker"}
 

@@ -6,8 +6,8 @@ import random
 import msgpack
 import numpy as np
 
-from handmocap import codec
-from handmocap.node import Node, run
+from handmocap.runtime import codec
+from handmocap.runtime.node import Node, run
 
 PARAMS = {"topic": "/test/blob", "valid": 50, "seed": 0, "oversize": 2_000_000}
 

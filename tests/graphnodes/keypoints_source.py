@@ -2,11 +2,11 @@
 random poses within the joint limits), projected with a default K, plus /camera/info."""
 import numpy as np
 
-from handmocap import camera_info
-from handmocap.hand_model import HandModel
-from handmocap.joint_limits import JointLimits
-from handmocap.node import Node, run
-from handmocap.skeleton import normalize_joints
+from handmocap.runtime import camera_info
+from handmocap.perception.hand_model import HandModel
+from handmocap.perception.joint_limits import JointLimits
+from handmocap.runtime.node import Node, run
+from handmocap.perception.skeleton import normalize_joints
 
 PARAMS = {"frames": 60, "beta": [0.0] * 10, "seed": 0, "handedness": "right", "track_id": 1}
 

@@ -6,8 +6,8 @@ all through the node's real socket:
 import msgpack
 import numpy as np
 
-from handmocap import codec
-from handmocap.node import Node, run
+from handmocap.runtime import codec
+from handmocap.runtime.node import Node, run
 
 PARAMS = {"frames": 20}
 W, H = 64, 48

@@ -2,18 +2,18 @@
 Per frame: /camera/info, /camera/image (grey bgr8 640x480), /hand/keypoints and /hand/pose
 of one hand of known pose (bundled model, random poses; `handedness`, `track_id`), palm-ish
 towards a default camera, its root at `root` metres. The HandPose fields come from
-handmocap.pose.pose_fields, the ik node's own code, so they agree as the ik node's do."""
+handmocap.perception.pose.pose_fields, the ik node's own code, so they agree as the ik node's do."""
 import time
 
 import numpy as np
 
-from handmocap import camera_info
-from handmocap.hand_model import HandModel
-from handmocap.node import Node, run
-from handmocap.pose import pose_fields
-from handmocap.pose_data import PoseSampler
-from handmocap.rotations import mirror_points
-from handmocap.skeleton import normalize_joints
+from handmocap.runtime import camera_info
+from handmocap.perception.hand_model import HandModel
+from handmocap.runtime.node import Node, run
+from handmocap.perception.pose import pose_fields
+from handmocap.training.pose_data import PoseSampler
+from handmocap.perception.rotations import mirror_points
+from handmocap.perception.skeleton import normalize_joints
 
 PARAMS = {"hz": 30.0, "seconds": 0.0, "seed": 0, "handedness": "right", "track_id": 1,
           "root": [0.02, -0.01, 0.5], "poses": 16}

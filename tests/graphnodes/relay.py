@@ -1,5 +1,5 @@
 """Test node: republishes every Blob of `input` on `output` (keep-all)."""
-from handmocap.node import Node, run
+from handmocap.runtime.node import Node, run
 
 PARAMS = {"input": "/a", "output": "/b"}
 

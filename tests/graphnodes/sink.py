@@ -4,7 +4,7 @@ it has `max_messages` (0: no limit)."""
 import json
 import time
 
-from handmocap.node import Node, run
+from handmocap.runtime.node import Node, run
 
 PARAMS = {"topic": "/test/blob", "mode": "latest", "work_s": 0.0, "out": "sink.json", "max_messages": 0}
 

@@ -4,7 +4,7 @@ import time
 
 import numpy as np
 
-from handmocap.node import Node, run
+from handmocap.runtime.node import Node, run
 
 PARAMS = {"topic": "/test/blob", "count": 100, "size": 16, "hz": 0.0, "fail_after": -1}
 

@@ -1,0 +1,1 @@
+"""Hand perception: finder, detector, tracker, pose, shape, translation, IK, kinematics, hand model."""

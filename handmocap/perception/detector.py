@@ -1,0 +1,855 @@
+"""From a whole camera frame to every hand's keypoints (no bus): finder + DetNet + tracking.
+
+Per frame (`HandDetector.process`):
+1. The hand finder (hand_finder.HandFinder) runs when there is no track, when a track was
+   lost on the previous frame (or dropped as a duplicate), and every `redetect_every`
+   frames. Each found box goes to the track whose joint box it overlaps best (IoU >=
+   `match_iou`, one box per track); a box no track matched but inside the crop of a track
+   no box matched (IoU >= 0.3 or its centre inside it) is that track's too. A track's box
+   informs its handedness, and re-seeds the track's crop when it overlaps the track's
+   joints less than `reseed_iou` (a track that slid up the forearm: DetNet's presence
+   head alone does not catch it); the other boxes start new tracks (stable integer ids,
+   never reused). With every slot taken, the finder returns one box more, and a box no
+   track covers replaces the track with the lowest running mean heatmap peak when DetNet's
+   peak on the box's crop is `evict_margin` higher (a desk object or a forearm that holds a
+   slot must not keep a hand out for good).
+2. Every track is cropped the way DetNet was trained (handmocap/synth: square, the hand's
+   vertex box x 1.3, i.e. about its 21-joint box x CROP_SCALE, 128 px; `CropTransform`
+   records the crop <-> frame mapping), turned in quarter turns (`upright_step`) so that the
+   hand appears upright, wrist below the middle finger's base, as MediaPipe turns its
+   crops: unturned, a hand hanging down read several times worse. Tracks whose smoothed
+   handedness is left are flipped horizontally, so DetNet always sees a right hand; its 2D
+   is un-flipped and its 3D mirrored back (x -> -x) and turned back: HandKeypoints'
+   xyz_rel is the hand as seen, in the camera's axes.
+3. One batched DetNet call for all crops; presence below `presence_threshold` or a mean
+   heatmap peak below `min_confidence` ends the track, and so do joints centred outside
+   the frame or spread over more than twice its size; a new track's crop is refined once
+   from its own first 2D prediction (first turned the quarter turn on which DetNet's
+   heatmap peaks are highest, and flipped the other way if DetNet's handedness
+   outweighs the finder's), and the track is only born if its mean heatmap peak there
+   reaches `birth_confidence`: DetNet's presence head is sure of almost anything the
+   finder proposes (a mouse on a desk, a face), its heatmap peaks are not. After a hand
+   was refused, the finder looks again `unborn_retry` frames later. With
+   `test_time_crops` (photos) a new track's reading, with `tracked_test_time_crops` every
+   tracked hand's on every frame, is the median over its crop and that many variants of it;
+   a tracked hand whose joints' box changed size by more than `second_look` (10%) since the
+   last frame gets that second look on 4 variants too.
+4. The next frame's crop of a track comes from this frame's 2D joints (their box, centre
+   moved on by half the last displacement, side changing by at most 1.33x per frame), as
+   MediaPipe and the paper's videos do.
+5. Handedness per track: a running mean in logit space of DetNet's handedness head
+   (mapped back through the flip), at detection the finder's, and every
+   `mirror_vote_every` frames (and on a new track's crops) the head's answer on the crop
+   flipped the other way: a head biased towards one side on an unfamiliar view leans the
+   same way on both, and the mean of the two readings cancels the bias. Two tracks that DetNet
+   believes are hands (running mean heatmap peak >= `opposite_hands`) and that read as the
+   same hand are one person's left and right: the one with the weaker evidence turns. With
+   `handedness` "left" or "right" (one known hand) every track is that side, and none of
+   this runs.
+6. Two tracks on one hand (joint-box IoU >= 0.5, or the smaller box 70% inside the other):
+   the lower-scoring one is dropped.
+
+>>> det = HandDetector.load()
+>>> hands = det.process(frame_bgr)      # HandKeypoints hands (track_id, handedness, score,
+...                                      # bbox, uv (21,2) frame px, confidence, xyz_rel)
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from handmocap.perception.hand_finder import GREY_PATH, HandFinder, box_iou, is_grey, sigmoid, square
+from handmocap.perception.onnx_models import open_session, stale_quantization
+from handmocap.perception.rotations import mirror_points
+from handmocap.perception.skeleton import normalize_joints
+
+CROP = 128
+CROP_SCALE = 1.5            # crop side / side of the 21-joint box (synth: vertex box ~1.16x joint box, x 1.3)
+MIN_CROP_SIDE = 24.0        # px in the frame
+DETNET_FLOAT32 = Path(__file__).resolve().parents[2] / "models" / "detnet.onnx"   # `handtrain detnet` writes it
+DETNET_INT8 = DETNET_FLOAT32.with_name("detnet_int8.onnx")     # `python -m handmocap.training.quantize_detnet` makes it
+DETNET_PATH = DETNET_INT8                                       # what runs by default
+DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32}  # short names for the detnet param
+# DetNet fine-tuned on grey crops (`handtrain detnet --grey 1`), its int8 copy: run on grey frames
+DETNET_GREY = DETNET_FLOAT32.with_name("detnet_grey_int8.onnx")
+CENTRE = "centre"           # the fallback that tries the centre square of the frame
+# HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
+# so no birth threshold; a close-up the finder misses is tried on the centre square; each
+# hand read on its crop and 4 variants of it (chosen on training-side stills, docs/models_history.md)
+PHOTO_SETTINGS = {"birth_confidence": 0.0, "fallback_path": CENTRE, "test_time_crops": 4}
+# HandDetector.load's keywords for video where accuracy is worth ~2.3x the time (offline
+# processing, a fast CPU): every tracked hand read on its crop and 4 variants on every frame
+# (chosen on training-side clips at three turns, docs/models_history.md; 20 ms a frame against 9
+# on the AVX2 machine, MediaPipe 32)
+ACCURATE_VIDEO_SETTINGS = {"tracked_test_time_crops": 4}
+# (side factor, extra turn in degrees) of the crops a new track's reading is averaged over
+# besides its own (`test_time_crops`): within the jitter DetNet was trained with
+TEST_TIME_VARIANTS = ((0.9, 0.0), (1.1, 0.0), (1.0, -20.0), (1.0, 20.0), (0.95, -10.0), (1.05, 10.0))
+SECOND_LOOK_CROPS = 4       # variants read for a tracked hand whose size jumped (`second_look`)
+
+
+def _variant_count(name, value):
+    """A count of TEST_TIME_VARIANTS (None: 0); a ValueError naming `name` outside 0..6."""
+    value = value or 0
+    if not 0 <= value <= len(TEST_TIME_VARIANTS):
+        raise ValueError(f"{name} must be 0..{len(TEST_TIME_VARIANTS)}, got {value}")
+    return value
+
+
+def detnet_path(path=None) -> Path:
+    """DetNet file: None -> DETNET_PATH (int8); "int8" / "float32" -> the bundled files; else a path."""
+    return DETNET_PATH if path is None else DETNET_NAMES.get(str(path), Path(path))
+
+
+@dataclass(frozen=True)
+class CropTransform:
+    """A square crop of the frame, turned by `angle`, resized to `size` px, optionally
+    flipped left-right.
+
+    The square has `side` frame px and its centre at c = (x0, y0) + (side - 1) / 2 (integers
+    x0, y0: at angle 0 it covers frame pixels x0 .. x0+side-1). `angle` (radians) is the
+    direction, clockwise from the frame's up, that becomes up in the crop: a hand leaning by
+    `angle` appears upright. Pixel centres are at integer coordinates in both images
+    (cv2.resize's convention):
+        u_crop = (size - 1) / 2 + (size / side) R (u - c),  R = [[cos a, sin a], [-sin a, cos a]],
+    then u_crop -> size - 1 - u_crop if mirrored. At angle 0 that is
+        u_crop = (u - x0 + 0.5) * size / side - 0.5.
+    """
+    x0: int
+    y0: int
+    side: int
+    size: int = CROP
+    mirrored: bool = False
+    angle: float = 0.0
+
+    @classmethod
+    def around(cls, centre, side, size=CROP, mirrored=False, angle=0.0):
+        """The crop of about `side` px (at least MIN_CROP_SIDE) centred on `centre` (2,) px."""
+        side = int(round(max(float(side), MIN_CROP_SIDE)))
+        x0 = int(math.floor(centre[0] - (side - 1) / 2 + 0.5))
+        y0 = int(math.floor(centre[1] - (side - 1) / 2 + 0.5))
+        return cls(x0, y0, side, size, bool(mirrored), float(angle))
+
+    @property
+    def centre(self):
+        """(2,) frame px of the crop's centre."""
+        return np.array([self.x0 + (self.side - 1) / 2, self.y0 + (self.side - 1) / 2])
+
+    @property
+    def rotation(self):
+        """(2,2) R: crop axes = R @ frame axes (the identity at angle 0)."""
+        c, s = math.cos(self.angle), math.sin(self.angle)
+        return np.array([[c, s], [-s, c]])
+
+    @property
+    def box(self):
+        """(4,) x0, y0, x1, y1 frame px of the crop's outer edges (turned: the box around them)."""
+        half = self.side / 2 * (abs(math.cos(self.angle)) + abs(math.sin(self.angle)))
+        c = self.centre
+        return np.array([c[0] - half, c[1] - half, c[0] + half, c[1] + half])
+
+    def to_crop(self, uv):
+        """(..., 2) frame px -> crop px."""
+        uv = np.asarray(uv, dtype=np.float64)
+        out = (uv - self.centre) @ (self.rotation.T * (self.size / self.side)) + (self.size - 1) / 2
+        if self.mirrored:
+            out[..., 0] = self.size - 1 - out[..., 0]
+        return out
+
+    def to_frame(self, uv_crop):
+        """(..., 2) crop px -> frame px."""
+        uv_crop = np.array(uv_crop, dtype=np.float64)
+        if self.mirrored:
+            uv_crop[..., 0] = self.size - 1 - uv_crop[..., 0]
+        return (uv_crop - (self.size - 1) / 2) @ (self.rotation * (self.side / self.size)) + self.centre
+
+    def to_frame_axes(self, xyz):
+        """(..., 3) vectors in the crop's camera axes (unmirrored) -> the frame camera's:
+        the turn about the optical axis undone."""
+        xyz = np.array(xyz, dtype=np.float64)
+        xyz[..., :2] = xyz[..., :2] @ self.rotation
+        return xyz
+
+    def cut(self, image):
+        """(size,size,C) uint8 crop of `image` (H,W,C); outside the frame the border pixels
+        are repeated. Cost is independent of the crop's side: a crop more than twice the
+        output size is first shrunk by an integer factor k (INTER_AREA, in-frame part only,
+        exact pixel mapping u_small + 0.5 = (u - x + 0.5) / k), then one bilinear warp."""
+        h, w = image.shape[:2]
+        s = self.size / self.side                       # crop px per frame px
+        k = max(1, int(1.0 / s))
+        src, ox, oy = image, 0, 0
+        if k >= 2:                                      # the in-frame part (+ margin), whole k-blocks
+            lo = self.box[:2] + 0.5                     # (x0, y0) at angle 0
+            span = self.box[2] - self.box[0]
+            ox, oy = max(int(math.floor(lo[0])) - k, 0) // k * k, max(int(math.floor(lo[1])) - k, 0) // k * k
+            x1 = min(int(math.ceil(lo[0] + span)) + k, w)
+            y1 = min(int(math.ceil(lo[1] + span)) + k, h)
+            nx, ny = (x1 - ox) // k, (y1 - oy) // k
+            if nx < 1 or ny < 1:                        # wholly outside: nearest frame pixels only
+                k, ox, oy = 1, 0, 0
+            else:
+                src = cv2.resize(image[oy:oy + ny * k, ox:ox + nx * k], (nx, ny), interpolation=cv2.INTER_AREA)
+        # frame u = k (u_src + 0.5) - 0.5 + o, then the crop mapping of the class doc
+        A = self.rotation * s
+        t = A @ (np.array([0.5 * k - 0.5 + ox, 0.5 * k - 0.5 + oy]) - self.centre) + (self.size - 1) / 2
+        M = np.hstack([A * k, t[:, None]])
+        crop = cv2.warpAffine(src, M, (self.size, self.size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return np.ascontiguousarray(crop[:, ::-1]) if self.mirrored else crop
+
+
+def crop_to_frame_xyz(crop, xyz):
+    """(..., 3) DetNet 3D read on `crop` (right-hand, crop axes) -> the frame camera's axes."""
+    return crop.to_frame_axes(mirror_points(xyz) if crop.mirrored else xyz)
+
+
+def frame_to_crop_xyz(crop, xyz):
+    """Inverse of crop_to_frame_xyz: (..., 3) frame-camera axes -> as DetNet reads `crop`."""
+    xyz = np.array(xyz, dtype=np.float64)
+    xyz[..., :2] = xyz[..., :2] @ crop.rotation.T
+    return mirror_points(xyz) if crop.mirrored else xyz
+
+
+def hand_angle(uv):
+    """Direction (radians, clockwise from the frame's up) from the wrist (0) to the middle
+    finger's base (9) of joints uv (..., 21, 2) px: the turn that shows the hand upright."""
+    v = np.asarray(uv, dtype=np.float64)[..., 9, :] - np.asarray(uv, dtype=np.float64)[..., 0, :]
+    return np.arctan2(v[..., 0], -v[..., 1])
+
+
+def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE, upright_step=None):
+    """The DetNet crop of a hand whose 2D joints are uv (21,2) frame px: the square around
+    their box times `scale`. upright_step (degrees): the crop turned by hand_angle rounded to
+    whole steps of it (90: quarter turns; 0: any angle), the box taken in the turned axes (as
+    MediaPipe cuts its landmark crops); None: never turned."""
+    angle = 0.0
+    if upright_step is not None and np.all(np.isfinite(uv[[0, 9]])):
+        angle = float(hand_angle(uv))
+        if upright_step:
+            step = math.radians(float(upright_step))
+            angle = round(angle / step) * step
+    c, s = math.cos(angle), math.sin(angle)
+    R = np.array([[c, s], [-s, c]])
+    turned = uv @ R.T
+    lo, hi = np.nanmin(turned, axis=0), np.nanmax(turned, axis=0)
+    return CropTransform.around(R.T @ ((lo + hi) / 2), float(np.max(hi - lo)) * scale, mirrored=mirrored,
+                                angle=angle)
+
+
+def square_box(uv):
+    """(4,) x0, y0, x1, y1 of the square around joints uv (21,2) (the finder's box)."""
+    return square(np.concatenate([np.nanmin(uv, axis=0), np.nanmax(uv, axis=0)]))
+
+
+def nearby_crops(crop, k):
+    """The first `k` TEST_TIME_VARIANTS of a CropTransform: the same hand a little larger,
+    smaller or turned (same centre and mirroring)."""
+    return [CropTransform.around(crop.centre, crop.side * scale, mirrored=crop.mirrored,
+                                 angle=crop.angle + math.radians(turn)) for scale, turn in TEST_TIME_VARIANTS[:k]]
+
+
+def crop_for_box(box, mirrored=False, scale=CROP_SCALE):
+    """The DetNet crop of a hand whose joint box is (4,) x0, y0, x1, y1 frame px."""
+    box = np.asarray(box, dtype=np.float64)
+    return CropTransform.around((box[:2] + box[2:]) / 2, float(np.max(box[2:] - box[:2])) * scale,
+                                mirrored=mirrored)
+
+
+class DetNetRunner:
+    """DetNet on onnxruntime (by default models/detnet_int8.onnx, the static int8 copy of
+    models/detnet.onnx): (N,128,128,3) uint8 RGB crops -> dict of arrays
+    uv (N,21,2) crop px, xyz (N,21,3), confidence (N,21), presence (N,), handedness (N,),
+    uv_peak (N,21,2) crop px: the joints the detector tracks with (the heatmap peaks; files
+    exported before session 17 have none, and the detector then follows uv)."""
+
+    def __init__(self, session):
+        self.session = session
+        self.outputs = [o.name for o in session.get_outputs()]
+
+    @classmethod
+    def load(cls, path=None, threads=1):
+        """path: None (models/detnet_int8.onnx), "int8", "float32" (models/detnet.onnx) or a
+        file. Warns when an int8 file was made from another float32 network than the one
+        beside it."""
+        path = detnet_path(path)
+        made_by = "python -m handmocap.training.quantize_detnet" if path == DETNET_INT8 else "handtrain detnet"
+        session = open_session(path, "DetNet", made_by, threads)
+        stale = stale_quantization(session, path, "python -m handmocap.training.quantize_detnet")
+        if stale:
+            warnings.warn(stale, stacklevel=2)
+        return cls(session)
+
+    def __call__(self, crops_rgb):
+        x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
+        return dict(zip(self.outputs, self.session.run(None, {"image": x})))
+
+
+def box_overlap_of_smaller(box, boxes):
+    """(M,) intersection of `box` (4,) with each of `boxes` (M,4), over the smaller area."""
+    x0, y0 = np.maximum(box[0], boxes[:, 0]), np.maximum(box[1], boxes[:, 1])
+    x1, y1 = np.minimum(box[2], boxes[:, 2]), np.minimum(box[3], boxes[:, 3])
+    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
+    area = lambda b: np.maximum((b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1]), 1e-9)   # noqa: E731
+    return inter / np.minimum(area(box), area(boxes))
+
+
+def logit(p):
+    p = np.clip(np.asarray(p, dtype=np.float64), 1e-4, 1 - 1e-4)
+    return np.log(p / (1 - p))
+
+
+@dataclass
+class Track:
+    """One tracked hand: its next crop and what was last seen of it."""
+    track_id: int
+    crop: CropTransform
+    right_logit: float = 0.0          # running handedness evidence (> 0: right)
+    samples: int = 0
+    uv: np.ndarray | None = None
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    age: int = 0
+    confidence: float = 0.0           # running mean heatmap peak: how much DetNet believes it is a hand
+    birth_confidence: float | None = None   # its own birth threshold (None: the detector's)
+    fixed_side: bool = False          # the side was given (HandDetector `handedness`): readings are ignored
+    memory: int = 20                  # handedness readings the running mean is over (`handedness_memory`)
+
+    @property
+    def is_right(self) -> bool:
+        return self.right_logit >= 0.0
+
+    def add_head_reading(self, p_right_seen, mirrored):
+        """DetNet's handedness head p_right_seen (does the crop show a right hand) on a crop
+        of this hand that was (mirrored) or was not flipped."""
+        self.add_handedness(1.0 - p_right_seen if mirrored else p_right_seen)
+
+    def add_handedness(self, p_right, weight=1.0):
+        """Running mean of logits over about the last `memory` observations."""
+        if self.fixed_side:
+            return
+        n = min(self.samples + weight, self.memory)
+        self.right_logit += (float(np.clip(logit(p_right), -6, 6)) - self.right_logit) * weight / n
+        self.samples = min(self.samples + weight, self.memory)
+
+
+class HandDetector:
+    """Hands of a frame sequence; see the module doc.
+
+    finder: a HandFinder (or None: the centre square crop of the frame is tried instead, as
+    the paper's release did); detnet: a DetNetRunner. presence_threshold: below it a track
+    is lost; redetect_every: frames between finder runs while fewer than max_hands hands
+    are tracked; crop_scale: crop side / joint-box side; min_confidence: below this mean
+    heatmap peak a track is lost too; birth_confidence: a found hand becomes a track only
+    if DetNet's mean heatmap peak on its refined crop reaches this (the two thresholds are
+    a hysteresis, chosen on training-side held-out clips by scripts/detector_thresholds.py;
+    0.3 is for video, where a hand refused on one frame is proposed again `unborn_retry`
+    frames later: for unrelated photos, one chance each, use 0, or PHOTO_SETTINGS with
+    HandDetector.load). The other settings are explained where __init__ stores them.
+    """
+
+    def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
+                 crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
+                 birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
+                 duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
+                 opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3,
+                 test_time_crops=0, reseed_margin=0.2, tracked_test_time_crops=0, second_look=0.1,
+                 handedness_memory=20, handedness=None, settle_side=True, grey_finder=None, grey_detnet=None):
+        self.detnet, self.finder = detnet, finder
+        # the finder and the DetNet for grey frames (a mono or IR camera: hand_finder.is_grey,
+        # checked whenever the finder runs; None: `finder` / `detnet` on every frame)
+        self.grey_finder, self.grey_detnet = grey_finder, grey_detnet
+        self.grey_frames = False
+        # tried on a frame where the finder's boxes gave no track: a second HandFinder, or
+        # CENTRE (the centre square of the frame, as the paper's release did: a close-up
+        # photo whose hand fills the frame, which the finder, trained on hands in scenes,
+        # can miss)
+        self.fallback = fallback
+        # a track tried on the centre square is born only from this mean heatmap peak on,
+        # even where birth_confidence is lower (photos): the centre of a hand-free photo is
+        # not a hand
+        self.centre_confidence = centre_confidence
+        # DetNet passes on a new track's crop re-cut around its own last prediction
+        self.refine_passes = refine_passes
+        # two overlapping tracks are one hand only if their joints agree this well (0: always)
+        self.duplicate_joints = duplicate_joints
+        self.max_hands, self.presence_threshold = max_hands, presence_threshold
+        self.redetect_every, self.crop_scale = redetect_every, crop_scale
+        self.finder_threshold = finder_threshold
+        # the presence head stays sure on a crop that slid onto the forearm; the heatmap
+        # peaks (mean over joints) do drop there, so they end such a track too
+        self.min_confidence, self.birth_confidence = min_confidence, birth_confidence
+        # frames until the finder looks again after a proposed hand was not born: while one
+        # hand is tracked, a second one refused on its first frame would otherwise wait
+        # `redetect_every` frames for its next chance
+        self.unborn_retry = min(unborn_retry, redetect_every)
+        # with every track slot taken, a found hand that no track covers replaces the track
+        # DetNet believes least (running mean heatmap peak) when its own peak is this much
+        # higher (None: never): otherwise a desk object or a forearm that outlived its hand
+        # keeps the slot and the real hand is never tracked
+        self.evict_margin = evict_margin
+        # two tracks both at least this sure to be hands (running mean heatmap peak) are one
+        # person's left and right hand (None: handedness per track only); false tracks
+        # (desk objects, a forearm) stay below it, so they cannot turn a real hand
+        self.opposite_hands = opposite_hands
+        # a track's crop turns (in whole steps of this many degrees; 0: any angle; None:
+        # never) so that its hand appears upright, wrist below the middle finger's base, from
+        # its last 2D joints; a new track tries all four quarter turns. DetNet saw real hands
+        # turned at most 90 degrees in training: a hand hanging down (a camera above a desk)
+        # read 2-4x worse than an upright one
+        self.upright_step = upright_step
+        # weight of the finder's handedness against one DetNet reading (0: DetNet's alone)
+        self.finder_handedness = finder_handedness
+        # every this many frames of a track (and on its first), DetNet also reads its crop
+        # flipped the other way and the handedness head's answer there votes too (0: never).
+        # The head alone is biased on views unlike its training data; asked about a crop and
+        # its mirror image, its two answers share the bias and averaging them cancels it
+        self.mirror_vote_every = mirror_vote_every
+        # a track's handedness is the running mean logit of about its last this many readings
+        self.handedness_memory = handedness_memory
+        # "left" or "right": every hand is that side (one known hand, e.g. the hand that drives a
+        # robot hand): no wrong-side reading, and no mirror vote to pay for; None: each track's
+        # side from DetNet's handedness head and the finder
+        if handedness not in (None, "left", "right"):
+            raise ValueError(f"handedness must be 'left', 'right' or None, got {handedness!r}")
+        self.handedness = handedness
+        # a track whose side turns on this frame's readings (a new track's first ones outvote the
+        # finder's guess its crop was mirrored for; a tracked hand's running mean crosses over)
+        # is read again, mirrored for the side it now has: otherwise the hand published as
+        # left was read as a right one (or the reverse), its 2D 2-3x worse and its 3D the
+        # other hand's, which the ik node then mirrors the wrong way; a photo has no next
+        # frame to mend it. One crop more per turn
+        self.settle_side = settle_side
+        # a new track's reading is the per-coordinate median over its crop and this many
+        # more (TEST_TIME_VARIANTS: a little larger, smaller, turned): for photos, where each
+        # hand is read once and a crop's chance placement otherwise stays in the result
+        self.test_time_crops = _variant_count("test_time_crops", test_time_crops)
+        # the same for every tracked hand on every frame (0: never): K more DetNet crops per
+        # hand and frame, for accuracy where the time is there
+        self.tracked_test_time_crops = _variant_count("tracked_test_time_crops", tracked_test_time_crops)
+        # a tracked hand whose joints' box changed size by more than this fraction since the
+        # last frame is read again on SECOND_LOOK_CROPS variants of its crop and the median kept (0: never):
+        # a hand does not change size that fast, and such readings were often wrong
+        self.second_look = second_look or 0.0
+        # a re-seed must convince DetNet: its mean heatmap peak on the found box's crop at
+        # least the track's running peak minus this (None: every re-seed is taken). A track
+        # whose crop has swollen around an exploded prediction holds boxes of other things,
+        # which a re-seed would otherwise move it onto
+        self.reseed_margin = reseed_margin
+        # the finder checks the tracks every `redetect_every` frames: a found hand inside a
+        # track's crop whose box overlaps the track's joints less than this re-seeds the track
+        # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
+        self.reseed_iou = reseed_iou
+        # a found box is a track's own hand when it overlaps the track's joint box this much
+        self.match_iou = match_iou
+        # the finder's best `candidates` boxes are considered (0: max_hands); where more
+        # than the free track slots are new, DetNet's mean heatmap peak on each one's crop
+        # picks which become tracks (the finder's own score ranks desk objects too high)
+        self.candidates = candidates
+        self.tracks: list[Track] = []
+        self.next_id = 0
+        self.frames_since_find = 0
+        self.lost_last_frame = False
+        self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
+                      "evictions": 0, "handedness_turns": 0, "second_looks": 0, "side_rereads": 0,
+                      "grey_finder_runs": 0}
+
+    @classmethod
+    def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, grey_finder_path=None,
+             grey_detnet_path=None, **kwargs):
+        """Networks from files (None: the bundled ones; grey_finder_path / grey_detnet_path
+        "none": the one finder / DetNet on grey frames too, and none for grey frames where
+        finder_path / detnet_path names another file than the bundled one, unless given).
+        threads: onnxruntime intra-op threads
+        per network, and OpenCV's thread count, which is process-wide: the crops and the
+        finder's resize are too small to gain from threads, whose hand-offs cost ~0.6 ms of
+        CPU per frame with OpenCV's default (one per core) here."""
+        cv2.setNumThreads(threads)
+        finder = HandFinder.load(finder_path, threads=threads) if finder_path != "none" else None
+        if grey_finder_path is None and finder_path is None:
+            grey_finder_path = GREY_PATH
+        grey = HandFinder.load(grey_finder_path, threads=threads) if grey_finder_path not in (None, "none") else None
+        if grey_detnet_path is None and detnet_path in (None, "int8"):
+            grey_detnet_path = DETNET_GREY
+        grey_detnet = DetNetRunner.load(grey_detnet_path, threads=threads) \
+            if grey_detnet_path not in (None, "none") else None
+        fallback = HandFinder.load(fallback_path, threads=threads) if fallback_path not in (None, CENTRE) \
+            else fallback_path
+        return cls(DetNetRunner.load(detnet_path, threads=threads), finder, fallback=fallback, grey_finder=grey,
+                   grey_detnet=grey_detnet, **kwargs)
+
+    def reset(self):
+        self.tracks.clear()
+        self.frames_since_find = 0
+        self.lost_last_frame = False
+
+    # -------------------------------------------------------------- finding
+    def _should_find(self):
+        return (not self.tracks or self.lost_last_frame
+                or (self.frames_since_find >= self.redetect_every
+                    and (len(self.tracks) < self.max_hands or self.reseed_iou > 0)))
+
+    def _find(self, image, finder=None):
+        """New tracks for found hands that no track covers, and the tracks re-seeded: both
+        are refined from their first prediction. finder: another than self.finder."""
+        self.stats["finder_runs"] += 1
+        self.frames_since_find = 0
+        h, w = image.shape[:2]
+        if finder is None and self.grey_finder is not None and self.grey_frames:
+            finder = self.grey_finder
+            self.stats["grey_finder_runs"] += 1
+        finder = finder or self.finder
+        centre = finder is None or finder == CENTRE
+        if centre:
+            half = min(h, w) / 2 / self.crop_scale      # the joint box whose crop is the centre square
+            found = [(np.array([w / 2 - half, h / 2 - half, w / 2 + half, h / 2 + half]), 0.5, 0.5)]
+        else:
+            # with every slot taken, one box more than the tracks: a hand they do not hold may evict one
+            full = self.evict_margin is not None and len(self.tracks) >= self.max_hands
+            found = [(f.box, f.score, f.right_prob) for f in finder.find(
+                image, self.finder_threshold, max(self.max_hands + full, self.candidates))]
+        if self.handedness is not None:             # the given side, not the finder's guess
+            found = [(box, score, float(self.handedness == "right")) for box, score, _ in found]
+        new, reseeded, fresh = [], [], []
+        # each found box first goes to the track whose joints it overlaps best (one box per
+        # track): a second hand close beside a tracked one lies inside that track's crop, but
+        # it is not that track's hand
+        overlap = {}
+        for k, (box, _, _) in enumerate(found):
+            for t in self.tracks:
+                if t.uv is not None:
+                    overlap[k, t.track_id] = box_iou(square_box(t.uv), box)[0, 0]
+        owner = {}
+        for (k, tid), iou in sorted(overlap.items(), key=lambda kv: -kv[1]):
+            if iou >= self.match_iou and k not in owner and tid not in owner.values():
+                owner[k] = tid
+        for k, (box, score, right_prob) in enumerate(found):
+            if k in owner:
+                covering = [t for t in self.tracks if t.track_id == owner[k]]
+            else:   # a track that no box matched, whose crop holds this box: it may have slid off the hand
+                covering = [t for t in self.tracks if t.track_id not in owner.values() and self._covers(t.crop, box)]
+            if covering:
+                t = covering[0]
+                owner[k] = t.track_id
+                if self.finder_handedness:
+                    t.add_handedness(right_prob, weight=0.5 * self.finder_handedness)
+                if t.uv is not None and overlap.get((k, t.track_id), 0.0) < self.reseed_iou and \
+                        self._reseed_believed(image, box, right_prob, t):
+                    # the track's joints no longer match the hand the finder sees in its crop
+                    # (a track sliding up the forearm): start the crop again from the finder's box
+                    t.crop = crop_for_box(box, not t.is_right, self.crop_scale)
+                    t.velocity, t.uv = np.zeros(2), None
+                    self.stats["reseeds"] += 1
+                    reseeded.append(t)
+                continue
+            fresh.append((box, right_prob))
+        free = self.max_hands - len(self.tracks)
+        if self.candidates and len(fresh) > free > 0:   # DetNet says which of them look most like a hand
+            fresh = [fresh[i] for i in np.argsort(-self._found_peaks(image, fresh), kind="stable")]
+        for box, right_prob in fresh[:max(free, 0)]:
+            new.append(self._new_track(box, right_prob))
+            if centre:
+                new[-1].birth_confidence = max(self.birth_confidence, self.centre_confidence)
+        self.tracks.extend(new)
+        if free <= 0 and fresh and self.evict_margin is not None:
+            new += self._evict(image, fresh, reseeded)
+        return new + reseeded
+
+    def _found_peaks(self, image, found):
+        """(M,) DetNet's mean heatmap peak on the crop of each found (box, right_prob)."""
+        crops = [crop_for_box(box, right_prob < 0.5, self.crop_scale) for box, right_prob in found]
+        return self._run(image, crops)["confidence"].mean(axis=1)
+
+    def _reseed_believed(self, image, box, right_prob, track):
+        """Whether DetNet's mean heatmap peak on the crop of a found box is at least the
+        track's running peak minus `reseed_margin` (always, with no margin)."""
+        return self.reseed_margin is None or \
+            self._found_peaks(image, [(box, right_prob)])[0] >= track.confidence - self.reseed_margin
+
+    def _new_track(self, box, right_prob):
+        track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale),
+                      memory=self.handedness_memory)
+        if self.handedness is not None:
+            track.right_logit, track.fixed_side = (1.0 if self.handedness == "right" else -1.0), True
+        if self.finder_handedness:
+            track.add_handedness(right_prob, weight=self.finder_handedness)
+        self.next_id += 1
+        return track
+
+    def _evict(self, image, fresh, keep):
+        """New tracks for found boxes `fresh` ((box, right_prob) list) that DetNet believes
+        more than the tracks they replace (mean heatmap peak on the box's crop above the
+        weakest track's running peak by `evict_margin`); tracks in `keep` stay."""
+        peak = self._found_peaks(image, fresh)
+        born = []
+        for i in np.argsort(-peak, kind="stable"):
+            held = [t for t in self.tracks if t not in keep and t not in born]
+            if not held:
+                break
+            weakest = min(held, key=lambda t: t.confidence)
+            if peak[i] < weakest.confidence + self.evict_margin:
+                break
+            born.append(self._new_track(*fresh[i]))
+            self.tracks[self.tracks.index(weakest)] = born[-1]
+            self.stats["evictions"] += 1
+        return born
+
+    @staticmethod
+    def _covers(crop, box):
+        centre = (box[:2] + box[2:]) / 2
+        cb = crop.box
+        inside = cb[0] <= centre[0] <= cb[2] and cb[1] <= centre[1] <= cb[3]
+        return inside or box_iou(cb, box)[0, 0] >= 0.3
+
+    # -------------------------------------------------------------- per frame
+    def _run(self, image_bgr, crops, flipped=()):
+        """DetNet's outputs on the CropTransforms `crops` of a frame, then on the crops with
+        indices `flipped` mirrored the other way (in the same batch, after the others)."""
+        # cut from the BGR frame and reverse the channels of the crops only: cutting from a
+        # reversed-channel view of the frame made OpenCV copy the whole frame for each crop
+        pixels = np.stack([c.cut(image_bgr) for c in crops])
+        if len(flipped):
+            pixels = np.concatenate([pixels, pixels[list(flipped), :, ::-1]])
+        self.stats["crops"] += len(pixels)
+        detnet = self.grey_detnet if self.grey_frames and self.grey_detnet is not None else self.detnet
+        out = detnet(np.ascontiguousarray(pixels[..., ::-1]))
+        if "uv_peak" not in out:            # a file exported before session 17
+            out["uv_peak"] = out["uv"].copy()
+        return out
+
+    def process(self, image_bgr):
+        """HandKeypoints hands of one BGR frame (H,W,3) uint8, sorted by track id."""
+        self.stats["frames"] += 1
+        self.frames_since_find += 1
+        searched = self._should_find()
+        if searched and (self.grey_finder is not None or self.grey_detnet is not None):
+            self.grey_frames = is_grey(image_bgr)       # a camera's frames do not turn grey between finder runs
+        hands = self._track(image_bgr, self._find(image_bgr) if searched else [])
+        if searched and not self.tracks and self.fallback is not None:   # nothing became a track
+            self.stats["fallback_runs"] += 1
+            hands = self._track(image_bgr, self._find(image_bgr, self.fallback))
+        return hands
+
+    def _track(self, image_bgr, new):
+        """DetNet on every track's crop (the `new` ones re-cut `refine_passes` times): the frame's hands."""
+        self.lost_last_frame = False
+        if not self.tracks:
+            return []
+        out = self._run_voting(image_bgr, self.tracks)
+        idx = [i for i, t in enumerate(self.tracks) if t in new]
+        if self.upright_step is not None and idx:
+            self._turn_new_tracks(image_bgr, idx, out)
+        for _ in range(self.refine_passes if new else 0):   # a new track's crop from its own prediction
+            for i in idx:
+                t = self.tracks[i]
+                if out["presence"][i] >= self.presence_threshold:
+                    t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
+                    t.crop = crop_for_joints(t.crop.to_frame(out["uv_peak"][i]), not t.is_right, self.crop_scale,
+                                             self.upright_step)
+            again = self._run_voting(image_bgr, [self.tracks[i] for i in idx])   # a new track votes again here
+            for k, i in enumerate(idx):
+                for key in out:
+                    out[key][i] = again[key][k]
+        if self.test_time_crops and idx:
+            self._median_over_nearby_crops(image_bgr, idx, out, self.test_time_crops)
+        tracked = [i for i in range(len(self.tracks)) if i not in idx]
+        if self.tracked_test_time_crops and tracked:
+            self._median_over_nearby_crops(image_bgr, tracked, out, self.tracked_test_time_crops)
+        elif self.second_look and tracked:
+            jumped = [i for i in tracked if self._size_jumped(self.tracks[i], out["uv_peak"][i])]
+            if jumped:
+                self.stats["second_looks"] += len(jumped)
+                self._median_over_nearby_crops(image_bgr, jumped, out, SECOND_LOOK_CROPS)
+        counted = set()
+        if self.settle_side:
+            counted = self._settle_sides(image_bgr, idx, out, self.test_time_crops) | \
+                self._settle_sides(image_bgr, tracked, out, self.tracked_test_time_crops)
+        hands, keep = [], []
+        for i, t in enumerate(self.tracks):
+            presence, confidence = float(out["presence"][i]), float(np.mean(out["confidence"][i]))
+            birth = self.birth_confidence if t.birth_confidence is None else t.birth_confidence
+            if t.age == 0 and confidence < birth:   # not a hand after all: no loss to report
+                self.stats["unborn"] += 1
+                self.frames_since_find = max(self.frames_since_find, self.redetect_every - self.unborn_retry)
+                continue
+            if presence < self.presence_threshold or confidence < self.min_confidence:
+                self.lost_last_frame = True
+                continue
+            # the track follows the heatmap peaks; the hand published is read out finer (uv)
+            uv, followed = t.crop.to_frame(out["uv"][i]), t.crop.to_frame(out["uv_peak"][i])
+            if not self._plausible(followed, image_bgr.shape):
+                self.lost_last_frame = True
+                continue
+            # the wire contract (messages/HandKeypoints.json): joint 9 at the origin, |0-9| = 1;
+            # DetNet's location-map read-out is only near that
+            xyz = normalize_joints(out["xyz"][i])
+            if not np.all(np.isfinite(xyz)):
+                self.lost_last_frame = True
+                continue
+            if t.crop.mirrored:
+                xyz = mirror_points(xyz)
+            if t.crop.angle:
+                xyz = t.crop.to_frame_axes(xyz)
+            if i not in counted:
+                t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
+            if t.uv is not None:
+                t.velocity = np.median(followed - t.uv, axis=0)
+            t.uv, t.age = followed, t.age + 1
+            # a few frames of memory: one blurred frame must not let a desk object evict the hand
+            t.confidence = confidence if t.age == 1 else t.confidence + 0.3 * (confidence - t.confidence)
+            hands.append({"track_id": t.track_id, "handedness": "right" if t.is_right else "left",
+                          "score": presence, "bbox": t.crop.box.astype(np.float32),
+                          "uv": uv.astype(np.float32), "confidence": np.asarray(out["confidence"][i], np.float32),
+                          "xyz_rel": xyz.astype(np.float32)})
+            t.crop = self._next_crop(t, followed)
+            keep.append(t)
+        self.tracks = keep
+        hands = self._drop_duplicates(hands, {t.track_id: t.uv for t in keep})
+        if self.opposite_hands is not None and self.handedness is None:
+            self._one_left_one_right()
+        return sorted(hands, key=lambda h: h["track_id"])
+
+    def _run_voting(self, image_bgr, tracks):
+        """DetNet's outputs on the crops of `tracks`; the crops of those due a mirror vote
+        (`mirror_vote_every`; a new track on each of its first frame's crops) are also read
+        flipped, and the handedness head's answer there goes into their running handedness."""
+        due = [i for i, t in enumerate(tracks)
+               if self.mirror_vote_every and not t.fixed_side and t.age % self.mirror_vote_every == 0]
+        out = self._run(image_bgr, [t.crop for t in tracks], due)
+        n = len(tracks)
+        for k, i in enumerate(due):     # the head on the crop mirrored the other way
+            tracks[i].add_head_reading(float(out["handedness"][n + k]), not tracks[i].crop.mirrored)
+        return {key: v[:n] for key, v in out.items()}
+
+    def _settle_sides(self, image_bgr, idx, out, test_time_crops=0):
+        """Tracks (indices `idx`; `out` DetNet's outputs, replaced in place) take this frame's
+        last handedness reading now; those whose side is then no longer the one their crop was
+        mirrored for are read again, mirrored for their side (and on `test_time_crops`
+        variants), and the re-read casts no vote: the hand published is read as the side it
+        is published as. -> the indices whose reading is counted."""
+        idx = [i for i in idx if out["presence"][i] >= self.presence_threshold]    # the rest are dropped
+        for i in idx:
+            self.tracks[i].add_head_reading(float(out["handedness"][i]), self.tracks[i].crop.mirrored)
+        turned = [i for i in idx if self.tracks[i].crop.mirrored == self.tracks[i].is_right]
+        self.stats["side_rereads"] += len(turned)
+        if turned:
+            for i in turned:
+                self.tracks[i].crop = replace(self.tracks[i].crop, mirrored=not self.tracks[i].is_right)
+            again = self._run(image_bgr, [self.tracks[i].crop for i in turned])
+            for k, i in enumerate(turned):
+                for key in out:
+                    out[key][i] = again[key][k]
+            if test_time_crops:
+                self._median_over_nearby_crops(image_bgr, turned, out, test_time_crops)
+        return set(idx)
+
+    def _turn_new_tracks(self, image_bgr, idx, out):
+        """New tracks (indices `idx` into self.tracks, `out` DetNet's outputs on their crops)
+        take the quarter turn of their crop on which DetNet's mean heatmap peak is highest:
+        the finder's box says nothing of which way the hand points, and the first prediction
+        on an upside-down hand is too poor to turn it upright from."""
+        turns = [replace(self.tracks[i].crop, angle=self.tracks[i].crop.angle + k * math.pi / 2)
+                 for i in idx for k in (1, 2, 3)]
+        more = self._run(image_bgr, turns)
+        peak = more["confidence"].mean(axis=1).reshape(len(idx), 3)
+        for n, i in enumerate(idx):
+            k = int(np.argmax(peak[n]))
+            if peak[n, k] > out["confidence"][i].mean():
+                self.tracks[i].crop = turns[3 * n + k]
+                for key in out:
+                    out[key][i] = more[key][3 * n + k]
+
+    def _size_jumped(self, track, uv_crop):
+        """Whether the joints read on the track's crop (uv_crop (21,2) crop px) span a box whose
+        side differs from the last frame's by more than `second_look` of it."""
+        if track.uv is None:
+            return False
+        uv = track.crop.to_frame(uv_crop)
+        side, last = np.max(np.ptp(uv, axis=0)), np.max(np.ptp(track.uv, axis=0))
+        return bool(np.isfinite(side) and last > 0 and abs(side / last - 1.0) > self.second_look)
+
+    def _median_over_nearby_crops(self, image_bgr, idx, out, k):
+        """Tracks (indices `idx` into self.tracks; `out` DetNet's outputs on their
+        crops, replaced in place): each reading becomes the per-coordinate median of DetNet's
+        on its crop and on `k` variants of it (TEST_TIME_VARIANTS), 2D in
+        frame px and 3D in the frame camera's axes, mapped back to the track's crop, and the
+        handedness the mean logit. Presence and heatmap peaks stay the crop's own: which
+        hands are born does not change (a turned variant's peaks are lower)."""
+        crops = [c for i in idx for c in nearby_crops(self.tracks[i].crop, k)]
+        more = self._run(image_bgr, crops)
+        for n, i in enumerate(idx):
+            own = self.tracks[i].crop
+            views = [own] + crops[n * k:(n + 1) * k]
+            rows = [(out, i)] + [(more, n * k + j) for j in range(k)]
+            for key in ("uv", "uv_peak"):
+                out[key][i] = own.to_crop(np.median([c.to_frame(o[key][r]) for c, (o, r) in zip(views, rows)], axis=0))
+            xyz = np.median([crop_to_frame_xyz(c, normalize_joints(o["xyz"][r])) for c, (o, r) in zip(views, rows)],
+                            axis=0)
+            out["xyz"][i] = frame_to_crop_xyz(own, xyz)
+            out["handedness"][i] = sigmoid(np.mean(logit([o["handedness"][r] for o, r in rows])))
+
+    def _one_left_one_right(self):
+        """Two tracks DetNet believes are hands (running mean heatmap peak >= opposite_hands)
+        that both read as the same hand: one person's two hands are a left and a right, so the
+        one with the weaker handedness evidence turns, from the next frame's crop on (this
+        frame's 3D was read as the hand it was cropped as)."""
+        sure = [t for t in self.tracks if t.confidence >= self.opposite_hands]
+        if len(sure) != 2 or sure[0].is_right != sure[1].is_right:
+            return
+        weaker = min(sure, key=lambda t: abs(t.right_logit))
+        weaker.right_logit = -weaker.right_logit if weaker.right_logit else -1e-3
+        weaker.crop = replace(weaker.crop, mirrored=not weaker.is_right)
+        self.stats["handedness_turns"] += 1
+
+    def _next_crop(self, track, uv, max_change=1.33):
+        """Next frame's crop from this frame's joints: moved on by half the last
+        displacement; its side changes by at most a factor `max_change` per frame (a hand
+        does not change size that fast: a collapsing or exploding prediction must not take
+        the crop with it)."""
+        crop = crop_for_joints(uv + 0.5 * track.velocity, not track.is_right, self.crop_scale, self.upright_step)
+        side = float(np.clip(crop.side, track.crop.side / max_change, track.crop.side * max_change))
+        return CropTransform.around(crop.centre, side, mirrored=crop.mirrored, angle=crop.angle)
+
+    @staticmethod
+    def _plausible(uv, shape):
+        """A hand whose joints are finite, centred inside the frame and no wider than twice it."""
+        if not np.all(np.isfinite(uv)):
+            return False
+        h, w = shape[:2]
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        centre = (lo + hi) / 2
+        return bool(0 <= centre[0] < w and 0 <= centre[1] < h and np.max(hi - lo) <= 2 * max(h, w))
+
+    def _drop_duplicates(self, hands, followed=None, iou=0.5, inside=0.7):
+        """Two tracks on one hand (joint boxes with IoU >= `iou`, or the smaller box at
+        least `inside` covered by the other; with `duplicate_joints`, also joints that agree:
+        median distance below that fraction of the hand's size): keep the higher score
+        (ties: the older track). Judged on `followed` {track id: (21,2) joints the track
+        follows} where given, else on the hands' published uv."""
+        followed = followed or {h["track_id"]: h["uv"] for h in hands}
+        order = sorted(hands, key=lambda h: (-h["score"], h["track_id"]))
+        kept, kept_boxes = [], []
+        for h in order:
+            uv = followed[h["track_id"]]
+            box = np.concatenate([uv.min(0), uv.max(0)])
+            if kept_boxes:
+                overlap = (box_iou(box, np.array(kept_boxes))[0] >= iou) | \
+                          (box_overlap_of_smaller(box, np.array(kept_boxes)) >= inside)
+                if self.duplicate_joints:   # overlapping boxes, but two hands (clasped, clapping)?
+                    size = np.max(box[2:] - box[:2])
+                    overlap &= np.array([np.median(np.linalg.norm(uv - followed[k["track_id"]], axis=1))
+                                         < self.duplicate_joints * size for k in kept])
+                if overlap.any():
+                    continue
+            kept.append(h)
+            kept_boxes.append(box)
+        ids = {h["track_id"] for h in kept}
+        if len(ids) < len(self.tracks):
+            # two tracks had converged on one hand: the other hand (if any) was lost, so the
+            # finder looks again next frame rather than `redetect_every` frames later
+            self.lost_last_frame = True
+        self.tracks = [t for t in self.tracks if t.track_id in ids]
+        return kept

@@ -1,0 +1,193 @@
+"""Hand poses from keypoints: IKNet per hand, FK at the person's shape, global translation,
+One Euro smoothing per track. The maths of the `ik` node and of HandTracker (no bus).
+
+Per hand (pose_from_keypoints):
+0. The joints IKNet reads are DetNet's xyz_rel with their x, y moved `xy_from_keypoints`
+   (0.5) of the way onto the ones the 2D keypoints imply through K at DetNet's depths
+   (translation.joints_through_keypoints): the heatmaps' 2D and the location maps' x, y err
+   differently, and half of each measured better on held-out synthetic crops and on real
+   clips (docs/models_history.md, "3D x, y from the 2D"). HandKeypoints' xyz_rel stays DetNet's.
+1. A left hand's xyz_rel (the hand as seen) is mirrored (x -> -x) into the right-hand model.
+2. IKNet (IKSolver; the static int8 file by default, "float32" on request) turns the joints
+   into 21 global bone quaternions, given the rest pose of the person (the paper's X_ref,
+   D_ref; the average hand until a shape is known). With clamp_to_limits the finger angles
+   are then clipped into the anatomical limits of the average hand, down each finger,
+   keeping each bone where IKNet points it as far as the limits allow
+   (ik_solver.clamp_to_limits; docs/models_history.md, "The limits clamp keeps the bones").
+3. Optional One Euro smoothing per track of the quaternions (sign-aligned with the last
+   output, renormalized) and of the root translation; a track's filters are reset when the
+   track is missing from a keypoints message or unseen for `reset_after_s`.
+4. pose (16,3) relative axis-angle from the quaternions; joints by forward kinematics of the
+   model at the track's beta (so xyz, quat, pose and beta agree exactly), mirrored back for
+   a left hand; translation from uv and K with the model at beta as the metric scale: the
+   root that puts all 21 posed joints onto the keypoints in the least-squares sense
+   (translation.root_fitting_keypoints), else (fewer than 3 usable joints, or behind the
+   camera) Eq. 5 (translation.camera_joints_from_keypoints, root and wrist only). On the
+   rendered demo clip the all-joint fit has 38 mm mean root error (median 20) against Eq.
+   5's 111 (75), and the posed joints land 18.8 px from the true 2D against 21.3 px:
+   Eq. 5 rests on one bone of the posed skeleton, whose errors it turns into depth.
+   `translation_valid` is False only where both failed (the hand-size fallback depth).
+`quat` and `pose` are those of the right-hand model (HandModel.forward(quat, beta,
+handedness="left") draws the left hand); `xyz` and `root` are the hand as seen.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from handmocap.perception.ik_solver import clamp_to_limits
+from handmocap.perception.joint_limits import JointLimits
+from handmocap.perception.kinematics import RIGID_PALM_BONES, as_matrices, forward_kinematics, global_quats_to_relative
+from handmocap.perception.one_euro import OneEuroFilter
+from handmocap.perception.rotations import mirror_points, quat_normalize, quat_to_matrix
+from handmocap.perception.skeleton import DEFAULT_HAND_LENGTH_M, REF_BONE, ROOT
+from handmocap.perception.translation import camera_joints_from_keypoints, joints_through_keypoints, root_fitting_keypoints
+
+# Settings of PoseEstimator (the ik node's parameters): filter cut-offs in Hz (handmocap/perception/one_euro.py),
+# chosen on the detector's output on real clips by scripts/tune_smoothing.py (docs/models_history.md,
+# "Pose smoothing"): the root's min cut-off 0.5 Hz, first set on synthetic jitter, lagged
+# behind real motion (median 11 mm from the motion's zero-phase estimate, 6 mm unsmoothed); at
+# 2 Hz it is 7 mm with a jitter 7x below the unsmoothed output's. The rotations' were kept.
+# hand_length: the person's hand length in metres (wrist crease to middle fingertip, as a
+# ruler measures it); the metric size of every hand, as scale-normalized keypoints cannot show
+# size (its default: the adult average, skeleton.DEFAULT_HAND_LENGTH_M).
+POSE_DEFAULTS = {"clamp_to_limits": True, "smooth": True, "xy_from_keypoints": 0.5, "rot_min_cutoff": 1.0,
+                 "rot_beta": 1.5, "root_min_cutoff": 2.0, "root_beta": 2.0, "d_cutoff": 1.0, "reset_after_s": 0.5,
+                 "hand_length": DEFAULT_HAND_LENGTH_M}
+
+
+def posed_joints(quats, model, beta, rest=None):
+    """(21,3) joints in metres, right-hand model frame (wrist at the rest wrist), from bone
+    quaternions (21,4) or matrices (21,3,3), with the model's rigid palm (as HandModel.forward).
+    rest: the model's rest joints at beta (metres), when the caller has them."""
+    bones = as_matrices(quats)[..., RIGID_PALM_BONES, :, :]
+    return forward_kinematics(bones, model.rest_joints(beta) if rest is None else rest)
+
+
+def solve_rotations(xyz_rel, handedness, rest, solver, limits=None):
+    """Global bone quaternions (21,4) of the right-hand model for one hand's joints as seen;
+    with limits (a JointLimits), finger angles are clipped into them."""
+    xyz = mirror_points(xyz_rel) if handedness == "left" else np.asarray(xyz_rel, dtype=np.float64)
+    quats = solver.solve(xyz, rest)
+    return (quats if limits is None else clamp_to_limits(quats, limits))[0]
+
+
+def pose_fields(hand, quats, beta, K, model):
+    """HandPose hand (float32 arrays) from one HandKeypoints hand and its (already solved,
+    maybe smoothed) right-model quaternions; root (before any smoothing) is the all-joint
+    least-squares fit, or Eq. 5's where that fit is degenerate."""
+    rest = model.rest_joints(beta)                                          # (21,3) m
+    ref_m = float(np.linalg.norm(rest[REF_BONE[1]] - rest[REF_BONE[0]]))   # = model.ref_bone_length(beta)
+    R = quat_to_matrix(quats)                       # (21,3,3), shared by FK and the relative pose
+    joints = posed_joints(R, model, beta, rest)
+    rel = joints - joints[ROOT]
+    if hand["handedness"] == "left":
+        rel = mirror_points(rel)
+    root, valid = root_fitting_keypoints(K, hand["uv"], rel)
+    if not valid:
+        _, root, valid = camera_joints_from_keypoints(K, hand["uv"], rel / ref_m, ref_m)
+    return {"track_id": int(hand["track_id"]), "handedness": hand["handedness"], "score": float(hand["score"]),
+            "xyz": (root + rel).astype(np.float32), "root": root.astype(np.float32),
+            "quat": quat_normalize(quats).astype(np.float32),
+            "pose": global_quats_to_relative(R).astype(np.float32),
+            "beta": np.asarray(beta, dtype=np.float32), "uv": np.asarray(hand["uv"], dtype=np.float32),
+            "translation_valid": bool(valid)}
+
+
+def joints_for_iknet(hand, K, xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints"]):
+    """(21,3) the joints IKNet reads for one HandKeypoints hand (as seen, camera axes):
+    xyz_rel with x, y moved `xy_from_keypoints` of the way onto the ones its uv implies (0: xyz_rel)."""
+    if not xy_from_keypoints:
+        return hand["xyz_rel"]
+    return joints_through_keypoints(K, hand["uv"], hand["xyz_rel"], xy_from_keypoints)
+
+
+def pose_from_keypoints(hand, K, rest, solver, model, beta=None, limits=None,
+                        xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints"], hand_length=None):
+    """One HandKeypoints hand -> one HandPose hand, unsmoothed. rest: (21,3) rest joints of
+    the person (None: the model's at beta); beta (10,) (None: the average hand); limits: a
+    JointLimits to clip the finger angles into (None: IKNet's angles as they are);
+    xy_from_keypoints: see joints_for_iknet; hand_length: metres, sets beta's hand_size
+    (HandModel.sized; None: beta's own size)."""
+    beta = np.zeros(model.num_betas) if beta is None else np.asarray(beta, dtype=np.float64)
+    if hand_length is not None:
+        beta = model.sized(beta, hand_length)
+    rest = model.rest_joints(beta) if rest is None else rest
+    quats = solve_rotations(joints_for_iknet(hand, K, xy_from_keypoints), hand["handedness"], rest, solver, limits)
+    return pose_fields(hand, quats, beta, K, model)
+
+
+class TrackSmoother:
+    """One Euro filters of one track: quaternions (21,4) and root (3,)."""
+
+    def __init__(self, p):
+        self.quat = OneEuroFilter(p["rot_min_cutoff"], p["rot_beta"], p["d_cutoff"])
+        self.root = OneEuroFilter(p["root_min_cutoff"], p["root_beta"], p["d_cutoff"])
+        self.last_t = None
+
+    def quats(self, q, t):
+        if self.quat.x is not None:       # q and -q are one rotation: stay on the last output's side
+            q = np.where(np.sum(q * self.quat.x, axis=-1, keepdims=True) < 0, -q, q)
+        self.last_t = t
+        return quat_normalize(self.quat(q, t))
+
+
+class PoseEstimator:
+    """Every hand of a keypoints message -> HandPose hands; shapes and smoothing per track."""
+
+    def __init__(self, solver, model, params=None):
+        self.solver, self.model, self.p = solver, model, {**POSE_DEFAULTS, **(params or {})}
+        self.shapes = {}          # track id -> (beta (10,), rest_xyz (21,3))
+        self.limits = JointLimits.for_model(model) if self.p["clamp_to_limits"] else None
+        self.tracks = {}          # track id -> TrackSmoother
+        self.average = np.zeros(model.num_betas)
+
+    def set_shapes(self, shapes):
+        self.shapes = {s["track_id"]: (np.asarray(s["beta"], np.float64), np.asarray(s["rest_xyz"], np.float64))
+                       for s in shapes}
+
+    def update(self, hands, K, t):
+        """hands: HandKeypoints hands; K (3,3); t: capture time (s). Returns HandPose hands;
+        hands with non-finite joints are skipped."""
+        seen = {h["track_id"] for h in hands}
+        for tid in [tid for tid, s in self.tracks.items()
+                    if tid not in seen or t - s.last_t > self.p["reset_after_s"]]:
+            del self.tracks[tid]                                   # lost: start afresh
+        out = []
+        for hand in hands:
+            if not (np.all(np.isfinite(hand["xyz_rel"])) and np.all(np.isfinite(hand["uv"]))):
+                continue
+            beta, rest = self.shapes.get(hand["track_id"], (self.average, None))
+            beta = self.model.sized(beta, self.p["hand_length"])   # the shape fit leaves size at 0
+            rest = self.model.rest_joints(beta) if rest is None else rest
+            q = solve_rotations(joints_for_iknet(hand, K, self.p["xy_from_keypoints"]), hand["handedness"], rest,
+                                self.solver, self.limits)
+            if not self.p["smooth"]:
+                out.append(pose_fields(hand, q, beta, K, self.model))
+                continue
+            track = self.tracks.setdefault(hand["track_id"], TrackSmoother(self.p))
+            fields = pose_fields(hand, track.quats(q, t), beta, K, self.model)
+            root = track.root(fields["root"], t)
+            fields["xyz"] = (fields["xyz"] - fields["root"] + root).astype(np.float32)
+            fields["root"] = root.astype(np.float32)
+            out.append(fields)
+        return out
+
+
+def mesh_message(model, hands):
+    """The body of a HandMesh message for HandPose hands: per hand its posed vertices (V,3)
+    float32 metres in the camera frame (`hand_mesh`). The faces that go with them are
+    `model.faces`, the right hand's winding: a left hand's vertices are mirrored, so its
+    outward-facing triangles are `faces[:, ::-1]`."""
+    return {"hands": [{"track_id": h["track_id"], "handedness": h["handedness"],
+                       "vertices": hand_mesh(model, h)[0].astype(np.float32)} for h in hands]}
+
+
+def hand_mesh(model, hand):
+    """The posed mesh of one HandPose hand in the camera frame: vertices (V,3) metres, faces
+    (F,3) int (winding flipped for a left hand, so it faces outward) and its 21 joints (21,3)
+    metres. HandModel.forward at the hand's quat and beta, moved so that joint 9 sits at
+    `root`: the joints then equal the hand's `xyz` (pose_fields builds them the same way)."""
+    vertices, joints = model.forward(np.asarray(hand["quat"], np.float64), np.asarray(hand["beta"], np.float64),
+                                     handedness=hand["handedness"])
+    offset = np.asarray(hand["root"], np.float64) - joints[ROOT]
+    return vertices + offset, model.faces_for(hand["handedness"]), joints + offset

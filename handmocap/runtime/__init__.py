@@ -1,0 +1,1 @@
+"""The graph runtime: bus, codec, node, launch, executor, bags, command lines, frames, Foxglove, keys."""

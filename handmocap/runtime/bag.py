@@ -1,0 +1,349 @@
+"""Bags: MCAP files of wire messages, stored exactly as they travelled (DESIGN.md "Bags").
+
+One MCAP channel per topic; its schema is the message type's JSON Schema (schema encoding
+`jsonschema`, schema name = message type name) and its message encoding `msgpack`. Payloads
+are stored unchanged, never re-encoded.
+
+Crash safety: messages are grouped in small uncompressed chunks (at most CHUNK_BYTES of
+records or CHUNK_SECONDS of wall time, whichever comes first), and every finished chunk is
+handed to the OS at once. A writer killed with SIGKILL thus loses at most the chunk it was
+filling; the file then has no summary or footer. `iter_messages` and `bag_info` read any
+such file front to back, record by record, and stop cleanly at the first record that is
+incomplete or damaged.
+
+Chunk size, measured on this project's messages (640x480 bgr8 Image 922 kB, HandKeypoints
+with two hands 1.5 kB; 2-core VM, page cache): every message costs ~48 bytes of record and
+message-index overhead whatever the chunk size; chunking adds on top of that for 1.5 kB
+messages 0.9 % at 16 KiB, 0.2 % at 64 KiB, 0.04 % at 256 KiB and ~0 at 1 MiB. Writing runs
+at 180-900 MB/s and reading at 0.3-1.5 GB/s for every size from 64 KiB to 4 MiB (a camera is
+~27 MB/s), so the size only trades overhead against loss on a crash: 256 KiB is past the
+knee and bounds the loss to ~0.25 MB of small messages; a raw frame (> 256 KiB) always
+closes its own chunk, so a frame once written survives a SIGKILL.
+"""
+from __future__ import annotations
+
+import io
+import json
+import os
+import struct
+import time
+import zlib
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import McapError
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Message, Schema
+from mcap.stream_reader import breakup_chunk
+from mcap.writer import CompressionType, Writer
+
+from handmocap.runtime import codec
+
+MAGIC = b"\x89MCAP0\r\n"
+CHUNK_BYTES = 256 * 1024
+CHUNK_SECONDS = 1.0
+MESSAGE_ENCODING = "msgpack"
+SCHEMA_ENCODING = "jsonschema"
+_RECORD_PREFIX = struct.Struct("<BQ")   # opcode, record length (bytes)
+_FOOTER_RECORD_BYTES = _RECORD_PREFIX.size + 8 + 8 + 4
+
+
+class NotABag(ValueError):
+    """The file is not an MCAP file (wrong magic bytes) or cannot be read as one."""
+
+
+class BagWriter:
+    """Append wire messages to a new MCAP file at `path` (overwritten if it exists).
+
+    `write(topic, type_name, payload, log_time_ns, publish_time_ns)`; `close()` finishes the
+    last chunk and writes the summary and footer. Usable as a context manager.
+    """
+
+    def __init__(self, path: str | os.PathLike, chunk_bytes: int = CHUNK_BYTES,
+                 chunk_seconds: float = CHUNK_SECONDS, library: str = "handmocap"):
+        self.path = Path(path)
+        self.chunk_seconds = chunk_seconds
+        self.counts: Counter[str] = Counter()        # topic -> messages written
+        self._file = open(self.path, "wb")
+        self._mcap = Writer(self._file, chunk_size=chunk_bytes, compression=CompressionType.NONE)
+        self._mcap.start(profile="", library=library)
+        self._file.flush()
+        self._schemas: dict[str, int] = {}           # message type -> schema id
+        self._channels: dict[str, tuple[int, str]] = {}   # topic -> (channel id, message type)
+        self._chunk_opened: float | None = None      # monotonic time of the open chunk's first message
+        self._closed = False
+
+    def _channel(self, topic: str, type_name: str) -> int:
+        known = self._channels.get(topic)
+        if known is not None:
+            if known[1] != type_name:
+                raise ValueError(f"topic {topic} carries {known[1]} in this bag, cannot add {type_name}")
+            return known[0]
+        schema_id = self._schemas.get(type_name)
+        if schema_id is None:
+            schema_json = json.dumps(codec.schema(type_name), separators=(",", ":")).encode()
+            schema_id = self._mcap.register_schema(type_name, SCHEMA_ENCODING, schema_json)
+            self._schemas[type_name] = schema_id
+        channel_id = self._mcap.register_channel(topic, MESSAGE_ENCODING, schema_id)
+        self._channels[topic] = (channel_id, type_name)
+        return channel_id
+
+    def write(self, topic: str, type_name: str, payload: bytes, log_time_ns: int,
+              publish_time_ns: int) -> None:
+        """Store one payload unchanged. log time: when it was received (ns, CLOCK_REALTIME);
+        publish time: its header stamp (ns)."""
+        channel_id = self._channel(topic, type_name)
+        written_before = self._file.tell()
+        self._mcap.add_message(channel_id, log_time=int(log_time_ns), data=payload,
+                               publish_time=int(publish_time_ns), sequence=self.counts[topic])
+        self.counts[topic] += 1
+        if self._file.tell() != written_before:   # the size limit closed the chunk: to the OS now
+            self._file.flush()
+            self._chunk_opened = None
+            return
+        now = time.monotonic()
+        if self._chunk_opened is None:
+            self._chunk_opened = now
+        elif now - self._chunk_opened >= self.chunk_seconds:
+            self.flush()
+
+    def tick(self) -> None:
+        """Call when idle: finishes the open chunk if it has waited CHUNK_SECONDS."""
+        if self._chunk_opened is not None and time.monotonic() - self._chunk_opened >= self.chunk_seconds:
+            self.flush()
+
+    def flush(self) -> None:
+        """Finish the open chunk now and hand everything written to the OS."""
+        self._mcap.flush()
+        self._chunk_opened = None
+
+    def close(self) -> None:
+        """Finish the last chunk, write summary and footer, close the file. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._mcap.finish()
+        self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+@dataclass
+class _Scan:
+    """What a front-to-back read of a bag found out about the file."""
+    size: int = 0              # bytes in the file when reading started
+    good_bytes: int = 0        # end offset of the last complete, valid record
+    complete: bool = False     # footer and trailing magic present
+
+
+def _read_records(f: io.BufferedReader, scan: _Scan) -> Iterator[tuple[int, bytes]]:
+    """Yield (opcode, record body) of every complete top-level record after the magic; stop at
+    the footer, at the end of the file or at the first incomplete record. Updates `scan`."""
+    while True:
+        prefix = f.read(_RECORD_PREFIX.size)
+        if len(prefix) < _RECORD_PREFIX.size:
+            return
+        opcode, length = _RECORD_PREFIX.unpack(prefix)
+        if opcode == 0 or length > scan.size - scan.good_bytes - _RECORD_PREFIX.size:
+            return   # zero fill or a record cut off by the end of the file
+        body = f.read(length)
+        if len(body) < length:
+            return
+        if opcode == Opcode.FOOTER:
+            scan.complete = f.read(len(MAGIC)) == MAGIC
+            if scan.complete:
+                scan.good_bytes += _RECORD_PREFIX.size + length + len(MAGIC)
+            return
+        yield opcode, body
+        scan.good_bytes += _RECORD_PREFIX.size + length
+
+
+def _open_bag(path: str | os.PathLike) -> tuple[io.BufferedReader, _Scan]:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such bag file")
+    f = open(path, "rb")
+    if f.read(len(MAGIC)) != MAGIC:
+        f.close()
+        raise NotABag(f"{path}: not an MCAP file (bad magic bytes)")
+    scan = _Scan(size=os.fstat(f.fileno()).st_size, good_bytes=len(MAGIC))
+    return f, scan
+
+
+@dataclass(frozen=True)
+class _ChannelInfo:
+    topic: str
+    type_name: str       # schema name: the message type
+    encoding: str        # message encoding: "msgpack" for recorded bags
+
+
+_DAMAGE = (McapError, ValueError, struct.error, zlib.error)   # CRC mismatch is a ValueError
+
+
+def _scan_records(path, scan_out: list) -> Iterator[Schema | Channel | Message]:
+    """Yield the Schema, Channel and Message records of a bag in file order (from chunks too);
+    append the _Scan to `scan_out` first. Stops at the first incomplete or damaged record."""
+    f, scan = _open_bag(path)
+    scan_out.append(scan)
+    with f:
+        for opcode, body in _read_records(f, scan):
+            stream = ReadDataStream(io.BytesIO(body))
+            try:
+                if opcode == Opcode.CHUNK:
+                    records = breakup_chunk(Chunk.read(stream), validate_crc=True)
+                elif opcode == Opcode.MESSAGE:
+                    records = [Message.read(stream, len(body))]
+                elif opcode == Opcode.SCHEMA:
+                    records = [Schema.read(stream)]
+                elif opcode == Opcode.CHANNEL:
+                    records = [Channel.read(stream)]
+                else:
+                    continue   # indexes, statistics, attachments, metadata
+            except _DAMAGE:
+                return     # scan.good_bytes still ends before this record
+            yield from records
+
+
+def _scan_messages(path, topics, scan_out: list) -> Iterator[tuple[_ChannelInfo, Message]]:
+    """Yield (channel, message record) in file order, optionally only on `topics`; append the
+    _Scan to `scan_out` first. Stops at the first incomplete or damaged record."""
+    wanted = None if topics is None else set(topics)
+    schemas: dict[int, str] = {}
+    channels: dict[int, _ChannelInfo] = {}
+    unknown = _ChannelInfo("", "", "")
+    for r in _scan_records(path, scan_out):
+        if isinstance(r, Schema):
+            schemas[r.id] = r.name
+        elif isinstance(r, Channel):
+            channels[r.id] = _ChannelInfo(r.topic, schemas.get(r.schema_id, ""), r.message_encoding)
+        elif isinstance(r, Message):
+            ch = channels.get(r.channel_id, unknown)
+            if wanted is None or ch.topic in wanted:
+                yield ch, r
+
+
+def repair(path: str | os.PathLike) -> dict:
+    """Make a bag whose writer was killed (no summary, no footer: the standard MCAP reader's
+    default, seeking path refuses it) whole, in place: every schema, channel and message of
+    its complete records rewritten unchanged (payloads, times, sequence numbers), then a
+    summary and footer; written beside it and renamed over it only when complete.
+    Returns bag_info of the result plus "repaired" (False: the bag was whole already) and
+    "dropped_bytes" (the unreadable tail that was cut off)."""
+    path = Path(path)
+    before = bag_info(path)
+    if not before["truncated"]:
+        return {**before, "repaired": False, "dropped_bytes": 0}
+    tmp = path.with_name(path.name + ".repairing")
+    try:
+        with open(tmp, "wb") as out:
+            writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.NONE)
+            writer.start(profile="", library="handmocap (handbag repair)")
+            schema_ids, channel_ids = {0: 0}, {}
+            for r in _scan_records(path, []):
+                if isinstance(r, Schema):
+                    schema_ids[r.id] = writer.register_schema(r.name, r.encoding, r.data)
+                elif isinstance(r, Channel):
+                    channel_ids[r.id] = writer.register_channel(r.topic, r.message_encoding,
+                                                                schema_ids.get(r.schema_id, 0), r.metadata)
+                elif isinstance(r, Message) and r.channel_id in channel_ids:
+                    writer.add_message(channel_ids[r.channel_id], log_time=r.log_time, data=r.data,
+                                       publish_time=r.publish_time, sequence=r.sequence)
+            writer.finish()
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return {**bag_info(path), "repaired": True, "dropped_bytes": before["unreadable_bytes"]}
+
+
+def iter_messages(path: str | os.PathLike, topics=None) -> Iterator[tuple[str, str, bytes, int]]:
+    """Yield (topic, type name, payload bytes, log_time_ns) of every message in file order,
+    optionally only those of `topics`. Works on a bag whose writer was killed: reading stops
+    cleanly after the last complete chunk. Raises FileNotFoundError / NotABag."""
+    for ch, m in _scan_messages(path, topics, []):
+        yield ch.topic, ch.type_name, m.data, m.log_time
+
+
+def _has_footer(f: io.BufferedReader, size: int) -> bool:
+    tail_bytes = _FOOTER_RECORD_BYTES + len(MAGIC)
+    if size < len(MAGIC) + tail_bytes:
+        return False
+    f.seek(size - tail_bytes)
+    tail = f.read(tail_bytes)
+    opcode, length = _RECORD_PREFIX.unpack_from(tail)
+    return opcode == Opcode.FOOTER and length == 20 and tail.endswith(MAGIC)
+
+
+def _info_from_summary(path: Path) -> dict | None:
+    """Topic counts and time span from a complete bag's summary (no data read), or None."""
+    from mcap.reader import make_reader
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        if not _has_footer(f, size):
+            return None
+        f.seek(0)
+        try:
+            summary = make_reader(f).get_summary()
+        except Exception:   # a damaged summary: the full scan decides
+            return None
+    if summary is None or summary.statistics is None:
+        return None
+    stats = summary.statistics
+    topics = {}
+    for cid, ch in summary.channels.items():
+        schema = summary.schemas.get(ch.schema_id)
+        entry = topics.setdefault(ch.topic, {"type": schema.name if schema else "", "count": 0,
+                                             "encoding": ch.message_encoding})
+        entry["count"] += stats.channel_message_counts.get(cid, 0)
+    start = stats.message_start_time if stats.message_count else None
+    end = stats.message_end_time if stats.message_count else None
+    return _info_dict(path, size, topics, start, end, truncated=False, unreadable=0)
+
+
+def _info_dict(path, size, topics, start, end, truncated, unreadable) -> dict:
+    return {
+        "path": str(path),
+        "size_bytes": size,
+        "truncated": truncated,
+        "unreadable_bytes": unreadable,
+        "message_count": sum(t["count"] for t in topics.values()),
+        "start_ns": start,
+        "end_ns": end,
+        "duration_s": (end - start) / 1e9 if start is not None else 0.0,
+        "topics": dict(sorted(topics.items())),
+    }
+
+
+def bag_info(path: str | os.PathLike) -> dict:
+    """Summary of a bag as a JSON-able dict:
+
+    path, size_bytes, truncated (no valid footer: the writer did not finish), unreadable_bytes
+    (at the end, after the last complete record), message_count, start_ns / end_ns (log times,
+    None when empty), duration_s, topics {topic: {type, count, encoding}}.
+    A complete bag is summarized from its summary section; a truncated one is read through.
+    """
+    path = Path(path)
+    f, _ = _open_bag(path)   # existence and magic checks
+    f.close()
+    info = _info_from_summary(path)
+    if info is not None:
+        return info
+    scans: list[_Scan] = []
+    topics: dict[str, dict] = {}
+    start = end = None
+    for ch, m in _scan_messages(path, None, scans):
+        entry = topics.setdefault(ch.topic, {"type": ch.type_name, "count": 0, "encoding": ch.encoding})
+        entry["count"] += 1
+        start = m.log_time if start is None else min(start, m.log_time)
+        end = m.log_time if end is None else max(end, m.log_time)
+    scan = scans[0]
+    return _info_dict(path, scan.size, topics, start, end, truncated=not scan.complete,
+                      unreadable=scan.size - scan.good_bytes)

@@ -1,0 +1,281 @@
+"""The one bus: brokerless ZeroMQ PUB/SUB between node processes, with file-based discovery.
+
+Wire: every message is three frames, `[topic + b"\\0", type name, msgpack payload]`. The
+trailing NUL makes ZeroMQ's prefix subscription an exact topic match. A control type
+`_eos` (payload: the publishing node's name, NUL, the eos_token of its node file) marks the end
+of a publisher's stream; a subscriber honours it only with the token of the publisher it names.
+
+Discovery: each node binds one XPUB socket (by default `ipc://<run dir>/<node>.pub`, so
+nothing listens on the network) and writes `<run dir>/<node>.json` saying what it publishes
+and subscribes; the file is rewritten every HEARTBEAT_S as the node's heartbeat. Subscribers
+scan the run dir and connect straight to each publisher of a topic they want: no broker on
+the data path. A node on another host is reached with an explicit `tcp://` endpoint
+(`connect` in the launch file); its own socket listens on the network only when the launch
+file gives it a `bind: tcp://...` endpoint.
+"""
+from __future__ import annotations
+
+import json
+import os
+import stat
+import tempfile
+import threading
+import time
+import weakref
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zmq
+
+EOS = b"_eos"
+LARGE = 65536   # payloads above this are sent without a copy (zmq holds on to the sender's buffer)
+HEARTBEAT_S = 0.5
+STALE_S = 5.0   # a node file whose heartbeat is older than this, or whose pid is gone, is dead
+
+
+class RunDirError(PermissionError):
+    """A run dir that is not this user's own private folder (nothing may start in it)."""
+
+
+def private_dir(path: Path) -> Path:
+    """`path`, made (mode 0700) if missing, checked to be a folder of this user's that no one
+    else may read or write and not a symlink: a predictable /tmp path could have been made
+    first by another user, who could then read the graph's node files and feed it messages.
+    RunDirError naming the path and what is wrong."""
+    try:
+        path.mkdir(mode=0o700)
+    except FileExistsError:
+        pass
+    st = os.lstat(path)
+    if stat.S_ISLNK(st.st_mode) or not stat.S_ISDIR(st.st_mode):
+        raise RunDirError(f"run dir {path} is {'a symlink' if stat.S_ISLNK(st.st_mode) else 'not a folder'}; "
+                          f"remove it (or set HANDMOCAP_RUN_DIR to a private folder)")
+    if st.st_uid != os.getuid():
+        raise RunDirError(f"run dir {path} belongs to uid {st.st_uid}, not to you (uid {os.getuid()}): another "
+                          f"user made it; remove it, or set HANDMOCAP_RUN_DIR to a private folder")
+    if st.st_mode & 0o077:
+        raise RunDirError(f"run dir {path} has mode {stat.S_IMODE(st.st_mode):o}: others may read or write it; "
+                          f"chmod 700 {path} (or remove it)")
+    return path
+
+
+def run_dir(graph: str | None = None) -> Path:
+    """Directory that holds one graph's sockets and node files, private to this user (0700,
+    checked on every call: private_dir).
+
+    $HANDMOCAP_RUN_DIR if set, else <tmp>/handmocap-<uid>/<graph> with graph from the
+    argument, $HANDMOCAP_GRAPH or "default". Kept short: unix socket paths max out at 107 bytes.
+    """
+    if os.environ.get("HANDMOCAP_RUN_DIR"):
+        d = Path(os.environ["HANDMOCAP_RUN_DIR"])
+        d.parent.mkdir(parents=True, exist_ok=True)
+        return private_dir(d)
+    graph = graph or os.environ.get("HANDMOCAP_GRAPH", "default")
+    base = private_dir(Path(tempfile.gettempdir()) / f"handmocap-{os.getuid()}")
+    return private_dir(base / graph)
+
+
+def topic_frame(topic: str) -> bytes:
+    return topic.encode() + b"\0"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@dataclass
+class NodeInfo:
+    """What a node file says about one running node."""
+    name: str
+    pid: int
+    endpoint: str
+    publishes: dict = field(default_factory=dict)    # topic -> message type
+    subscribes: dict = field(default_factory=dict)   # topic -> "latest" | "all"
+    ready: bool = False
+    inproc: dict | None = None   # {endpoint, token}: also reachable in-process, from its container
+    observer: bool = False   # tools (handtopic) that must not hold a graph's start
+    ended: bool = False      # set by the launcher on a node that died for good: its streams are over
+    heartbeat_ns: int = 0
+    stats: dict = field(default_factory=dict)
+    eos_token: str = ""      # this run's secret of the node: its end-of-stream carries it (Node._decode)
+    closing: bool = False    # set before its end-of-stream goes out: its streams are ending normally
+
+    @property
+    def alive(self) -> bool:
+        return _pid_alive(self.pid) and time.time_ns() - self.heartbeat_ns < STALE_S * 1e9
+
+
+def write_node_file(directory: Path, info: NodeInfo) -> None:
+    """Atomically (re)write a node's file; its mtime and heartbeat_ns are the heartbeat."""
+    info.heartbeat_ns = time.time_ns()
+    tmp = directory / f".{info.name}.json.{os.getpid()}"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)   # pids, endpoints: this user's only
+    with os.fdopen(fd, "w") as f:
+        f.write(json.dumps(info.__dict__))
+    os.replace(tmp, directory / f"{info.name}.json")
+
+
+def read_node_files(directory: Path, alive_only: bool = True) -> dict[str, NodeInfo]:
+    nodes = {}
+    for p in directory.glob("*.json"):
+        try:
+            info = NodeInfo(**json.loads(p.read_text()))
+        except (OSError, ValueError, TypeError):
+            continue   # being rewritten or foreign: the next scan sees it
+        if not alive_only or info.alive:
+            nodes[info.name] = info
+    return nodes
+
+
+# how long a closing publisher goes on flushing to a subscriber that is slow to read (one
+# still busy finishing its own work on shutdown): within reason, lose nothing
+PUBLISHER_LINGER_S = 10
+
+
+class Publisher:
+    """One XPUB socket per node. XPUB (not PUB) so that the node sees subscriptions arrive and
+    can hold its first message until every subscriber of the graph is connected."""
+
+    def __init__(self, ctx: zmq.Context, endpoint: str, keys=None):
+        self.sock = ctx.socket(zmq.XPUB)
+        self.sock.setsockopt(zmq.SNDHWM, 0)       # keep-all subscribers must lose nothing
+        self.sock.setsockopt(zmq.XPUB_VERBOSE, 1)  # count every subscriber, not each prefix once
+        self.sock.setsockopt(zmq.LINGER, int(PUBLISHER_LINGER_S * 1000))   # flush a slow subscriber at close
+        if keys is not None and endpoint.startswith("tcp://"):
+            from handmocap.runtime import keys as curve
+            curve.serve(self.sock, ctx, keys)
+        try:
+            self.sock.bind(endpoint)
+        except zmq.ZMQError as e:
+            self.sock.close(0)
+            taken = e.errno == zmq.EADDRINUSE
+            raise OSError(f"cannot listen on {endpoint}: " + ("the address is in use (another graph or program "
+                          "listens there, or a node of this graph still does)" if taken else e.strerror)) from None
+        self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.subscriptions: Counter[bytes] = Counter()
+        self.joined: Counter[bytes] = Counter()     # subscriptions ever made, per prefix
+        self._frames: dict[tuple, tuple] = {}   # (topic, type) -> their wire frames
+        self.in_flight = 0   # large payloads sent and not yet released by zmq and every receiver
+        self._landed = threading.Condition()
+
+    def bind_inproc(self, endpoint: str, token: str) -> dict:
+        """Also bind `inproc://...` (a container: the nodes of one process share one Context and
+        reach each other without a socket); returns what the node file says about it."""
+        self.sock.bind(endpoint)
+        return {"endpoint": endpoint, "token": token}
+
+    def poll_subscriptions(self) -> None:
+        while True:
+            try:
+                ev = self.sock.recv(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            if ev[:1] == b"\x01":
+                self.subscriptions[ev[1:]] += 1
+                self.joined[ev[1:]] += 1
+            elif ev[:1] == b"\x00" and self.subscriptions[ev[1:]] > 0:
+                self.subscriptions[ev[1:]] -= 1
+
+    def subscriber_count(self, topic: str) -> int:
+        self.poll_subscriptions()
+        t = topic_frame(topic)
+        return sum(n for prefix, n in self.subscriptions.items() if t.startswith(prefix))
+
+    def named_subscribers(self, topic: str) -> tuple[int, int]:
+        """(connected now, joined so far) of the subscribers that asked for `topic` by name; a
+        catch-all subscription (the recorder's, handtopic's) does not count. For a topic that
+        costs work to compute: compute it while somebody asked for it, and send what goes once
+        per connection when the joined count grows."""
+        self.poll_subscriptions()
+        t = topic_frame(topic)
+        return self.subscriptions[t], self.joined[t]
+
+    def send(self, topic: str, type_name: str, payload: bytes | memoryview) -> None:
+        """One message; a payload over LARGE bytes (bytes or a read-only view such as
+        `codec.encode_view` gives) goes without a copy: zmq holds on to it until it is sent
+        to every outside subscriber and every receiver in this process has let go of it
+        (`in_flight` counts those)."""
+        frames = self._frames.get((topic, type_name))
+        if frames is None:
+            frames = self._frames[(topic, type_name)] = (topic_frame(topic), type_name.encode())
+        sock = self.sock
+        sock.send(frames[0], zmq.SNDMORE)
+        sock.send(frames[1], zmq.SNDMORE)
+        if len(payload) <= LARGE:   # zero-copy only pays for large frames
+            sock.send(payload)
+            return
+        # zmq keeps this array alive while the frame is in use (pyzmq drops it from its gc
+        # thread once libzmq frees the message); a memoryview can't carry the finalizer
+        held = np.frombuffer(payload, np.uint8)
+        with self._landed:
+            self.in_flight += 1
+        weakref.finalize(held, self._release)
+        sock.send(held, copy=False)
+
+    def _release(self) -> None:
+        with self._landed:
+            self.in_flight -= 1
+            self._landed.notify_all()
+
+    def wait_in_flight(self, limit: int, timeout_s: float) -> bool:
+        """Block until fewer than `limit` large payloads are in flight (see `send`), at most
+        `timeout_s`; returns whether they are."""
+        with self._landed:
+            return self._landed.wait_for(lambda: self.in_flight < limit, timeout_s)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class Subscriber:
+    """SUB sockets of one node: `latest` (drained on every wake-up, freshest message per topic
+    kept; ZMQ_CONFLATE is no use here, it breaks multipart messages) and `all` (keep-all)."""
+
+    def __init__(self, ctx: zmq.Context, keys=None):
+        self.ctx = ctx
+        self.keys = keys   # handmocap.runtime.keys.Keys: tcp connections go through CURVE sockets of their own
+        self.socks: dict[str, zmq.Socket] = {}   # "latest", "all" and, with keys, "latest+tcp", "all+tcp"
+        self.prefixes: dict[str, list[bytes]] = {"latest": [], "all": []}
+        self.connected: dict[str, set[str]] = {"latest": set(), "all": set()}
+
+    def socket(self, mode: str, tcp: bool = False) -> zmq.Socket:
+        key = f"{mode}+tcp" if tcp else mode
+        if key not in self.socks:
+            s = self.ctx.socket(zmq.SUB)
+            s.setsockopt(zmq.RCVHWM, 0)   # latest-only drains eagerly; keep-all must lose nothing
+            s.setsockopt(zmq.LINGER, 0)
+            if tcp:   # CURVE applies to a socket's every connection: local ones keep their own socket
+                from handmocap.runtime import keys as curve
+                curve.client(s, self.keys)
+                for prefix in self.prefixes[mode]:
+                    s.subscribe(prefix)
+            self.socks[key] = s
+        return self.socks[key]
+
+    def subscribe(self, topic: str | None, mode: str) -> None:
+        """topic None: every topic (the recorder's 'record all')."""
+        prefix = b"" if topic is None else topic_frame(topic)
+        self.prefixes[mode].append(prefix)
+        self.socket(mode)
+        for key, s in self.socks.items():
+            if key.split("+")[0] == mode:
+                s.subscribe(prefix)
+
+    def connect(self, endpoint: str, mode: str) -> bool:
+        if endpoint in self.connected[mode]:
+            return False
+        self.socket(mode, tcp=self.keys is not None and endpoint.startswith("tcp://")).connect(endpoint)
+        self.connected[mode].add(endpoint)
+        return True
+
+    def close(self) -> None:
+        for s in self.socks.values():
+            s.close()

@@ -1,0 +1,471 @@
+"""The one codec of the wire: msgpack payloads, validated against `messages/*.json`.
+
+A message is a plain dict. numpy arrays anywhere in it travel as
+`{"dtype": str, "shape": [int], "data": bytes}` (C order, little-endian), never as
+per-element lists; `decode` turns them back into read-only arrays that view the payload.
+
+Speed: a node sleeps between messages while other processes use the cores, so it handles
+each message with cold caches, where every step costs 3-10x its hot-loop time (a 1 kB
+HandKeypoints on this 2-core machine under load: encode 5 us hot / ~20 cold, unpack 3 / ~40,
+schema check 8 / ~40, arrays 5 / ~20). That cold CPU is most of what the bus adds to a hop,
+so the path touches as little as it can: the schema is compiled with its `$ref`s inlined
+(fastjsonschema otherwise calls a function per ref that formats an error-path string even for
+a valid message); arrays are rebuilt by straight-line code generated from the schema (a
+generic walk of the message costs ~3x more cold); packers are reused; and large messages
+(frames) are packed into pooled buffers that are sent as they are (`encode_view`).
+"""
+from __future__ import annotations
+
+import functools
+import json
+import math
+import os
+import threading
+import time
+from importlib import resources
+
+import fastjsonschema
+import msgpack
+import numpy as np
+
+# Larger payloads are dropped unread; a 4K BGR frame is 25 MB.
+MAX_MESSAGE_BYTES = int(os.environ.get("HANDMOCAP_MAX_MESSAGE_BYTES", 64 * 1024 * 1024))
+_ARRAY_KEYS = frozenset(("dtype", "shape", "data"))
+
+
+class MalformedMessage(ValueError):
+    """A payload that is not a valid message of its type; `reason` is a short slug for counters."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+
+
+def message_types() -> list[str]:
+    """Names of all message types, from the schema files in `messages/`."""
+    return sorted(p.name[:-5] for p in resources.files("handmocap.messages").iterdir()
+                  if p.name.endswith(".json") and p.name != "common.json")
+
+
+@functools.cache
+def schema(type_name: str) -> dict:
+    """The JSON Schema of one message type, with the shared `$defs` merged in."""
+    pkg = resources.files("handmocap.messages")
+    path = pkg / f"{type_name}.json"
+    if not type_name.isidentifier() or not path.is_file():
+        raise KeyError(f"unknown message type {type_name!r} (known: {', '.join(message_types())})")
+    s = json.loads(path.read_text())
+    s["$defs"] = {**json.loads((pkg / "common.json").read_text())["$defs"], **s.get("$defs", {})}
+    return s
+
+
+def _inline_refs(node, defs: dict, depth: int = 0):
+    """The schema with every plain local reference (`{"$ref": "#/$defs/name"}`, nothing beside
+    it) replaced by its definition: the same schema, which fastjsonschema then checks in one
+    function. `$defs` stay where they are, for any reference left."""
+    if depth > 64:
+        raise RecursionError("recursive $ref")
+    if isinstance(node, dict):
+        ref = node.get("$ref")
+        if isinstance(ref, str) and ref.startswith("#/$defs/") and ref[8:] in defs and len(node) == 1:
+            return _inline_refs(defs[ref[8:]], defs, depth + 1)
+        return {k: v if k == "$defs" else _inline_refs(v, defs, depth + 1) for k, v in node.items()}
+    if isinstance(node, list):
+        return [_inline_refs(v, defs, depth + 1) for v in node]
+    return node
+
+
+@functools.cache
+def _flat_schema(type_name: str) -> dict:
+    s = schema(type_name)
+    try:
+        return _inline_refs(s, s["$defs"])
+    except RecursionError:   # a recursive schema keeps its refs
+        return s
+
+
+@functools.cache
+def _validator(type_name: str):
+    return fastjsonschema.compile(_flat_schema(type_name))
+
+
+_DTYPE_NAMES = {np.dtype(n): n for n in  # dtype.name is slow: a lookup table for the wire types
+                ("uint8", "uint16", "int8", "int16", "int32", "int64", "float16", "float32", "float64", "bool")}
+_SMALL_ARRAY_BYTES = 4096  # below this a copy (tobytes) is cheaper than a memoryview cast
+
+
+def _to_wire(obj):
+    if type(obj) is np.ndarray:   # the common case first: a C-ordered array of a wire dtype
+        name = _DTYPE_NAMES.get(obj.dtype)   # (a big-endian dtype is not in the table)
+        if name is not None and obj.flags.c_contiguous:
+            return {"dtype": name, "shape": obj.shape,
+                    "data": obj.tobytes() if obj.nbytes <= _SMALL_ARRAY_BYTES else memoryview(obj).cast("B")}
+    if isinstance(obj, np.ndarray):
+        a = obj if obj.flags.c_contiguous else np.ascontiguousarray(obj)
+        if a.dtype.byteorder == ">":
+            a = a.astype(a.dtype.newbyteorder("<"))
+        data = a.tobytes() if a.nbytes <= _SMALL_ARRAY_BYTES else memoryview(a).cast("B")
+        return {"dtype": _DTYPE_NAMES.get(a.dtype) or a.dtype.name, "shape": list(a.shape), "data": data}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise TypeError(f"cannot encode {type(obj).__name__}")
+
+
+_packers = threading.local()   # a Packer is reused (cheaper than packb) but is not thread-safe
+
+
+def encode(msg: dict, type_name: str | None = None) -> bytes:
+    """Pack one message; with `type_name`, validate it first (raises MalformedMessage)."""
+    try:
+        packer = _packers.packer
+    except AttributeError:
+        packer = _packers.packer = msgpack.Packer(default=_to_wire, use_bin_type=True)
+    payload = packer.pack(msg)   # (a pack that fails empties the packer's buffer itself)
+    if type_name is not None:
+        decode(payload, type_name)
+    return payload
+
+
+def encode_view(msg: dict, type_name: str | None = None) -> memoryview:
+    """Like `encode`, without the copy out of the packer: a read-only view of a pooled packer's
+    buffer, for zero-copy sends of large messages (a frame). A packer is reused only once every
+    view of its buffer is gone (zmq drops its own once the frame is sent): msgpack refuses to
+    touch a buffer that is still exported, so a busy packer is never overwritten. Reusing warm
+    buffers also spares the page faults of a fresh megabyte per message."""
+    try:
+        pool = _packers.pool
+    except AttributeError:
+        pool = _packers.pool = []
+    for packer in pool:
+        try:
+            packer.reset()
+            break
+        except BufferError:   # its last payload is still being sent
+            continue
+    else:
+        packer = msgpack.Packer(default=_to_wire, use_bin_type=True, autoreset=False)
+        if len(pool) < 8:
+            pool.append(packer)
+    try:
+        packer.pack(msg)
+    except BaseException:
+        packer.reset()
+        raise
+    view = packer.getbuffer().toreadonly()
+    if type_name is not None:
+        decode(view, type_name)
+    return view
+
+
+_DTYPES = {name: dt for dt, name in _DTYPE_NAMES.items()}
+
+
+def _arrays_from_wire(obj):
+    """Replace every {dtype, shape, data} map by a numpy view, in place (anywhere in `obj`)."""
+    items = obj.items() if isinstance(obj, dict) else enumerate(obj)
+    for k, v in items:
+        if isinstance(v, dict):
+            if len(v) == 3 and "data" in v and "dtype" in v and "shape" in v:
+                obj[k] = _array(v)
+            else:
+                _arrays_from_wire(v)
+        elif isinstance(v, list) and v and isinstance(v[0], (dict, list)):
+            _arrays_from_wire(v)
+    return obj
+
+
+def _array(v: dict) -> np.ndarray:
+    """A read-only view of one wire array (one the schema did not declare, so checked here)."""
+    dtype, shape = v["dtype"], v["shape"]
+    dt = _DTYPES.get(dtype) if type(dtype) is str else None
+    if dt is None or not isinstance(shape, list) or len(shape) > 32:
+        raise MalformedMessage("schema", f"not an array: dtype {dtype!r}, shape {shape!r}")
+    _check_size(v, dt)
+    return np.ndarray(shape, dt, v["data"])   # read-only: it views the bytes of the payload
+
+
+def _check_size(v: dict, dt: np.dtype) -> None:
+    shape, data = v["shape"], v["data"]
+    try:
+        need = math.prod(shape) * dt.itemsize
+    except TypeError:
+        need = None
+    if not isinstance(data, bytes) or len(data) != need:
+        raise MalformedMessage("array-size", f"{v['dtype']}{shape} needs {need} bytes, got "
+                               f"{len(data) if isinstance(data, bytes) else type(data).__name__}")
+    if not all(type(n) is int and n >= 0 for n in shape):   # the schema's "integer" lets 2.0 through
+        raise MalformedMessage("array-shape", f"shape {shape!r} is not made of counts")
+
+
+def _bad_array(v: dict) -> None:
+    """Raise the MalformedMessage of a declared array whose bytes do not fit its dtype and shape."""
+    dt = _DTYPES.get(v["dtype"]) if type(v["dtype"]) is str else None
+    if dt is None:
+        raise MalformedMessage("schema", f"not an array dtype: {v['dtype']!r}")
+    _check_size(v, dt)
+    raise MalformedMessage("array-shape", f"numpy refuses shape {v['shape']!r}")
+
+
+def _walk_extras(obj: dict, declared: frozenset) -> None:
+    """Arrays under keys the schema does not declare (it allows them): the generic walk."""
+    for k in obj.keys() - declared:
+        v = obj[k]
+        if isinstance(v, (dict, list)):
+            obj[k] = _arrays_from_wire({0: v})[0]
+
+
+# Where a type's arrays are, read from its schema: a plan is ("array", dtype, shape) (dtype and
+# shape: the schema's constants, or None), ("list", plan), ("object", {key: plan}, declared
+# keys), ("any",) (a part the schema leaves open: walked generically) or None (no array).
+_ANY = ("any",)
+
+
+def _plan(s: dict):
+    if not isinstance(s, dict) or "$ref" in s or any(k in s for k in ("anyOf", "oneOf", "allOf", "not", "if")):
+        return _ANY
+    t = s.get("type")
+    if t == "object":
+        props = s.get("properties", {})
+        if set(s.get("required", ())) >= _ARRAY_KEYS and set(props) == _ARRAY_KEYS \
+                and s.get("additionalProperties") is False:
+            dtype = props["dtype"].get("const") if isinstance(props["dtype"], dict) else None
+            sh = props["shape"] if isinstance(props["shape"], dict) else {}
+            items = sh.get("items")
+            shape = None
+            if isinstance(items, list) and sh.get("minItems") == len(items) == sh.get("maxItems") \
+                    and all(isinstance(i, dict) and type(i.get("const")) is int for i in items):
+                shape = tuple(i["const"] for i in items)
+            return ("array", dtype if dtype in _DTYPES else None, shape)
+        if "patternProperties" in s or isinstance(s.get("additionalProperties"), dict):
+            return _ANY
+        inner = {k: _plan(v) for k, v in props.items()}
+        return ("object", {k: p for k, p in inner.items() if p is not None}, frozenset(props))
+    if t == "array":
+        items = s.get("items")
+        if isinstance(items, dict):
+            p = _plan(items)
+            return None if p is None else ("list", p)
+        return _ANY if items is not None or "prefixItems" in s else ("list", _ANY)
+    if t is None and "enum" not in s and "const" not in s:
+        return _ANY
+    return None   # a scalar: holds no array
+
+
+def _converter_source(plan, tail: bool = False) -> tuple[str, dict]:
+    """Python source of `convert(m)`, which turns the arrays of a schema-checked message into
+    views in place, following `plan` in straight-line code (a generic walk costs ~3x more
+    with cold caches), and the constants it uses. With `tail`: `convert(m, tail)`, where the
+    array whose data is the `_TAIL_TOKEN` placeholder gets `tail` (a view of the payload's last
+    binary) as its data; it returns how many arrays took it (the caller wants exactly 1)."""
+    env = {"_TOK": _TAIL_TOKEN, "_nd": np.ndarray, "_DTYPES": _DTYPES, "_bad": _bad_array, "_prod": math.prod,
+           "_walk": _walk_extras, "_any": lambda v: _arrays_from_wire({0: v})[0]}
+    lines = ["def convert(m, _tail):", "    _took = 0"] if tail else ["def convert(m):"]
+    names = iter(range(1 << 30))
+
+    def const(value) -> str:
+        name = f"_c{next(names)}"
+        env[name] = value
+        return name
+
+    def emit(var: str, plan, ind: str, target: str | None) -> None:
+        kind = plan[0]
+        if kind == "object":
+            for key, sub in plan[1].items():
+                v = f"v{next(names)}"
+                lines.append(f"{ind}{v} = {var}.get({key!r})")
+                lines.append(f"{ind}if {v} is not None:")
+                emit(v, sub, ind + "    ", f"{var}[{key!r}]")
+            declared = const(plan[2])
+            lines.append(f"{ind}if not {var}.keys() <= {declared}:")
+            lines.append(f"{ind}    _walk({var}, {declared})")
+        elif kind == "list":
+            i, x = f"i{next(names)}", f"x{next(names)}"
+            lines.append(f"{ind}for {i}, {x} in enumerate({var}):")
+            emit(x, plan[1], ind + "    ", f"{var}[{i}]")
+        elif kind == "array":
+            _, dtype, shape = plan
+            d = f"d{next(names)}"
+            lines.append(f"{ind}{d} = {var}['data']")
+            ok_type = f"type({d}) is not bytes"
+            if tail:   # the placeholder of the payload's last binary: its view instead
+                lines.append(f"{ind}if type({d}) is bytes and len({d}) == {len(_TAIL_TOKEN)} and {d} == _TOK:")
+                lines.append(f"{ind}    {d} = _tail")
+                lines.append(f"{ind}    _took += 1")
+                ok_type = f"(type({d}) is not bytes and {d} is not _tail)"
+            if dtype is not None:
+                dt = const(_DTYPES[dtype])
+            else:
+                dt = f"t{next(names)}"
+                lines.append(f"{ind}{dt} = _DTYPES.get({var}['dtype'])")
+                lines.append(f"{ind}if {dt} is None:")
+                lines.append(f"{ind}    _bad({var})")
+            if shape is not None:
+                sh = const(shape)
+                size = str(math.prod(shape) * _DTYPES[dtype].itemsize) if dtype is not None \
+                    else f"{math.prod(shape)} * {dt}.itemsize"
+            else:
+                sh = f"{var}['shape']"
+                size = f"_prod({sh}) * {dt}.itemsize"
+            lines.append(f"{ind}if {ok_type} or len({d}) != {size}:")
+            lines.append(f"{ind}    _bad({var})")
+            if shape is None:   # the schema's "integer" lets a float like 2.0 through
+                lines.append(f"{ind}try:")
+                lines.append(f"{ind}    {target} = _nd({sh}, {dt}, {d})")
+                lines.append(f"{ind}except (TypeError, ValueError):")
+                lines.append(f"{ind}    _bad({var})")
+            else:
+                lines.append(f"{ind}{target} = _nd({sh}, {dt}, {d})")
+        else:   # any
+            lines.append(f"{ind}{target} = _any({var})")
+
+    ret = "    return _took" if tail else "    return m"
+    if plan is None:
+        lines.append(ret)
+    elif plan[0] in ("array", "any"):
+        emit("m", plan, "    ", "m")
+        lines.append(ret)
+    else:
+        emit("m", plan, "    ", None)
+        lines.append(ret)
+    return "\n".join(lines) + "\n", env
+
+
+@functools.cache
+def _converter(type_name: str, tail: bool = False):
+    """The compiled `convert(m)` of a type; with `tail`, `convert(m, view)` (see `decode`)."""
+    source, env = _converter_source(_plan(_flat_schema(type_name)), tail)
+    exec(compile(source, f"<handmocap.runtime.codec converter for {type_name}>", "exec"), env)
+    return env["convert"]
+
+
+_DECODERS: dict = {}   # type name -> (validate, convert)
+_TAIL_MIN = 65536   # a payload whose last binary is at least this long is decoded without copying it
+_TAIL_TOKEN = b"\x00handmocap-tail\x00"   # 16 bytes: where that binary was, in the message unpacked without it
+_TAIL_SCAN = 4096   # its header must start this near the payload's start (a frame's few small fields)
+
+
+def _tail_start(payload) -> int:
+    """Where the bin32 that runs to the payload's very end starts (its 0xc6 header), or -1.
+
+    Only a candidate: a 0xc6 byte inside another item with the right 4 bytes after it would
+    be one too, which is why `decode` takes the split only when the message unpacked with a
+    placeholder there is whole, valid and has exactly one array on the placeholder."""
+    n = len(payload)
+    head = bytes(payload[:min(n, _TAIL_SCAN)])
+    i = head.find(b"\xc6")
+    while 0 <= i <= len(head) - 5:
+        if int.from_bytes(head[i + 1:i + 5], "big") == n - i - 5:
+            return i
+        i = head.find(b"\xc6", i + 1)
+    return -1
+
+
+def _decode_tail(payload, type_name: str, validate) -> dict | None:
+    """`decode` of a large payload without copying its last binary (a frame's pixels): msgpack
+    copies every binary it unpacks (921 kB for a 640x480 frame: ~0.2-0.3 ms with cold caches,
+    most of the receiving node's cost of a frame). The small part before it is unpacked with
+    a 16-byte placeholder instead, and the array on the placeholder views the payload in
+    place (read-only). None where that does not give exactly the message the full unpack
+    would (any doubt: the caller unpacks the whole payload, and its errors are the ones reported).
+
+    Sound because msgpack is read front to back: if `head + placeholder` unpacks to one whole
+    item with the placeholder intact as a binary, the head's items end exactly where the
+    bin32 starts, so the full payload is that same item with the bin32's bytes there."""
+    i = _tail_start(payload)
+    if i < 0:
+        return None
+    try:
+        raw = msgpack.unpackb(bytes(payload[:i]) + b"\xc4\x10" + _TAIL_TOKEN, raw=False, strict_map_key=True)
+        validate(raw)
+        took = _converter(type_name, True)(raw, memoryview(payload)[i + 5:].toreadonly())
+    except Exception:
+        return None
+    return raw if took == 1 else None
+
+
+def decode(payload: bytes, type_name: str, max_bytes: int = MAX_MESSAGE_BYTES) -> dict:
+    """Unpack and validate one payload of type `type_name`; arrays come back as numpy views.
+
+    Raises MalformedMessage, and nothing else, whatever the bytes (reason: oversized, msgpack,
+    schema, array-size, array-shape, too-deep, unknown-type, or inconsistent: a message that
+    fits its schema but not itself, see CONSISTENCY).
+    """
+    try:
+        msg = _decode(payload, type_name, max_bytes)
+        check = CONSISTENCY.get(type_name)
+        if check is not None:
+            check(msg)
+        return msg
+    except MalformedMessage:
+        raise
+    except RecursionError:
+        raise MalformedMessage("too-deep", "nested deeper than the decoder follows") from None
+    except Exception as e:   # numpy's "array is too big", "maximum dimension exceeded", ...
+        raise MalformedMessage("array-shape", f"{type(e).__name__}: {str(e)[:200]}") from None
+
+
+def _image_consistent(m: dict) -> None:
+    """An Image's data agrees with its encoding, width and height."""
+    data, enc, w, h = m["data"], m["encoding"], m["width"], m["height"]
+    want = {"bgr8": (h, w, 3), "rgb8": (h, w, 3), "mono8": (h, w)}.get(enc)
+    if want is not None and data.shape != want:
+        raise MalformedMessage("inconsistent", f"{enc} image {w}x{h} needs data {want}, got {data.shape}")
+    if enc == "jpeg" and (data.ndim != 1 or data.size < 4):
+        raise MalformedMessage("inconsistent", f"jpeg image data must be a (N,) byte stream, got {data.shape}")
+
+
+def _finite(*fields):
+    """A check that every hand's `fields` (arrays) are finite (no NaN, no inf)."""
+    def check(m: dict) -> None:
+        for hand in m.get("hands", ()):
+            for f in fields:
+                if f in hand and not np.isfinite(hand[f]).all():
+                    raise MalformedMessage("not-finite", f"hand {hand.get('track_id')}: {f} has NaN or inf")
+    return check
+
+
+def _camera_info_consistent(m: dict) -> None:
+    K = m["K"]
+    if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0 or not np.isfinite(m["distortion"]).all():
+        raise MalformedMessage("inconsistent", "K needs positive finite focal lengths, finite entries")
+
+
+# Checks past the schema, per type: what a schema cannot say (an image's bytes against its size,
+# numbers that must be finite). A message failing one is dropped like a malformed one.
+CONSISTENCY = {
+    "Image": _image_consistent,
+    "CameraInfo": _camera_info_consistent,
+    "HandKeypoints": _finite("uv", "xyz_rel", "bbox", "confidence"),
+    "HandPose": _finite("xyz", "root", "quat", "uv"),
+}
+
+
+def _decode(payload, type_name: str, max_bytes: int) -> dict:
+    if len(payload) > max_bytes:
+        raise MalformedMessage("oversized", f"{len(payload)} bytes > limit {max_bytes}")
+    try:
+        validate, convert = _DECODERS[type_name]
+    except KeyError:
+        try:
+            validate, convert = _DECODERS[type_name] = (_validator(type_name), _converter(type_name))
+        except KeyError as e:
+            raise MalformedMessage("unknown-type", str(e)) from None
+    if len(payload) >= _TAIL_MIN:
+        msg = _decode_tail(payload, type_name, validate)
+        if msg is not None:
+            return msg
+    try:
+        raw = msgpack.unpackb(payload, raw=False, strict_map_key=True)
+    except Exception as e:  # msgpack raises a zoo of types on garbage
+        raise MalformedMessage("msgpack", f"{type(e).__name__}: {e}") from None
+    try:
+        validate(raw)
+    except fastjsonschema.JsonSchemaException as e:
+        raise MalformedMessage("schema", e.message) from None
+    return convert(raw)
+
+
+def header(seq: int, frame_id: str = "camera", stamp_ns: int | None = None) -> dict:
+    """The header every message starts with (DESIGN.md): capture stamp, sequence, frame id."""
+    return {"stamp_ns": time.time_ns() if stamp_ns is None else int(stamp_ns), "seq": int(seq),
+            "frame_id": frame_id}

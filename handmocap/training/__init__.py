@@ -1,0 +1,1 @@
+"""Training and evaluation: networks, trainers, quantizers, data, the synthetic engine, evaluation."""

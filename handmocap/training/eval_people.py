@@ -1,0 +1,131 @@
+"""The detector on people the project never trained on (`handeval people`).
+
+The held-back people are named in real_data (WILD_HELD_BACK: one clip each of video/wild,
+tracked as a video; ELEVEN_K_HELD_BACK: 37 people's 11K Hands photos, each on its own with
+the photo settings). Their labels are MediaPipe's (pseudo-labels, not ground truth), so
+these figures say how close the pipeline comes to MediaPipe on strangers:
+
+* found: of MediaPipe's hands (one of two overlapping detections of one hand dropped), the
+  share that an output hand lies on (its joints' centre within half the hand's size);
+* false hands per frame: output hands on none of MediaPipe's hands;
+* error: mean joint distance / hand size (the side of the joints' box), over the found
+  hands whose label passes real_data.reliable_hands; median and mean, and PCK at 0.1 of the
+  hand's size (share of joints);
+* side: output handedness against the label (the clips: MediaPipe's, the hand as it
+  appears; the photos: the person's hand from HandInfo.csv), and the mean error of the
+  hands read as the wrong side against the others'.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from handmocap.training import real_data
+
+PCK_AT = 0.1                                   # PCK threshold, share of the hand's size
+CURVE = np.linspace(0.0, 0.3, 31)              # thresholds of the PCK plot
+
+
+def frames_of_clip(video):
+    """(BGR frame, MediaPipe hands (k,21,2), reliable (k,) bool, sides [k]) per frame of a
+    clip: every hand MediaPipe found, one of two overlapping detections dropped."""
+    lab = real_data.load_pseudo_labels(video)
+    reliable, twice = real_data.reliable_hands(lab), real_data.found_twice(lab)
+    for f, rgb in real_data.read_video(video):
+        if f >= len(lab["found"]):
+            break
+        slots = list(np.flatnonzero(lab["found"][f]))[:1 if twice[f] else 2]
+        yield (np.ascontiguousarray(rgb[..., ::-1]), lab["uv"][f, slots], reliable[f, slots],
+               ["right" if lab["handedness"][f, s] == 0 else "left" for s in slots])
+
+
+def frames_of_photos(samples):
+    """The same tuples for real_data samples (one reliable hand each)."""
+    for s in samples:
+        yield (np.ascontiguousarray(s["image"][..., ::-1]), s["uv"][None], np.ones(1, bool), [s["handedness"]])
+
+
+def score_frames(detector, frames, stills=False):
+    """Run `detector` over `frames` (frames_of_*): a dict of counts and per-hand arrays
+    (err: mean joint error / hand size, joint_err (n,21) / hand size, right_side bool)."""
+    detector.reset()
+    out = {"frames": 0, "labelled": 0, "found": 0, "false": 0, "err": [], "joint_err": [], "right_side": []}
+    for image, hands, reliable, sides in frames:
+        if stills:
+            detector.reset()
+        out["frames"] += 1
+        out["labelled"] += len(hands)
+        hit = set()
+        for h in detector.process(image):
+            centre = h["uv"].mean(0)
+            dist = [np.linalg.norm(centre - uv.mean(0)) / real_data.hand_size(uv) for uv in hands]
+            k = int(np.argmin(dist)) if dist else -1
+            if k < 0 or dist[k] >= 0.5:
+                out["false"] += 1
+                continue
+            hit.add(k)
+            if reliable[k]:
+                size = real_data.hand_size(hands[k])
+                joint = np.linalg.norm(h["uv"] - hands[k], axis=-1) / size
+                out["err"].append(joint.mean())
+                out["joint_err"].append(joint)
+                out["right_side"].append(h["handedness"] == sides[k])
+        out["found"] += len(hit)
+    for k in ("err", "right_side"):
+        out[k] = np.asarray(out[k])
+    out["joint_err"] = np.asarray(out["joint_err"]).reshape(-1, 21)
+    return out
+
+
+def summary(s):
+    """Figures of one score_frames result (or of several merged)."""
+    err, right = s["err"], s["right_side"].astype(bool)
+    n = len(err)
+    return {"frames": s["frames"], "labelled": s["labelled"], "found": s["found"] / max(s["labelled"], 1),
+            "false_per_frame": s["false"] / max(s["frames"], 1), "scored": n,
+            "median_err": float(np.median(err)) if n else np.nan, "mean_err": float(err.mean()) if n else np.nan,
+            "pck": float((s["joint_err"] <= PCK_AT).mean()) if n else np.nan,
+            "side": float(right.mean()) if n else np.nan,
+            "wrong_side_ratio": float(err[~right].mean() / err[right].mean()) if (~right).any() and right.any()
+            else np.nan,
+            "curve": [float((s["joint_err"] <= t).mean()) if n else 0.0 for t in CURVE]}
+
+
+def merge(results):
+    """One score_frames-like dict of several."""
+    return {"frames": sum(r["frames"] for r in results), "labelled": sum(r["labelled"] for r in results),
+            "found": sum(r["found"] for r in results), "false": sum(r["false"] for r in results),
+            "err": np.concatenate([r["err"] for r in results]),
+            "joint_err": np.concatenate([r["joint_err"] for r in results]),
+            "right_side": np.concatenate([r["right_side"] for r in results])}
+
+
+def row(name, m):
+    f = lambda x, spec=".3f": "–" if not np.isfinite(x) else format(x, spec)  # noqa: E731
+    return (f"| {name} | {m['frames']} | {m['labelled']} | {100 * m['found']:.1f} | {m['false_per_frame']:.3f} | "
+            f"{f(m['median_err'])} | {f(m['mean_err'])} | {f(m['pck'])} | {f(100 * m['side'], '.1f')} | "
+            f"{f(m['wrong_side_ratio'], '.2f')} |")
+
+
+HEAD = ("| held-back set | frames | MediaPipe's hands | found % | false hands / frame | error / hand size, median | "
+        "mean | PCK@0.1 | side right % | wrong-side error ratio |\n|---|---|---|---|---|---|---|---|---|---|")
+
+
+def run(shared, models=None, per_clip=True, log=print):
+    """Score the detector (HandDetector.load keywords `models`: detnet_path, finder_path and
+    settings) on every held-back person; -> (markdown table, {set: summary})."""
+    from handmocap.perception.detector import PHOTO_SETTINGS, HandDetector
+    models = dict(models or {})
+    video_det = HandDetector.load(**models)
+    photo_det = HandDetector.load(**{**PHOTO_SETTINGS, **models})
+    rows, clips = [HEAD], []
+    for video in real_data.wild_clips(shared, held_back=True):
+        clips.append(score_frames(video_det, frames_of_clip(video)))
+        if per_clip:
+            rows.append(row(video.stem, summary(clips[-1])))
+        log(f"  {video.stem}: {summary(clips[-1])['found']:.1%} found")
+    photos = score_frames(photo_det, frames_of_photos(real_data.load_11khands(shared, held_back=True)), stills=True)
+    results = {"wild clips (9 people, tracked)": summary(merge(clips)),
+               "11K Hands photos (37 people, stills)": summary(photos)}
+    results["all held-back people"] = summary(merge(clips + [photos]))
+    rows += [row(f"**{k}**", v) for k, v in results.items()]
+    return "\n".join(rows), results

@@ -1,0 +1,476 @@
+"""Train the hand finder on CPU and export it to models/finder.onnx (`handtrain finder`).
+
+    handsynth generate -n 6000 -o /tmp/finder/synth --frames --size 160 --second-hand 0.3
+    handtrain finder --synth /tmp/finder/synth            # from scratch (runs/finder/ replaced)
+    handtrain finder --synth /tmp/finder/synth --resume   # continue runs/finder/last.pt
+    handtrain finder --export-only
+    handtrain finder --val-only --run-dir runs/finder_v2   # a run's last.pt on the held-out sets
+    handtrain finder --val-only --onnx models/finder.onnx  # an exported finder on them
+(the shipped finder's full command is in docs/models_history.md)
+
+Data (each batch half real, half synthetic):
+* real frames of shared/data/video (webcam, dex_retargeting, tfjs_asl_hand; every n-th
+  frame where MediaPipe found a hand, the first 85% of each clip, or all of it with
+  `--real-part all`; with `--wild` also every n-th frame of the video/wild clips of the
+  people not held back) with the boxes of MediaPipe's 2D pseudo-labels, and howiema_lstm_pm
+  subject 001 (human labels) but for sequences L8 and R8; VAL_VIDEOS, the clips' last 15%
+  and L8/R8 are held out for validation; temugeb_stereo and howiema 040 (evaluation) are
+  never read;
+* synthetic whole frames (handmocap.training.synth, `--frames`) of one or more `--synth` folders,
+  both hands' joint boxes; the first folder's last shard is held out;
+* 10% hand-free real background crops (the synth engine's cache, held-out videos excluded).
+Augmentation: random zoom/shift of the letterboxed frame, horizontal flip (handedness
+flips with it), a quarter, half or three-quarter turn for half the frames (`--rot90`; the
+real videos show upright hands only), brightness/contrast, grey for a share of the frames
+(`--grey`; every real training frame is in colour, and a finder trained without grey found
+a quarter of the held-out hands in grey). Losses (CenterNet): focal loss on the centre
+heatmap, L1 on offset and log size, BCE on handedness at the centre cells.
+Validation: recall of hands (a peak whose box has IoU >= 0.3 with the true box) and false
+peaks per frame at the default threshold, every --val-every iterations, on each held-out
+set and on the real ones turned (`*_turned`) and in grey (`*_grey`); val_history.jsonl in
+the run folder.
+"""
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from handmocap.training import real_data
+from handmocap.perception.hand_finder import BORDER_VALUE, GRID, INPUT_SIZE, STRIDE, box_iou, decode, greyed, letterbox, square
+from handmocap.training.training import warmup_cosine_lr
+
+RUN_DIR = Path("runs/finder")
+DEFAULT_EXPORT = Path(__file__).resolve().parents[2] / "models" / "finder.onnx"
+SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+TRAIN_VIDEOS = ("webcam/huytung228_1hand", "webcam/huytung228_hand", "webcam/huytung228_volctl",
+                "webcam/lujunwang_hand", "webcam/lujunwang_hand2", "webcam/sushensanthush_hand",
+                "dex_retargeting/human_hand_video", "tfjs_asl_hand/asl_hand.25fps")
+VAL_VIDEOS = ("webcam/alimostafa_hand",)
+REAL_SIZE = 224          # real frames are cached letterboxed at this size, zoomed at training
+MIN_SIDE_PX = 5.0        # hands smaller than this (input px) are not targets
+
+
+def add_arguments(p):
+    p.add_argument("--synth", type=Path, nargs="+", default=[Path("/tmp/finder/synth")],
+                   help="handsynth generate --frames --size 160 output folders (default %(default)s)")
+    p.add_argument("--data", type=Path, default=SHARED_DATA, help="real data pack (default %(default)s)")
+    p.add_argument("--iters", type=int, default=1500)
+    p.add_argument("--real-stride", type=int, default=2, help="every n-th frame of the real videos (default %(default)s)")
+    p.add_argument("--real-zoom", type=float, nargs=2, default=(0.5, 1.0),
+                   help="window side / frame side of real frames: < 1 zooms in, > 1 shrinks the hand onto a grey "
+                        "border (default %(default)s)")
+    p.add_argument("--rot90", type=float, default=0.5,
+                   help="share of training frames turned by a quarter, half or three-quarter turn (default %(default)s)")
+    p.add_argument("--grey", type=float, default=0.0,
+                   help="share of training frames shown in grey (a mono or IR camera; default %(default)s)")
+    p.add_argument("--batch", type=int, default=32)
+    p.add_argument("--lr", type=float, default=3e-3, help="AdamW, cosine decay to lr/50")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ckpt-every", type=int, default=200)
+    p.add_argument("--run-dir", type=Path, default=RUN_DIR)
+    p.add_argument("--export", type=Path, default=None,
+                   help=f"ONNX output (default RUN_DIR/finder.onnx: the shipped {DEFAULT_EXPORT.name} is replaced "
+                        f"only when you name it)")
+    p.add_argument("--real-part", choices=("train", "all"), default="train",
+                   help="frames of the training videos: the first 85%% (the tails validate) or all of them "
+                        "(default %(default)s)")
+    p.add_argument("--wild", action="store_true",
+                   help="also train on the clips of video/wild (the pack's second drop) but the held-back "
+                        "people's (real_data.WILD_HELD_BACK), which validate as `people`")
+    p.add_argument("--val-every", type=int, default=1000, help="validate every n iterations (default %(default)s)")
+    p.add_argument("--resume", action="store_true")
+    p.add_argument("--export-only", action="store_true")
+    p.add_argument("--val-only", action="store_true", help="validate RUN_DIR/last.pt on the held-out sets and stop")
+    p.add_argument("--onnx", type=Path, help="with --val-only: validate this exported finder instead")
+
+
+# ----------------------------------------------------------------------------- data
+def joint_box(uv):
+    """(..., 21, 2) -> (..., 4) x0 y0 x1 y1 of the joints."""
+    return np.concatenate([uv.min(-2), uv.max(-2)], -1)
+
+
+def load_real_frames(data_dir, videos, stride=2, size=REAL_SIZE, part="all"):
+    """Letterboxed RGB frames (N,size,size,3) of the videos (stems under video/ of .mp4
+    files, or paths) where MediaPipe found a hand, their boxes (N,2,4) input px (NaN: none)
+    and right-hand flags (N,2) (as MediaPipe labels the hand as it appears). part: "all"
+    frames, or of real_data.video_split "train" (the first 85%) or "tail" (the held-out last
+    15%)."""
+    images, boxes, right = [], [], []
+    for stem in videos:
+        video = stem if isinstance(stem, Path) else data_dir / "video" / f"{stem}.mp4"
+        labels = real_data.load_pseudo_labels(video)
+        n = len(labels["found"])
+        keep = dict(zip(("train", "tail"), real_data.video_split(n))).get(part, np.ones(n, bool))
+        cap = cv2.VideoCapture(str(video))
+        i = 0
+        while True:
+            ok, frame = cap.read()
+            if not ok or i >= n:
+                break
+            found = labels["found"][i]
+            if i % stride == 0 and found.any() and keep[i]:
+                boxed, lb = letterbox(frame, size)
+                b = np.full((2, 4), np.nan)
+                b[found] = joint_box(lb.to_input(labels["uv"][i][found]))
+                images.append(boxed[..., ::-1])
+                boxes.append(b)
+                right.append(labels["handedness"][i] == 0)
+            i += 1
+        cap.release()
+    return np.stack(images), np.stack(boxes), np.stack(right)
+
+
+def load_howiema_frames(data_dir, held_out, size=REAL_SIZE):
+    """howiema_lstm_pm subject 001 (256x256 webcam frames, human 2D labels), letterboxed:
+    the sequences of real_data.HOWIEMA_HELD_OUT if held_out, else the others. Returns
+    images (N,size,size,3) RGB, boxes (N,2,4) input px, right (N,2)."""
+    images, boxes, right = [], [], []
+    for s in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, data_dir):
+        if (s["name"].split("/")[1] in real_data.HOWIEMA_HELD_OUT) != held_out:
+            continue
+        boxed, lb = letterbox(s["image"], size)
+        b = np.full((2, 4), np.nan)
+        b[0] = joint_box(lb.to_input(s["uv"]))
+        images.append(boxed)
+        boxes.append(b)
+        right.append([s["handedness"] == "right", False])
+    return np.stack(images), np.stack(boxes), np.stack(right)
+
+
+def background_crops(repo_root, exclude=VAL_VIDEOS):
+    """The synth engine's hand-free real crops (M,160,160,3) RGB, minus those of `exclude`."""
+    cache = repo_root / ".cache" / "synth"
+    if not (cache / "backgrounds_v1.npy").is_file():
+        return np.zeros((0, INPUT_SIZE, INPUT_SIZE, 3), np.uint8)
+    crops = np.load(cache / "backgrounds_v1.npy")
+    meta = json.loads((cache / "backgrounds_v1.json").read_text())
+    keep, start = [], 0
+    for src in meta["sources"]:
+        if not any(v in src["video"] for v in exclude):
+            keep.extend(range(start, start + src["crops"]))
+        start += src["crops"]
+    return crops[keep]
+
+
+def shard_count(root):
+    """Number of shards in a handsynth output folder (SystemExit naming the folder and the
+    command that makes it when it holds none)."""
+    meta = Path(root) / "meta.json"
+    if not meta.is_file():
+        raise SystemExit(f"handtrain finder: no synthetic frames in {root} (no meta.json); make them with "
+                         f"`handsynth generate -n 6000 -o {root} --frames --size 160 --second-hand 0.3 --seed 11` "
+                         f"or pass --synth DIR")
+    return len(json.loads(meta.read_text())["shards"])
+
+
+def load_synth(root, shards):
+    """Synthetic frames of the given shards: images (N,S,S,3) RGB, boxes (N,2,4), right (N,2)."""
+    meta = json.loads((root / "meta.json").read_text())
+    images, boxes, right = [], [], []
+    for k in shards:
+        with np.load(root / meta["shards"][k]) as d:
+            n = len(d["image"])
+            b = np.full((n, 2, 4), np.nan)
+            b[:, 0] = joint_box(d["uv"])
+            b[d["other_present"], 1] = joint_box(d["other_uv"][d["other_present"]])
+            images.append(d["image"])
+            boxes.append(b)
+            right.append(np.stack([d["handedness"] == 0, d["other_handedness"] == 0], 1))
+    return np.concatenate(images), np.concatenate(boxes), np.concatenate(right)
+
+
+def rotate90(image, boxes, k):
+    """A square image (S,S,...) turned k quarter turns counter-clockwise (np.rot90) and its
+    boxes (M,4) x0 y0 x1 y1 px with it: a point (x, y) goes to (y, S-1-x) per turn, so a box
+    stays an exact box. Handedness does not change (a turn is no mirror)."""
+    s = image.shape[0]
+    for _ in range(k % 4):
+        boxes = np.stack([boxes[:, 1], s - 1 - boxes[:, 2], boxes[:, 3], s - 1 - boxes[:, 0]], 1)
+    return np.ascontiguousarray(np.rot90(image, k)), boxes
+
+
+def augment(rng, image, boxes, right, zoom=(0.55, 1.0), rot90=0.0, grey=0.0):
+    """Random zoom window of a square image into INPUT_SIZE, flip, a quarter, half or
+    three-quarter turn with probability `rot90` (the real videos show upright hands; a camera
+    above a desk, or a hand hanging down, shows them turned), photometric jitter, and grey
+    with probability `grey` (every real training frame is in colour; a mono camera is not).
+    boxes (2,4) in image px (NaN rows: none). Returns image, boxes, right in input px."""
+    s = image.shape[0]
+    side = s * rng.uniform(*zoom)
+    x0, y0 = rng.uniform(min(0, s - side), max(0, s - side), 2)
+    a = INPUT_SIZE / side
+    M = np.array([[a, 0, -a * x0], [0, a, -a * y0]])
+    out = cv2.warpAffine(image, M, (INPUT_SIZE, INPUT_SIZE), flags=cv2.INTER_AREA if a < 1 else cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=(BORDER_VALUE,) * 3)
+    b = boxes * a - np.array([a * x0, a * y0, a * x0, a * y0])
+    right = right.copy()
+    if rng.random() < 0.5:
+        out = out[:, ::-1]
+        b = np.stack([INPUT_SIZE - 1 - b[:, 2], b[:, 1], INPUT_SIZE - 1 - b[:, 0], b[:, 3]], 1)
+        right = ~right
+    if rng.random() < rot90:
+        out, b = rotate90(out, b, int(rng.integers(1, 4)))
+    gain, bias = rng.uniform(0.6, 1.4), rng.uniform(-30, 30)
+    out = np.clip(out.astype(np.float32) * gain + bias, 0, 255).astype(np.uint8)
+    if grey and rng.random() < grey:
+        out = greyed(out)
+    return out, b, right
+
+
+def targets(boxes, right):
+    """Target maps of one image: heat (G,G), reg (4,G,G) offset x, offset y, log side,
+    right flag, and the mask (G,G) of centre cells."""
+    heat = np.zeros((GRID, GRID), np.float32)
+    reg = np.zeros((4, GRID, GRID), np.float32)
+    mask = np.zeros((GRID, GRID), np.float32)
+    gy, gx = np.mgrid[0:GRID, 0:GRID]
+    for box, r in zip(boxes, right):
+        if not np.all(np.isfinite(box)):
+            continue
+        cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+        side = max(box[2] - box[0], box[3] - box[1])
+        if side < MIN_SIDE_PX or not (0 <= cx < INPUT_SIZE - 0.5 and 0 <= cy < INPUT_SIZE - 0.5):
+            continue
+        fx, fy = (cx + 0.5) / STRIDE, (cy + 0.5) / STRIDE
+        ix, iy = int(fx), int(fy)
+        sigma = max(0.6, 0.12 * side / STRIDE)
+        heat = np.maximum(heat, np.exp(-((gx - ix) ** 2 + (gy - iy) ** 2) / (2 * sigma ** 2)))
+        reg[:, iy, ix] = (fx - ix, fy - iy, np.log(side / INPUT_SIZE), float(r))
+        mask[iy, ix] = 1.0
+    return heat, reg, mask
+
+
+class Batches:
+    """Training batches from real frames, synthetic frames and background crops."""
+
+    def __init__(self, real, synth, negatives, real_zoom=(0.5, 1.0), rot90=0.0, grey=0.0):
+        self.real, self.synth, self.negatives = real, synth, negatives
+        self.real_zoom = tuple(real_zoom)
+        self.rot90, self.grey = rot90, grey
+
+    def make(self, rng, n):
+        images, heats, regs, masks = [], [], [], []
+        n_neg = int(0.1 * n) if len(self.negatives) else 0
+        n_real = (n - n_neg) // 2 if len(self.real[0]) else 0
+        none = (np.full((2, 4), np.nan), np.zeros(2, bool))
+        picks = ([(self.real, i) for i in rng.integers(len(self.real[0]), size=n_real)] if n_real else []) + \
+                [(self.synth, i) for i in rng.integers(len(self.synth[0]), size=n - n_neg - n_real)] + \
+                [(None, i) for i in rng.integers(max(len(self.negatives), 1), size=n_neg)]
+        for source, i in picks:
+            if source is None:
+                img, b, r = augment(rng, self.negatives[i], *none, zoom=(0.6, 1.0), grey=self.grey)
+            else:
+                zoom = self.real_zoom if source is self.real else (0.8, 1.0)
+                img, b, r = augment(rng, source[0][i], source[1][i], source[2][i], zoom, self.rot90, self.grey)
+            h, g, m = targets(b, r)
+            images.append(img)
+            heats.append(h)
+            regs.append(g)
+            masks.append(m)
+        x = np.stack(images).transpose(0, 3, 1, 2).astype(np.float32) / 255.0
+        return x, np.stack(heats), np.stack(regs), np.stack(masks)
+
+
+# ----------------------------------------------------------------------------- model
+def build_model():
+    import torch
+    from torch import nn
+
+    def conv(cin, cout, stride=1, dilation=1):
+        return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, dilation, dilation, bias=False),
+                             nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+    class FinderNet(nn.Module):
+        """160 px RGB -> (5, 20, 20) maps (see hand_finder): 4 stride-2 stages, a 10x10
+        context branch added back at 20x20, a 3x3 + 1x1 head. About 40 M multiply-adds."""
+
+        def __init__(self):
+            super().__init__()
+            self.stem = nn.Sequential(conv(3, 16, 2), conv(16, 24, 2))                          # 40
+            self.s8 = nn.Sequential(conv(24, 48, 2), conv(48, 48), conv(48, 48, dilation=2))    # 20
+            self.s16 = nn.Sequential(conv(48, 64, 2), conv(64, 64), nn.Conv2d(64, 48, 1))       # 10
+            self.up = nn.Upsample(scale_factor=2, mode="nearest")
+            self.head = nn.Sequential(conv(48, 48), nn.Conv2d(48, 5, 1))
+            with torch.no_grad():
+                self.head[-1].bias.zero_()
+                self.head[-1].bias[0] = -4.0    # start with a low hand prior
+
+        def forward(self, image):
+            f8 = self.s8(self.stem(image))
+            return self.head(torch.relu(f8 + self.up(self.s16(f8))))
+
+    return FinderNet()
+
+
+def losses(out, heat, reg, mask):
+    """CenterNet focal loss + masked L1 (offset, log size) + BCE (handedness)."""
+    import torch
+    import torch.nn.functional as F
+    p = torch.sigmoid(out[:, 0]).clamp(1e-4, 1 - 1e-4)
+    pos = (heat > 0.999).float()
+    focal = -(pos * (1 - p) ** 2 * torch.log(p) + (1 - pos) * (1 - heat) ** 4 * p ** 2 * torch.log(1 - p))
+    n = mask.sum().clamp(min=1.0)
+    l_heat = focal.sum() / n
+    l_off = (F.l1_loss(out[:, 1:3], reg[:, 0:2], reduction="none").sum(1) * mask).sum() / n
+    l_size = (F.l1_loss(out[:, 3], reg[:, 2], reduction="none") * mask).sum() / n
+    l_hand = (F.binary_cross_entropy_with_logits(out[:, 4], reg[:, 3], reduction="none") * mask).sum() / n
+    return l_heat + l_off + l_size + 0.5 * l_hand, {"heat": l_heat.item(), "off": l_off.item(),
+                                                     "size": l_size.item(), "hand": l_hand.item()}
+
+
+def torch_maps(model):
+    """The finder's maps function of a torch model: (N,3,S,S) float32 -> (N,5,G,G) numpy."""
+    import torch
+
+    def maps(x):
+        model.eval()
+        with torch.no_grad():
+            out = model(torch.from_numpy(x)).numpy()
+        model.train()
+        return out
+    return maps
+
+
+def onnx_maps(path):
+    """The same for an exported finder file (`--val-only --onnx`)."""
+    from handmocap.perception.onnx_models import open_session
+    session = open_session(path, "hand finder", "handtrain finder", threads=2)
+    return lambda x: session.run(None, {"image": x})[0]
+
+
+def evaluate(maps_of, images, boxes, right, threshold=0.3):
+    """Recall (IoU >= 0.3 with the square joint box: what the finder predicts), false
+    peaks per frame and handedness accuracy of found hands on letterboxed INPUT_SIZE
+    images with joint boxes (N,2,4) input px. maps_of: torch_maps or onnx_maps."""
+    hits = total = false = hand_ok = 0
+    for s in range(0, len(images), 64):
+        maps = maps_of(np.ascontiguousarray(images[s:s + 64].transpose(0, 3, 1, 2), dtype=np.float32) / 255)
+        for m, b, r in zip(maps, boxes[s:s + 64], right[s:s + 64]):
+            found = decode(m, threshold)
+            valid = np.all(np.isfinite(b), 1) & (np.max(b[:, 2:] - b[:, :2], 1) >= MIN_SIDE_PX)
+            b = square(b)
+            total += valid.sum()
+            used = set()
+            for box, _, pr in found:
+                iou = box_iou(box, b[valid])[0] if valid.any() else np.zeros(0)
+                j = int(np.argmax(iou)) if iou.size else -1
+                if j >= 0 and iou[j] >= 0.3 and j not in used:
+                    used.add(j)
+                    hits += 1
+                    hand_ok += (pr > 0.5) == r[valid][j]
+                else:
+                    false += 1
+    return {"recall": hits / max(total, 1), "false_per_frame": false / max(len(images), 1),
+            "handedness_acc": hand_ok / max(hits, 1), "hands": int(total), "frames": len(images)}
+
+
+def export(model, path):
+    import torch
+    model.eval()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.onnx.export(model, torch.zeros(1, 3, INPUT_SIZE, INPUT_SIZE), str(path), input_names=["image"],
+                      output_names=["maps"], dynamic_axes={"image": {0: "n"}, "maps": {0: "n"}}, opset_version=17,
+                      dynamo=False)
+    print(f"exported {path} ({path.stat().st_size / 1e3:.0f} kB)")
+
+
+def main(args):
+    if args.export is None:   # never the shipped model by default: a trial run must not replace it
+        args.export = args.run_dir / "finder.onnx"
+    import torch
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    model = build_model()
+    args.run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt = args.run_dir / "last.pt"
+    if args.export_only:
+        model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
+        export(model, args.export)
+        return
+    n_shards = shard_count(args.synth[0])
+    have_real = (args.data / "video").is_dir()
+    val_sets = {"synth": load_synth(args.synth[0], [n_shards - 1])}
+    if have_real:   # never trained on: a whole video, the tails of the training videos, 2 howiema sequences
+        val_sets["real"] = load_real_frames(args.data, VAL_VIDEOS, stride=1, size=INPUT_SIZE)
+        if args.real_part == "train":
+            val_sets["tails"] = load_real_frames(args.data, TRAIN_VIDEOS, stride=1, size=INPUT_SIZE, part="tail")
+        val_sets["howiema"] = load_howiema_frames(args.data, held_out=True, size=INPUT_SIZE)
+        if args.wild:   # people never trained on (real_data.WILD_HELD_BACK), every 2nd frame
+            val_sets["people"] = load_real_frames(args.data, real_data.wild_clips(args.data, held_back=True),
+                                                  stride=2, size=INPUT_SIZE)
+        # the same hands turned (a quarter turn each way and a half): upright hands only tell
+        # half the story for a camera above a desk or a hand that hangs down; and upright in
+        # grey (a mono or IR camera)
+        for name in [k for k in ("real", "tails", "howiema", "people") if k in val_sets]:
+            images, boxes, right = val_sets[name]
+            val_sets[f"{name}_turned"] = turned(images, boxes, right)
+            val_sets[f"{name}_grey"] = (greyed(images), boxes, right)
+    if args.val_only:
+        if args.onnx:
+            maps_of = onnx_maps(args.onnx)
+        else:
+            model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
+            maps_of = torch_maps(model)
+        print(json.dumps({name: evaluate(maps_of, *v) for name, v in val_sets.items()}, indent=1))
+        return
+    synth = concat(load_synth(args.synth[0], range(n_shards - 1)),
+                   *(load_synth(d, range(shard_count(d))) for d in args.synth[1:]))
+    if have_real:
+        real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, part=args.real_part),
+                      load_howiema_frames(args.data, held_out=False),
+                      *([load_real_frames(args.data, real_data.wild_clips(args.data), stride=args.real_stride)]
+                        if args.wild else []))
+    else:
+        real = (np.zeros((0,)), None, None)
+    negatives = background_crops(Path(__file__).resolve().parents[2])
+    print(f"synthetic {len(synth[0])} (+{len(val_sets['synth'][0])} val), real {len(real[0])}, "
+          f"negatives {len(negatives)}")
+    batches = Batches(real, synth, negatives, args.real_zoom, args.rot90, args.grey)
+    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
+    start = 0
+    if args.resume and ckpt.is_file():
+        state = torch.load(ckpt, weights_only=False)   # our own file
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["opt"])
+        start = state["iter"]
+    t0 = time.time()
+    for it in range(start, args.iters):
+        lr = warmup_cosine_lr(it, args.lr, args.iters, floor=1 / 50)
+        for g in opt.param_groups:
+            g["lr"] = float(lr)
+        x, heat, reg, mask = (torch.from_numpy(a) for a in batches.make(np.random.default_rng([args.seed, it]),
+                                                                        args.batch))
+        loss, parts = losses(model(x), heat, reg, mask)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if it % 25 == 0:
+            print(f"iter {it} loss {loss.item():.3f} " + " ".join(f"{k} {v:.3f}" for k, v in parts.items())
+                  + f" lr {lr:.2e} {(time.time() - t0) / (it - start + 1):.2f} s/it", flush=True)
+        if (it + 1) % args.ckpt_every == 0 or it + 1 == args.iters:
+            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "iter": it + 1}, ckpt)
+        if (it + 1) % args.val_every == 0 or it + 1 == args.iters:
+            results = {name: evaluate(torch_maps(model), *v) for name, v in val_sets.items()}
+            print(f"val {it + 1}: " + ", ".join(f"{k} recall {r['recall']:.3f} false {r['false_per_frame']:.2f}"
+                                                 for k, r in results.items()), flush=True)
+            with open(args.run_dir / "val_history.jsonl", "a") as f:
+                f.write(json.dumps({"iter": it + 1, **results}) + "\n")
+    print(json.dumps(results, indent=1))
+    (args.run_dir / "val.json").write_text(json.dumps(results, indent=1))
+    export(model, args.export)
+
+
+def turned(images, boxes, right):
+    """(images, boxes, right) with frame i turned (i % 3) + 1 quarter turns: each frame once,
+    in one of the three non-upright orientations."""
+    out = [rotate90(img, b, i % 3 + 1) for i, (img, b) in enumerate(zip(images, boxes))]
+    return np.stack([o[0] for o in out]), np.stack([o[1] for o in out]), right
+
+
+def concat(*sets):
+    """Concatenate (images, boxes, right) triples."""
+    return tuple(np.concatenate(parts) for parts in zip(*sets))

@@ -1,0 +1,43 @@
+"""The library's three wings (handmocap/runtime, perception, training): the runtime and the
+perception a user runs never import training (nor torch), and no two modules import each
+other."""
+import ast
+import subprocess
+import sys
+
+from conftest import ROOT
+
+RUNTIME_SIDE = [ROOT / "handmocap" / "runtime", ROOT / "handmocap" / "perception", ROOT / "nodes"]
+
+
+def imports_of(path):
+    """Every module a file imports (at any depth), as absolute dotted names."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module)
+            out.update(f"{node.module}.{a.name}" for a in node.names)
+    return out
+
+
+def test_the_runtime_and_perception_never_import_training():
+    offenders = {str(p.relative_to(ROOT)): sorted(m for m in imports_of(p) if m.startswith("handmocap.training"))
+                 for folder in RUNTIME_SIDE for p in folder.rglob("*.py")}
+    assert {k: v for k, v in offenders.items() if v} == {}
+    code = ("import importlib, pkgutil, sys, handmocap.runtime, handmocap.perception, handmocap.nodes\n"
+            "for pkg in (handmocap.runtime, handmocap.perception, handmocap.nodes):\n"
+            "    for m in pkgutil.iter_modules(pkg.__path__):\n"
+            "        importlib.import_module(f'{pkg.__name__}.{m.name}')\n"
+            "print(sorted(m for m in sys.modules if m == 'torch' or m.startswith('handmocap.training')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
+def test_no_two_modules_import_each_other():
+    files = {".".join(p.relative_to(ROOT).with_suffix("").parts): p for p in (ROOT / "handmocap").rglob("*.py")}
+    graph = {name: {m for m in imports_of(p) if m in files and m != name} for name, p in files.items()}
+    cycles = sorted({tuple(sorted((a, b))) for a, deps in graph.items() for b in deps if a in graph.get(b, ())})
+    assert cycles == []
