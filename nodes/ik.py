@@ -17,7 +17,7 @@ are), hand_length (metres, wrist crease to middle fingertip: the size of every h
 default, the adult average), clamp_to_limits, smooth, rot_min_cutoff Hz / rot_beta on
 quaternion components, root_min_cutoff Hz / root_beta on metres, d_cutoff Hz, reset_after_s.
 The filter defaults were chosen on the detector's output on real clips
-(scripts/tune_smoothing.py): lower cut-offs smooth more and lag more.
+(research/tune_smoothing.py): lower cut-offs smooth more and lag more.
 """
 from __future__ import annotations
 

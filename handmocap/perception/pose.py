@@ -43,7 +43,7 @@ from handmocap.perception.skeleton import DEFAULT_HAND_LENGTH_M, REF_BONE, ROOT
 from handmocap.perception.translation import camera_joints_from_keypoints, joints_through_keypoints, root_fitting_keypoints
 
 # Settings of PoseEstimator (the ik node's parameters): filter cut-offs in Hz (handmocap/perception/one_euro.py),
-# chosen on the detector's output on real clips by scripts/tune_smoothing.py (docs/models_history.md,
+# chosen on the detector's output on real clips by research/tune_smoothing.py (docs/models_history.md,
 # "Pose smoothing"): the root's min cut-off 0.5 Hz, first set on synthetic jitter, lagged
 # behind real motion (median 11 mm from the motion's zero-phase estimate, 6 mm unsmoothed); at
 # 2 Hz it is 7 mm with a jitter 7x below the unsmoothed output's. The rotations' were kept.

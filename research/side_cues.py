@@ -2,7 +2,7 @@
 (`handeval splits --work W`), with each hand cut around its label as the detector would cut
 it (a perfect finder and tracker): what the side decision could be built from.
 
-    python scripts/side_cues.py [--work /tmp/handeval] [--detnet F] [--finder F]
+    python research/side_cues.py [--work /tmp/handeval] [--detnet F] [--finder F]
 
 Cues (columns):
 - finder: the hand finder's right_prob of its found box nearest the labelled hand (share of

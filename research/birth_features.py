@@ -2,7 +2,7 @@
 training-side held-out clips (scripts/detector_thresholds.py's clips; evaluation splits
 never read).
 
-    python scripts/birth_features.py [--detnet F] [--out births.json]
+    python research/birth_features.py [--detnet F] [--out births.json]
 
 Runs the detector with birth_confidence 0 (every proposed hand is born) over the clips in
 order and as stills, and records for each birth: the mean heatmap peak on the finder's
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))   # detector_thresholds, a tool
 from detector_thresholds import clips, labels_near  # noqa: E402
 
 from handmocap.perception.detector import HandDetector  # noqa: E402

@@ -1,6 +1,6 @@
 """Choose the pose smoother's One Euro settings on the detector's real output.
 
-    python scripts/tune_smoothing.py [--shared ../shared/data] [--sigma 1 1.5 2]
+    python research/tune_smoothing.py [--shared ../shared/data] [--sigma 1 1.5 2]
 
 The filter defaults (handmocap.perception.pose.POSE_DEFAULTS) were first set on synthetic jitter. Here
 the detector and the shape estimate run once over the real clips of shared/data/video that

@@ -2,7 +2,7 @@
 cut around the label, and cut from a box like a finder's then refined once. This separates
 a network's keypoints from the detector's decisions (births, side, turns).
 
-    python scripts/finder_like_reads.py [F.onnx ...]      # default: the bundled int8 DetNet
+    python research/finder_like_reads.py [F.onnx ...]      # default: the bundled int8 DetNet
 
 The hands are every 4th frame of scripts/detector_thresholds.py's held-out clips (its
 stills; never the evaluation splits). Each is read (1) on the crop cut around its labelled
@@ -12,10 +12,13 @@ seed: the same boxes for every file), then again on the crop cut from that first
 heatmap peaks. Prints the mean and median 2D error over the hand's joint-box side.
 """
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 
-from detector_thresholds import clips
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))   # detector_thresholds, a tool
+from detector_thresholds import clips  # noqa: E402
 from handmocap.perception.detector import CropTransform, DetNetRunner, crop_for_joints
 from handmocap.training.pose_data import SHARED_DATA
 

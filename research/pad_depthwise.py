@@ -1,7 +1,7 @@
 """Pad the depthwise convs of exported DetNet files to multiples of 8 channels, in place
 (onnx_models.pad_depthwise_convs: the same function, faster on onnxruntime's CPU kernels).
 
-    python scripts/pad_depthwise.py models/detnet.onnx models/detnet_int8.onnx
+    python research/pad_depthwise.py models/detnet.onnx models/detnet_int8.onnx
 
 `handtrain detnet` exports padded files since session 16; this brings older ones up to date.
 A file already padded is left as it is. An int8 file made from a float file (its metadata

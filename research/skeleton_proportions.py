@@ -1,7 +1,7 @@
 """How far a 3D reference's skeleton is from the hand model's, and what that alone costs
 the 3D AUC.
 
-    python scripts/skeleton_proportions.py [--work /tmp/handeval] [--only temugeb_cam0 ...]
+    python research/skeleton_proportions.py [--work /tmp/handeval] [--only temugeb_cam0 ...]
 
 handeval's 3D score aligns a prediction to the reference by the root (joint 9) and the
 scale |j0 - j9| only, so a skeleton whose bones are proportioned differently from the

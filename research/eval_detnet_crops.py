@@ -1,7 +1,7 @@
 """DetNet alone on crops cut around the labelled hand, per prepared evaluation split
 (`handeval splits --work W`): what the 2D error would be with a perfect finder and tracker.
 
-    python scripts/eval_detnet_crops.py --work /tmp/handeval [--detnet int8|float32|F.onnx] [--upright-step 90|0|none]
+    python research/eval_detnet_crops.py --work /tmp/handeval [--detnet int8|float32|F.onnx] [--upright-step 90|0|none]
 
 Each labelled hand is cut the way the detector cuts a tracked hand (`crop_for_joints`: the
 square around its 21-joint box x CROP_SCALE, turned upright by the detector's

@@ -1,7 +1,7 @@
 """Small hands in large frames: how often the detector finds a hand that covers only a small
 part of the frame, and how large the finder's box is against the hand's.
 
-    python scripts/small_hands.py [--finder models/finder.onnx ...] [--shared ../shared/data]
+    python research/small_hands.py [--finder models/finder.onnx ...] [--shared ../shared/data]
 
 Frames: howiema 001 L8 and R8 (256 px, the sequences every model keeps out of training),
 each scaled so that its hand's joint box spans a given fraction of a 640x480 frame's

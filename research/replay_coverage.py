@@ -3,7 +3,7 @@ show a hand (MediaPipe's pseudo-labels found one) for which the bag holds a /han
 at least one hand. Frames and poses are matched by stamp (each /hand/pose carries its
 frame's capture stamp).
 
-    python scripts/replay_coverage.py [CLIP.mp4 ...]     # default: every clip of shared/data/video/webcam
+    python research/replay_coverage.py [CLIP.mp4 ...]     # default: every clip of shared/data/video/webcam
 
 Needs the clip's `<clip>.mediapipe.npz` beside it (the data pack's pseudo-labels). The bags
 go to a temporary folder (`--keep DIR` keeps them).

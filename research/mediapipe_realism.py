@@ -5,9 +5,9 @@ Run with a throwaway environment that has MediaPipe (never a project dependency)
     python3.11 -m venv /tmp/mpenv
     /tmp/mpenv/bin/pip install mediapipe==0.10.21 opencv-python-headless numpy
     handsynth generate -n 500 -o /tmp/synth_crops
-    /tmp/mpenv/bin/python scripts/mediapipe_realism.py /tmp/synth_crops [--upscale 256] [-n 500] [--pad 0.5]
+    /tmp/mpenv/bin/python research/mediapipe_realism.py /tmp/synth_crops [--upscale 256] [-n 500] [--pad 0.5]
     # the same measure on real webcam hands framed the same way (the reference):
-    /tmp/mpenv/bin/python scripts/mediapipe_realism.py --real shared/data/labelled2d/howiema_lstm_pm
+    /tmp/mpenv/bin/python research/mediapipe_realism.py --real shared/data/labelled2d/howiema_lstm_pm
 
 Reads the .npz shards directly (numpy only, no handmocap import). For each image it runs
 mediapipe.solutions.hands (static images, up to 2 hands, detection confidence 0.5) on the

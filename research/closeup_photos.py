@@ -2,8 +2,8 @@
 the detector finds in photo mode with and without the centre-square fallback.
 
     handsynth generate -n 1024 -o runs/detnet_data/synth_val --seed 424242   # held-out shard
-    python scripts/closeup_photos.py [--val runs/detnet_data/synth_val] [-n 300] [--size 256]
-    python scripts/closeup_photos.py --real [--size 224]      # real close-ups, training-side held-out
+    python research/closeup_photos.py [--val runs/detnet_data/synth_val] [-n 300] [--size 256]
+    python research/closeup_photos.py --real [--size 224]      # real close-ups, training-side held-out
 
 Each photo is one held-out synthetic DetNet crop (128 px, never trained on) scaled up to
 `--size` px; with --real, a square cut around a labelled hand of every other frame of

@@ -1,7 +1,7 @@
 """The pose stage's 3D on training-side data: DetNet's joints, their x, y moved onto the 2D
 (`xy_from_keypoints`), and the pipeline's posed joints (IKNet + limits clamp + FK).
 
-    python scripts/pose_stage_vs_world.py [--synthetic runs/detnet_data/synth_val] [--clips]
+    python research/pose_stage_vs_world.py [--synthetic runs/detnet_data/synth_val] [--clips]
                                           [--limits]
 
 --synthetic DIR: held-out rendered crops (a `handsynth generate` folder DetNet did not train

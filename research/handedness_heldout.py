@@ -1,7 +1,7 @@
 """DetNet's handedness head on the training side's held-out real crops: alone, on the crop
 flipped, and with the detector's mirror vote (both readings averaged in logit space).
 
-    python scripts/handedness_heldout.py [--detnet int8|float32|F.onnx] [--shared ../shared/data]
+    python research/handedness_heldout.py [--detnet int8|float32|F.onnx] [--shared ../shared/data]
 
 The crops are those train_detnet keeps out of training (the real cache's `held` hands: the
 last 15% of every training video, howiema 001 L8/R8), cut as the detector cuts a tracked
