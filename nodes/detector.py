@@ -44,17 +44,16 @@ box's crop is at least the track's running peak minus this; null = always), crop
 """
 from __future__ import annotations
 
-import inspect
 from typing import Callable
 
 import numpy as np
 
-from handmocap.perception.detector import CROP, DETNET_GREY, HandDetector, detnet_path
+from handmocap.perception.detector import CROP, DETNET_GREY, DetectorSettings, HandDetector, detnet_path
 from handmocap.runtime.frames import frame_bgr
 from handmocap.perception.hand_finder import DEFAULT_PATH as FINDER_PATH, GREY_PATH as GREY_FINDER_PATH
 from handmocap.runtime.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
 
-# HandDetector's settings, with its own defaults (one place for them: the class)
+# HandDetector's settings a launch file may set, with their defaults (one place: DetectorSettings)
 TUNABLE = ("max_hands", "finder_threshold", "presence_threshold", "min_confidence", "birth_confidence",
            "unborn_retry", "evict_margin", "opposite_hands", "upright_step", "finder_handedness", "mirror_vote_every",
            "redetect_every", "reseed_iou", "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops",
@@ -62,9 +61,9 @@ TUNABLE = ("max_hands", "finder_threshold", "presence_threshold", "min_confidenc
 # the settings that null turns off (HandDetector takes None for them); null for any other is an error
 NULLABLE = {"evict_margin", "opposite_hands", "upright_step", "mirror_vote_every", "test_time_crops", "reseed_margin",
             "tracked_test_time_crops", "second_look", "handedness"}
-_DEFAULTS = inspect.signature(HandDetector).parameters
+_DEFAULTS = DetectorSettings()
 PARAMS = {"detnet": None, "finder": None, "grey_finder": None, "grey_detnet": None, "threads": 1,
-          **{k: _DEFAULTS[k].default for k in TUNABLE}, "every_frame": False}
+          **{k: getattr(_DEFAULTS, k) for k in TUNABLE}, "every_frame": False}
 
 
 def setting(name: str, value):

@@ -16,15 +16,14 @@ flipped, averaged in logit space) and the 2D error when the crop is mirrored the
 """
 import argparse
 import glob
-import inspect
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from handmocap.perception.detector import DetNetRunner, HandDetector, crop_for_joints, logit
+from handmocap.perception.detector import DetectorSettings, DetNetRunner, crop_for_joints, logit
 
-UPRIGHT_STEP = inspect.signature(HandDetector).parameters["upright_step"].default
+UPRIGHT_STEP = DetectorSettings().upright_step
 
 
 def evaluate(detnet, split_dir, upright_step=UPRIGHT_STEP):

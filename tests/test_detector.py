@@ -873,3 +873,24 @@ def test_detector_node_params_take_null_and_booleans_as_the_class_does():
     assert setting("handedness", "right") == "right" and setting("handedness", None) is None
     with pytest.raises(ValueError, match="handedness"):
         setting("handedness", "Rigth")
+
+
+def test_one_settings_dataclass_for_the_detector_the_node_and_handeval():
+    """DetectorSettings is where HandDetector's settings and defaults live: the detector node's
+    params and `handeval --set` read it (no signature introspection), and a misspelt setting
+    is a TypeError naming it."""
+    import dataclasses
+
+    from handmocap.nodes import detector as node
+    from handmocap.perception.detector import DetectorSettings, HandDetector
+    from handmocap.training.eval_cli import detector_settings
+    defaults = DetectorSettings()
+    assert all(node.PARAMS[k] == getattr(defaults, k) for k in node.TUNABLE)
+    assert detector_settings(["second_look=0.2", "handedness=left"]) == {"second_look": 0.2, "handedness": "left"}
+    with pytest.raises(ValueError, match="KEY one of"):
+        detector_settings(["secnd_look=0.2"])
+    d = HandDetector(None, settings=DetectorSettings(max_hands=1), upright_step=None)
+    assert (d.max_hands, d.upright_step, d.settings.redetect_every) == (1, None, defaults.redetect_every)
+    with pytest.raises(TypeError, match="no setting max_hand"):
+        HandDetector(None, max_hand=1)
+    assert {f.name for f in dataclasses.fields(DetectorSettings)} >= set(node.TUNABLE)

@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import math
 import warnings
+import dataclasses
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -336,6 +337,39 @@ class Track:
         self.samples = min(self.samples + weight, self.memory)
 
 
+@dataclass(frozen=True)
+class DetectorSettings:
+    """Every setting of a HandDetector, with its default: the one place the detector node's
+    params, `handeval --set` and the scripts read them from. What each does is said where
+    HandDetector.__init__ stores it; in short:"""
+    max_hands: int = 2                  # hands tracked at most
+    presence_threshold: float = 0.5     # below it (presence head) a track is lost
+    redetect_every: int = 10            # frames between finder runs while a slot is free
+    crop_scale: float = CROP_SCALE      # crop side / joint-box side
+    finder_threshold: float = 0.3       # the finder's score a box needs to be proposed
+    min_confidence: float = 0.1         # below this mean heatmap peak a track is lost
+    reseed_iou: float = 0.3             # a found box overlapping a track less than this re-seeds it (0: never)
+    birth_confidence: float = 0.3       # mean heatmap peak a found hand needs to become a track (0: photos)
+    match_iou: float = 0.3              # a found box is a track's own hand from this overlap on
+    candidates: int = 0                 # the finder's best boxes considered (0: max_hands)
+    refine_passes: int = 1              # DetNet passes on a new track's re-cut crop
+    duplicate_joints: float = 0.0       # overlapping tracks are one hand if their joints agree this well
+    unborn_retry: int = 3               # frames until the finder looks again after a refused hand
+    evict_margin: float | None = 0.2    # a found hand this much surer replaces the least sure track (None: never)
+    centre_confidence: float = 0.3      # heatmap peak a centre-square track needs
+    opposite_hands: float | None = 0.4  # two tracks this sure are a left and a right hand (None: off)
+    upright_step: float | None = 90.0   # crops turn in steps of this many degrees (0: any; None: never)
+    finder_handedness: float = 0.3      # the finder's side against one DetNet reading
+    mirror_vote_every: int | None = 3   # frames between readings of the crop flipped (0 or None: never)
+    test_time_crops: int | None = 0     # more crops read for a new track, median kept (photos: 4)
+    reseed_margin: float | None = 0.2   # a re-seed must come this close to the track's heatmap peak
+    tracked_test_time_crops: int | None = 0   # the same for every tracked hand on every frame
+    second_look: float | None = 0.1     # a hand whose box changed size by more is read again on more crops
+    handedness_memory: int = 20         # readings in a track's running side
+    handedness: str | None = None       # "left" / "right": every hand is that side; None: per track
+    settle_side: bool = True            # a track whose side turns is read again, mirrored for it
+
+
 class HandDetector:
     """Hands of a frame sequence; see the module doc.
 
@@ -351,13 +385,18 @@ class HandDetector:
     HandDetector.load). The other settings are explained where __init__ stores them.
     """
 
-    def __init__(self, detnet, finder=None, max_hands=2, presence_threshold=0.5, redetect_every=10,
-                 crop_scale=CROP_SCALE, finder_threshold=0.3, min_confidence=0.1, reseed_iou=0.3,
-                 birth_confidence=0.3, match_iou=0.3, candidates=0, fallback=None, refine_passes=1,
-                 duplicate_joints=0.0, unborn_retry=3, evict_margin=0.2, centre_confidence=0.3,
-                 opposite_hands=0.4, upright_step=90.0, finder_handedness=0.3, mirror_vote_every=3,
-                 test_time_crops=0, reseed_margin=0.2, tracked_test_time_crops=0, second_look=0.1,
-                 handedness_memory=20, handedness=None, settle_side=True, grey_finder=None, grey_detnet=None):
+    def __init__(self, detnet, finder=None, fallback=None, grey_finder=None, grey_detnet=None,
+                 settings: DetectorSettings | None = None, **changes):
+        """detnet, finder, fallback, grey_finder, grey_detnet: the networks (see the class doc);
+        settings: a DetectorSettings (None: the defaults), with `changes` (its field names,
+        e.g. max_hands=1) applied on top; TypeError naming an unknown one."""
+        try:
+            settings = dataclasses.replace(settings or DetectorSettings(), **changes)
+        except TypeError:
+            unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(DetectorSettings)})
+            raise TypeError(f"HandDetector has no setting {', '.join(unknown)} (DetectorSettings' fields are "
+                            f"its settings)") from None
+        self.settings = s = settings
         self.detnet, self.finder = detnet, finder
         # the finder and the DetNet for grey frames (a mono or IR camera: hand_finder.is_grey,
         # checked whenever the finder runs; None: `finder` / `detnet` on every frame)
@@ -371,84 +410,84 @@ class HandDetector:
         # a track tried on the centre square is born only from this mean heatmap peak on,
         # even where birth_confidence is lower (photos): the centre of a hand-free photo is
         # not a hand
-        self.centre_confidence = centre_confidence
+        self.centre_confidence = s.centre_confidence
         # DetNet passes on a new track's crop re-cut around its own last prediction
-        self.refine_passes = refine_passes
+        self.refine_passes = s.refine_passes
         # two overlapping tracks are one hand only if their joints agree this well (0: always)
-        self.duplicate_joints = duplicate_joints
-        self.max_hands, self.presence_threshold = max_hands, presence_threshold
-        self.redetect_every, self.crop_scale = redetect_every, crop_scale
-        self.finder_threshold = finder_threshold
+        self.duplicate_joints = s.duplicate_joints
+        self.max_hands, self.presence_threshold = s.max_hands, s.presence_threshold
+        self.redetect_every, self.crop_scale = s.redetect_every, s.crop_scale
+        self.finder_threshold = s.finder_threshold
         # the presence head stays sure on a crop that slid onto the forearm; the heatmap
         # peaks (mean over joints) do drop there, so they end such a track too
-        self.min_confidence, self.birth_confidence = min_confidence, birth_confidence
+        self.min_confidence, self.birth_confidence = s.min_confidence, s.birth_confidence
         # frames until the finder looks again after a proposed hand was not born: while one
         # hand is tracked, a second one refused on its first frame would otherwise wait
         # `redetect_every` frames for its next chance
-        self.unborn_retry = min(unborn_retry, redetect_every)
+        self.unborn_retry = min(s.unborn_retry, s.redetect_every)
         # with every track slot taken, a found hand that no track covers replaces the track
         # DetNet believes least (running mean heatmap peak) when its own peak is this much
         # higher (None: never): otherwise a desk object or a forearm that outlived its hand
         # keeps the slot and the real hand is never tracked
-        self.evict_margin = evict_margin
+        self.evict_margin = s.evict_margin
         # two tracks both at least this sure to be hands (running mean heatmap peak) are one
         # person's left and right hand (None: handedness per track only); false tracks
         # (desk objects, a forearm) stay below it, so they cannot turn a real hand
-        self.opposite_hands = opposite_hands
+        self.opposite_hands = s.opposite_hands
         # a track's crop turns (in whole steps of this many degrees; 0: any angle; None:
         # never) so that its hand appears upright, wrist below the middle finger's base, from
         # its last 2D joints; a new track tries all four quarter turns. DetNet saw real hands
         # turned at most 90 degrees in training: a hand hanging down (a camera above a desk)
         # read 2-4x worse than an upright one
-        self.upright_step = upright_step
+        self.upright_step = s.upright_step
         # weight of the finder's handedness against one DetNet reading (0: DetNet's alone)
-        self.finder_handedness = finder_handedness
+        self.finder_handedness = s.finder_handedness
         # every this many frames of a track (and on its first), DetNet also reads its crop
         # flipped the other way and the handedness head's answer there votes too (0: never).
         # The head alone is biased on views unlike its training data; asked about a crop and
         # its mirror image, its two answers share the bias and averaging them cancels it
-        self.mirror_vote_every = mirror_vote_every
+        self.mirror_vote_every = s.mirror_vote_every
         # a track's handedness is the running mean logit of about its last this many readings
-        self.handedness_memory = handedness_memory
+        self.handedness_memory = s.handedness_memory
         # "left" or "right": every hand is that side (one known hand, e.g. the hand that drives a
         # robot hand): no wrong-side reading, and no mirror vote to pay for; None: each track's
         # side from DetNet's handedness head and the finder
-        if handedness not in (None, "left", "right"):
-            raise ValueError(f"handedness must be 'left', 'right' or None, got {handedness!r}")
-        self.handedness = handedness
+        if s.handedness not in (None, "left", "right"):
+            raise ValueError(f"handedness must be 'left', 'right' or None, got {s.handedness!r}")
+        self.handedness = s.handedness
         # a track whose side turns on this frame's readings (a new track's first ones outvote the
         # finder's guess its crop was mirrored for; a tracked hand's running mean crosses over)
         # is read again, mirrored for the side it now has: otherwise the hand published as
         # left was read as a right one (or the reverse), its 2D 2-3x worse and its 3D the
         # other hand's, which the ik node then mirrors the wrong way; a photo has no next
         # frame to mend it. One crop more per turn
-        self.settle_side = settle_side
+        self.settle_side = s.settle_side
         # a new track's reading is the per-coordinate median over its crop and this many
         # more (TEST_TIME_VARIANTS: a little larger, smaller, turned): for photos, where each
         # hand is read once and a crop's chance placement otherwise stays in the result
-        self.test_time_crops = _variant_count("test_time_crops", test_time_crops)
+        self.test_time_crops = _variant_count("test_time_crops", s.test_time_crops)
         # the same for every tracked hand on every frame (0: never): K more DetNet crops per
         # hand and frame, for accuracy where the time is there
-        self.tracked_test_time_crops = _variant_count("tracked_test_time_crops", tracked_test_time_crops)
+        self.tracked_test_time_crops = _variant_count("tracked_test_time_crops", s.tracked_test_time_crops)
         # a tracked hand whose joints' box changed size by more than this fraction since the
         # last frame is read again on SECOND_LOOK_CROPS variants of its crop and the median kept (0: never):
         # a hand does not change size that fast, and such readings were often wrong
-        self.second_look = second_look or 0.0
+        self.second_look = s.second_look or 0.0
         # a re-seed must convince DetNet: its mean heatmap peak on the found box's crop at
         # least the track's running peak minus this (None: every re-seed is taken). A track
         # whose crop has swollen around an exploded prediction holds boxes of other things,
         # which a re-seed would otherwise move it onto
-        self.reseed_margin = reseed_margin
+        self.reseed_margin = s.reseed_margin
         # the finder checks the tracks every `redetect_every` frames: a found hand inside a
         # track's crop whose box overlaps the track's joints less than this re-seeds the track
         # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
-        self.reseed_iou = reseed_iou
+        self.reseed_iou = s.reseed_iou
         # a found box is a track's own hand when it overlaps the track's joint box this much
-        self.match_iou = match_iou
+        self.match_iou = s.match_iou
         # the finder's best `candidates` boxes are considered (0: max_hands); where more
         # than the free track slots are new, DetNet's mean heatmap peak on each one's crop
         # picks which become tracks (the finder's own score ranks desk objects too high)
-        self.candidates = candidates
+        self.candidates = s.candidates
         self.tracks: list[Track] = []
         self.next_id = 0
         self.frames_since_find = 0

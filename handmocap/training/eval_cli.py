@@ -40,7 +40,7 @@ hands per frame, error / hand size, PCK at 0.1 of it, side (handmocap/training/e
 from __future__ import annotations
 
 import argparse
-import inspect
+import dataclasses
 import json
 import sys
 import warnings
@@ -506,8 +506,8 @@ def detector_settings(pairs):
     0.2, null)."""
     import yaml
 
-    from handmocap.perception.detector import HandDetector
-    known = set(inspect.signature(HandDetector).parameters) - {"detnet", "finder", "fallback"}
+    from handmocap.perception.detector import DetectorSettings
+    known = {f.name for f in dataclasses.fields(DetectorSettings)}
     out = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
