@@ -206,3 +206,12 @@ def test_split_ground_truth_reprojects(tmp_path):
     ih = np.load(tmp_path / "ih" / "gt.npz")
     bone = np.linalg.norm(ih["xyz"][:, 0] - ih["xyz"][:, 9], axis=-1)
     assert np.all((0.06 < bone) & (bone < 0.12)), bone
+
+
+def test_the_iknet_option_names_the_file_that_runs_by_default(capsys):
+    """handeval's --iknet help once named models/iknet.onnx while the int8 copy runs by default."""
+    from handmocap.perception.ik_solver import DEFAULT_MODEL
+    with pytest.raises(SystemExit):
+        eval_cli.main(["predict", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert f"int8 (default, models/{DEFAULT_MODEL.name})" in help_text
