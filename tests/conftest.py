@@ -1,6 +1,7 @@
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -64,9 +65,22 @@ def write_test_video(path, n, size=(320, 240), fourcc="MJPG", draw=draw_bar_and_
     return frames
 
 
-def handlaunch(args, run_dir, timeout=60, **kw):
-    return subprocess.run([sys.executable, "-m", "handmocap.runtime.launch", *map(str, args)], env=graph_env(run_dir),
-                          capture_output=True, text=True, timeout=timeout, **kw)
+def handlaunch(args, run_dir, timeout=60, during=None, **kw):
+    """Run handlaunch to its end (CompletedProcess); `during()`, if given, runs while the graph
+    does (a drill: kill a node, ...), its stdout and stderr then come as one in stdout."""
+    cmd = [sys.executable, "-m", "handmocap.runtime.launch", *map(str, args)]
+    if during is None:
+        return subprocess.run(cmd, env=graph_env(run_dir), capture_output=True, text=True, timeout=timeout, **kw)
+    proc = subprocess.Popen(cmd, env=graph_env(run_dir), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, **kw)
+    try:
+        during()
+        out, _ = proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            out, _ = proc.communicate(timeout=30)
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, "")
 
 
 # -- the demo chain as a launched graph (test_e2e, test_drills) ---------------------------

@@ -224,17 +224,11 @@ nodes:
   replay: {{node: replay, params: {{source: {clip}, rate: 1.0}}, respawn: true, respawn_delay: 0.2}}
   recorder: {{node: recorder, params: {{output: {bag}, raw: true, topics: [/camera/image]}}, required: true}}
 """)
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        wait_until("20 frames", lambda: published(run_dir, "replay", "/camera/image") >= 20)
-        os.kill(node_file(run_dir, "replay")["pid"], signal.SIGKILL)
-        out, _ = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            out, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 0, out
+    out = handlaunch([lf], run_dir, timeout=90, during=lambda: (
+        wait_until("20 frames", lambda: published(run_dir, "replay", "/camera/image") >= 20),
+        os.kill(node_file(run_dir, "replay")["pid"], signal.SIGKILL)))
+    assert out.returncode == 0, out.stdout
+    out = out.stdout
     assert "respawned: continuing after the" in out
     seqs = [m["header"]["seq"] for m, _ in read_bag(bag)["/camera/image"]]
     assert len(seqs) >= 80 and seqs == sorted(set(seqs)) and seqs[-1] == 89, seqs
