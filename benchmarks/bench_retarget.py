@@ -28,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.perception.retarget import ref_value, retargeting_joint_pos
+from handmocap.perception.retarget import RobotHand, ref_value, retargeting_joint_pos
 from handmocap.perception.tracker import HandTracker
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,16 +50,10 @@ def pose_xyz(video, hand_length):
     return out
 
 
-def retarget_all(config_path, joint_pos_frames, max_ms=None):
+def retarget_all(robot: RobotHand, joint_pos_frames):
     """Robot qpos (N, J) for joint_pos (21,3) per frame (None: the last input held, as a live
-    loop would), with one SeqRetargeting (its warm start and low-pass filter; max_ms: the
-    retarget node's time budget), and the time of each retarget() call (s)."""
-    from dex_retargeting.retargeting_config import RetargetingConfig
-    retargeting = RetargetingConfig.load_from_file(config_path).build()
-    if max_ms:
-        retargeting.optimizer.opt.set_maxtime(max_ms / 1000.0)
-    indices = retargeting.optimizer.target_link_human_indices
-    kind = retargeting.optimizer.retargeting_type
+    loop would), through one RobotHand (its SeqRetargeting: warm start, low-pass filter and
+    time budget), and the time of each retarget() call (s)."""
     qpos, times, last = [], [], None
     for joint_pos in joint_pos_frames:
         last = joint_pos if joint_pos is not None else last
@@ -67,9 +61,9 @@ def retarget_all(config_path, joint_pos_frames, max_ms=None):
             qpos.append(None)
             continue
         t0 = time.perf_counter()
-        qpos.append(retargeting.retarget(ref_value(last, indices, kind)))
+        qpos.append(robot.retargeting.retarget(ref_value(last, robot.indices, robot.kind)))
         times.append(time.perf_counter() - t0)
-    return qpos, np.array(times), retargeting.joint_names
+    return qpos, np.array(times)
 
 
 def compare(ours, theirs):
@@ -98,10 +92,6 @@ def main():
     for path in (video, reference, args.urdf_dir):
         if not path.exists():
             sys.exit(f"bench_retarget: {path} not found")
-    import dex_retargeting
-    from dex_retargeting.retargeting_config import RetargetingConfig
-    RetargetingConfig.set_default_urdf_dir(str(args.urdf_dir))
-    configs = Path(dex_retargeting.__file__).parent / "configs" / "teleop"
 
     from handmocap.perception.pose import POSE_DEFAULTS
     hand_length = POSE_DEFAULTS["hand_length"] if args.hand_length is None else args.hand_length
@@ -121,8 +111,8 @@ def main():
     ours_pos = [None if p is None else retargeting_joint_pos(p, "right") for p in xyz]
     print(f"{'robot':24s} {'mean |dq| rad':>14s} {'median corr':>12s} {'frames':>7s} {'retarget ms p50/p95':>20s}")
     for robot in args.robots:
-        ours, times, _ = retarget_all(configs / f"{robot}.yml", ours_pos, args.max_ms)
-        theirs, _, _ = retarget_all(configs / f"{robot}.yml", mediapipe)
+        ours, times = retarget_all(RobotHand(robot, args.urdf_dir, args.max_ms), ours_pos)
+        theirs, _ = retarget_all(RobotHand(robot, args.urdf_dir), mediapipe)
         diff, corr, n = compare(ours, theirs)
         print(f"{robot:24s} {diff:14.3f} {corr:12.3f} {n:7d} "
               f"{np.percentile(times, 50) * 1e3:9.2f} / {np.percentile(times, 95) * 1e3:.2f}")

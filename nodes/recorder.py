@@ -16,7 +16,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from handmocap.runtime import codec
-from handmocap.runtime.bag import BagWriter
+from handmocap.runtime.bag import BagWriter, bag_info
 from handmocap.runtime.frames import compressed
 from handmocap.runtime.node import Node, check_bool_param, check_jpeg_param, run
 
@@ -30,7 +30,6 @@ def output_path(output: str, overwrite: bool) -> Path:
     if path.exists() and not overwrite:
         cut = ""
         try:
-            from handmocap.runtime.bag import bag_info
             if bag_info(path)["truncated"]:
                 cut = f"; it was cut short (its recorder was killed): `handbag repair {path}` makes it whole"
         except (OSError, ValueError):

@@ -102,15 +102,12 @@ def joints_for_iknet(hand, K, xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints
 
 
 def pose_from_keypoints(hand, K, rest, solver, model, beta=None, limits=None,
-                        xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints"], hand_length=None):
+                        xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints"]):
     """One HandKeypoints hand -> one HandPose hand, unsmoothed. rest: (21,3) rest joints of
     the person (None: the model's at beta); beta (10,) (None: the average hand); limits: a
     JointLimits to clip the finger angles into (None: IKNet's angles as they are);
-    xy_from_keypoints: see joints_for_iknet; hand_length: metres, sets beta's hand_size
-    (HandModel.sized; None: beta's own size)."""
+    xy_from_keypoints: see joints_for_iknet."""
     beta = np.zeros(model.num_betas) if beta is None else np.asarray(beta, dtype=np.float64)
-    if hand_length is not None:
-        beta = model.sized(beta, hand_length)
     rest = model.rest_joints(beta) if rest is None else rest
     quats = solve_rotations(joints_for_iknet(hand, K, xy_from_keypoints), hand["handedness"], rest, solver, limits)
     return pose_fields(hand, quats, beta, K, model)

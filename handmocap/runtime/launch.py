@@ -423,13 +423,21 @@ class Child:
             self.proc.send_signal(signal.SIGTERM)
 
 
+def feeds(nodes: dict) -> list[tuple[str, str, str]]:
+    """(publisher, topic, subscriber) of every topic that goes from one node of the graph to
+    another (NodeInfo by name; tools that only observe are left out). An every-topic
+    subscriber ("*", the recorder) takes every topic, as its subscription is named "*"."""
+    nodes = {n: i for n, i in nodes.items() if not i.observer}
+    return [(n, t, m) for n, i in nodes.items() for t in i.publishes for m, j in nodes.items()
+            if t in j.subscribes or "*" in j.subscribes]
+
+
 def topic_cycle(nodes: dict) -> str | None:
     """'a -[/x]-> b -[/y]-> a' for a cycle of topics among the graph's nodes (NodeInfo by
-    name; tools that only observe are left out), or None. An every-topic subscriber ("*", the
-    recorder) counts as subscribing to every topic."""
-    nodes = {n: i for n, i in nodes.items() if not i.observer}
-    edges = {n: [(t, m) for m, j in nodes.items() for t in i.publishes if t in j.subscribes or "*" in j.subscribes]
-             for n, i in nodes.items()}
+    name), along `feeds`, or None."""
+    edges: dict[str, list[tuple[str, str]]] = {n: [] for n, i in nodes.items() if not i.observer}
+    for publisher, topic, subscriber in feeds(nodes):
+        edges[publisher].append((topic, subscriber))
     state: dict[str, int] = {}   # 1: on the current path, 2: done
     path: list[tuple[str, str]] = []
 
@@ -448,7 +456,7 @@ def topic_cycle(nodes: dict) -> str | None:
         state[n] = 2
         return None
 
-    for n in sorted(nodes):
+    for n in sorted(edges):
         if n not in state:
             found = visit(n)
             if found:
@@ -469,8 +477,7 @@ class Launcher:
             env[KEYS_ENV] = launch.keys.to_env()
         self.children = [Child(s, env, self.print) for s in processes(launch.nodes)]
         self.stopping = False
-        self.publishers: dict[str, list[str]] = {}   # topic -> node names, once every node is up
-        self.inputs: dict[str, list[str]] = {}       # node name -> its subscribed topics
+        self.fed_by: dict[str, list[tuple[str, str]]] = {}   # node -> (topic, publisher) feeding it, once all are up
         self.ended_early: list[str] = []             # nodes that ended before their inputs' publishers
 
     def print(self, who: str, text: str) -> None:
@@ -524,14 +531,15 @@ class Launcher:
             while not self.stopping:
                 if not ready_file.exists():
                     if self._all_ready():
-                        cycle = topic_cycle(bus.read_node_files(self.dir, alive_only=False))
+                        files = bus.read_node_files(self.dir, alive_only=False)
+                        cycle = topic_cycle(files)
                         if cycle:   # before the first message: nodes wait for the ready file
                             self.print("handlaunch", f"error: topic cycle {cycle}: its nodes would wait for "
                                        f"each other's end of stream and the graph would never end; "
                                        f"nothing was sent")
                             failed = "cycle"
                             break
-                        self._write_ready(ready_file)
+                        self._write_ready(ready_file, files)
                     elif time.monotonic() - t0 > STARTUP_TIMEOUT_S:
                         self.print("handlaunch", f"error: nodes not up after {STARTUP_TIMEOUT_S} s: "
                                    f"{', '.join(self._not_ready())}")
@@ -557,14 +565,14 @@ class Launcher:
         self.print("handlaunch", "all nodes finished")
         return 0
 
-    def _write_ready(self, ready_file: Path) -> None:
+    def _write_ready(self, ready_file: Path, files: dict) -> None:
         """Say that every node is up, with the graph's publishers and subscribers per topic: a
         node then knows which of its inputs will get data (and from whom to await
         end-of-stream), and a publisher which subscribers to wait for, even if it never caught
-        another node's file fresh."""
+        another node's file fresh. files: the node files, read once every node was up."""
         publishers: dict[str, list[str]] = {}
         subscribers: dict[str, list[str]] = {}
-        for info in bus.read_node_files(self.dir, alive_only=False).values():
+        for info in files.values():
             for topic in info.publishes:
                 publishers.setdefault(topic, []).append(info.name)
             if not info.observer:
@@ -573,8 +581,9 @@ class Launcher:
         tmp = ready_file.with_suffix(".tmp")
         tmp.write_text(json.dumps({"publishers": publishers, "subscribers": subscribers}))
         os.replace(tmp, ready_file)
-        self.publishers, self.inputs = publishers, {n: [t for t, names in subscribers.items() if n in names]
-                                                   for c in self.children for n in c.names}
+        self.fed_by = {}
+        for publisher, topic, subscriber in feeds(files):
+            self.fed_by.setdefault(subscriber, []).append((topic, publisher))
 
     def _ended_before_its_inputs(self, c) -> None:
         """A node that ended (exit 0) while a publisher of one of its inputs still runs did not
@@ -584,14 +593,12 @@ class Launcher:
         running = {n for other in self.children if other.exit_code is None for n in other.names
                    if n in files and not files[n].closing and not files[n].ended}
         for name in c.names:
-            for topic in self.inputs.get(name, ()):
-                upstream = [p for t, names in self.publishers.items() if topic in ("*", t) for p in names]
-                still = sorted(set(upstream) & running)
-                if still:
-                    self.print("handlaunch", f"error: {name} ended while {', '.join(still)}, which publish its input "
-                               f"{topic}, still run (it did not hear the end of its stream from them)")
-                    self.ended_early.append(name)
-                    break
+            still = [(topic, publisher) for topic, publisher in self.fed_by.get(name, ()) if publisher in running]
+            if still:
+                self.print("handlaunch", f"error: {name} ended while {', '.join(sorted({p for _, p in still}))}, "
+                           f"which publish its input {still[0][0]}, still run (it did not hear the end of its "
+                           f"stream from them)")
+                self.ended_early.append(name)
 
     def _all_ready(self) -> bool:
         return not self._not_ready()
