@@ -131,7 +131,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     p = node.params
     # topics first, models second: the graph's other nodes see /hand/keypoints while the models
     # load and are connected when the first frame comes (else the first publish waits for them)
-    node.subscribe("/camera/image", "Image", mode="all" if p["every_frame"] else "latest")
+    node.subscribe("/camera/image", "Image", mode="lossless" if p["every_frame"] else "latest")
     node.advertise("/hand/keypoints", "HandKeypoints")
     detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]),
                                  grey_finder_path=p["grey_finder"], grey_detnet_path=p["grey_detnet"],

@@ -84,9 +84,9 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
     try:
         if topics:
             for topic in topics:
-                node.subscribe(topic, None, mode="all")
+                node.subscribe(topic, None, mode="lossless")   # a bag is complete: publishers wait for it
         else:
-            node.subscribe(None, None, mode="all")
+            node.subscribe(None, None, mode="lossless")
         node.log.info("recording %s to %s%s", ", ".join(topics) or "every topic", path,
                       " (replacing it once the first message arrives)" if path.exists() else "")
         refused: set[str] = set()   # topics seen with a second message type (a graph bug)

@@ -4,7 +4,8 @@ Source: a video file, a folder of images (sorted by name) or an MCAP bag (its /c
 messages; their stamps are replaced by the replay time, as a camera would stamp them).
 `rate` is a speed factor over the source's frame rate (1 = real time, 0 = as fast as the
 graph takes them: the next frame is decoded once fewer than AHEAD sent frames are still
-queued for or held by a subscriber); `start` skips that many seconds; `loop` restarts at the end. A replay respawned by its launcher
+queued for or held by a subscriber); `start` skips that many seconds; `loop` restarts at the end; `duration` (seconds, null: no
+limit) ends the stream after that long (with `loop`: a long run). A replay respawned by its launcher
 continues after the frames it had sent (Progress), with their sequence numbers. /camera/info
 comes from `calibration` (a file, see handmocap.runtime.camera_info) or, failing that, from the
 bag's own /camera/info, or from a default field of view (camera_info.DEFAULT_HFOV_DEG) that
@@ -27,7 +28,8 @@ JIT_MARGIN_S = 0.002   # decode the next frame this long plus twice its recent d
 AHEAD = 3   # at rate 0, frames sent and not yet taken by every subscriber before the next is decoded
 
 PARAMS = {"source": None, "rate": 1.0, "fps": None, "start": 0.0, "loop": False,
-          "calibration": None, "frame_id": "camera", "jpeg_quality": None}
+          "calibration": None, "frame_id": "camera", "jpeg_quality": None,
+          "duration": None}
 
 
 def check_params(params: dict) -> None:
@@ -43,6 +45,7 @@ def check_params(params: dict) -> None:
     check_number_param("replay", "fps", params.get("fps"), positive=True, null=True)
     check_number_param("replay", "start", params.get("start", PARAMS["start"]), minimum=0)
     check_bool_param("replay", "loop", params.get("loop", PARAMS["loop"]))
+    check_number_param("replay", "duration", params.get("duration"), positive=True, null=True)
     check_jpeg_param("replay", params.get("jpeg_quality"))
     camera_info.check_calibration_param("replay", params.get("calibration"))
 
@@ -141,6 +144,7 @@ def replay(node: Node) -> None:
         # graph's start-up, and the frames due meanwhile go out in one burst that queues)
         node.wait_for_graph()
     sent = 0
+    end_at = time.monotonic() + float(p["duration"]) if p["duration"] is not None else None
     own_info = {"width": None, "height": None}   # the CameraInfo body of our frame size (publish copies it)
     while node.ok():
         if is_bag:
@@ -163,7 +167,7 @@ def replay(node: Node) -> None:
             elif rate == 0:   # as fast as the graph takes frames, not as fast as they decode
                 node.wait_in_flight(AHEAD)
             t0 = time.monotonic()
-            item = next(frames_in, None)
+            item = next(frames_in, None) if end_at is None or t0 < end_at else None
             if item is None:
                 break
             t_src, frame, bag_info = item
@@ -191,7 +195,7 @@ def replay(node: Node) -> None:
             node.publish("/camera/info", info, stamp_ns=stamp, frame_id=p["frame_id"])
             sent += 1
             progress.sent(resume + sent)
-        if not p["loop"] or t_first is None:
+        if not p["loop"] or t_first is None or (end_at is not None and time.monotonic() >= end_at):
             break
     node.log.info("replayed %d frame(s) from %s", sent, source)
 

@@ -106,11 +106,13 @@ def main() -> None:
     overlay.check()                                   # no OpenGL: one error line now, not mid-stream
     sync = FrameSync(keep_all=keep_all, timeout_s=timeout)
     video = VideoOut(p["video"], p["fps"]) if p["video"] else None
-    image_mode = "all" if keep_all else "latest"     # live: never a backlog of frames
+    # a video gets every frame (the sources wait for it); live: never a backlog of frames
+    image_mode = "lossless" if keep_all else "latest"
     node.subscribe("/camera/image", "Image", mode=image_mode)
     node.subscribe("/camera/info", "CameraInfo", mode=image_mode)
-    node.subscribe("/hand/keypoints", "HandKeypoints", mode="all")   # small; every one may pair
-    node.subscribe("/hand/pose", "HandPose", mode="all")
+    pose_mode = "lossless" if keep_all else "all"    # small; every one may pair
+    node.subscribe("/hand/keypoints", "HandKeypoints", mode=pose_mode)
+    node.subscribe("/hand/pose", "HandPose", mode=pose_mode)
     if p["publish"]:
         node.advertise("/viz/image", "Image")
     drawn = paired = held = 0

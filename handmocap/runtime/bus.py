@@ -12,6 +12,20 @@ scan the run dir and connect straight to each publisher of a topic they want: no
 the data path. A node on another host is reached with an explicit `tcp://` endpoint
 (`connect` in the launch file); its own socket listens on the network only when the launch
 file gives it a `bind: tcp://...` endpoint.
+
+Queues (bounded memory, nothing lost silently): each publisher has two sockets.
+- The main one is lossy: a subscriber that falls QUEUE_MESSAGES behind on one connection
+  (QUEUE_MESSAGES in the publisher's send queue, as many in the subscriber's receive queue:
+  at most 2 x QUEUE_MESSAGES messages, e.g. 59 MB of 640x480 raw frames or 3 MB of JPEG
+  ones) loses what comes next; a keep-all ('all') subscriber counts the loss from the gaps
+  in the header's seq (Node.stats["lost"]). The main path never waits for a slow consumer.
+- The lossless one (XPUB_NODROP, same bound) serves 'lossless' subscribers, the recorder:
+  when one of them is QUEUE_MESSAGES behind, the publisher waits, so a bag stays complete.
+  It is bound on this host only (ipc/inproc); across hosts every subscriber is keep-all.
+An end of stream goes out on both, and once more on the lossless socket as a control message
+(topic frame prefixed CONTROL) that every latest and keep-all subscriber takes on a socket of
+its own: the copy in a full lossy queue may be dropped, that one is not. It carries the last
+seq sent, so the subscriber waits for its data to catch up and counts a lost tail.
 """
 from __future__ import annotations
 
@@ -30,8 +44,11 @@ import numpy as np
 import zmq
 
 EOS = b"_eos"
+CONTROL = b"\0"   # topic-frame prefix of control messages (ends of stream), on the lossless socket
 LARGE = 65536   # payloads above this are sent without a copy (zmq holds on to the sender's buffer)
 HEARTBEAT_S = 0.5
+QUEUE_MESSAGES = int(os.environ.get("HANDMOCAP_QUEUE", "32"))   # per connection and side (see above)
+WAIT_LOG_S = 5.0   # a publisher held by a lossless subscriber says so after this long
 STALE_S = 5.0   # a node file whose heartbeat is older than this, or whose pid is gone, is dead
 
 
@@ -98,15 +115,17 @@ class NodeInfo:
     pid: int
     endpoint: str
     publishes: dict = field(default_factory=dict)    # topic -> message type
-    subscribes: dict = field(default_factory=dict)   # topic -> "latest" | "all"
+    subscribes: dict = field(default_factory=dict)   # topic -> "latest" | "all" | "lossless"
     ready: bool = False
-    inproc: dict | None = None   # {endpoint, token}: also reachable in-process, from its container
+    lossless: str = ""           # the endpoint of its lossless socket (the recorder's; bus docstring)
+    inproc: dict | None = None   # {endpoint, lossless, token}: also reachable in-process, from its container
     observer: bool = False   # tools (handtopic) that must not hold a graph's start
     ended: bool = False      # set by the launcher on a node that died for good: its streams are over
     heartbeat_ns: int = 0
     stats: dict = field(default_factory=dict)
     eos_token: str = ""      # this run's secret of the node: its end-of-stream carries it (Node._decode)
     closing: bool = False    # set before its end-of-stream goes out: its streams are ending normally
+    heard_eos: list = field(default_factory=list)   # publishers whose end of stream it has taken in
 
     @property
     def alive(self) -> bool:
@@ -141,48 +160,66 @@ PUBLISHER_LINGER_S = 10
 
 
 class Publisher:
-    """One XPUB socket per node. XPUB (not PUB) so that the node sees subscriptions arrive and
-    can hold its first message until every subscriber of the graph is connected."""
+    """The two XPUB sockets of one node (see Queues above): `sock`, lossy, and `lossless`.
+    XPUB (not PUB) so that the node sees subscriptions arrive and can hold its first message
+    until every subscriber of the graph is connected."""
 
-    def __init__(self, ctx: zmq.Context, endpoint: str, keys=None):
-        self.sock = ctx.socket(zmq.XPUB)
-        self.sock.setsockopt(zmq.SNDHWM, 0)       # keep-all subscribers must lose nothing
-        self.sock.setsockopt(zmq.XPUB_VERBOSE, 1)  # count every subscriber, not each prefix once
-        self.sock.setsockopt(zmq.LINGER, int(PUBLISHER_LINGER_S * 1000))   # flush a slow subscriber at close
+    def __init__(self, ctx: zmq.Context, endpoint: str, keys=None, lossless_endpoint: str | None = None):
+        self.sock = self._socket(ctx, lossy=True)
         if keys is not None and endpoint.startswith("tcp://"):
             from handmocap.runtime import keys as curve
             curve.serve(self.sock, ctx, keys)
-        try:
-            self.sock.bind(endpoint)
-        except zmq.ZMQError as e:
-            self.sock.close(0)
-            taken = e.errno == zmq.EADDRINUSE
-            raise OSError(f"cannot listen on {endpoint}: " + ("the address is in use (another graph or program "
-                          "listens there, or a node of this graph still does)" if taken else e.strerror)) from None
+        self.lossless = self._socket(ctx, lossy=False)
+        for sock, where in ((self.sock, endpoint), (self.lossless, lossless_endpoint)):
+            if where is None:
+                continue
+            try:
+                sock.bind(where)
+            except zmq.ZMQError as e:
+                self.sock.close(0)
+                self.lossless.close(0)
+                taken = e.errno == zmq.EADDRINUSE
+                raise OSError(f"cannot listen on {where}: " + ("the address is in use (another graph or program "
+                              "listens there, or a node of this graph still does)" if taken else e.strerror)) from None
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.lossless_endpoint = self.lossless.getsockopt_string(zmq.LAST_ENDPOINT) if lossless_endpoint else ""
         self.subscriptions: Counter[bytes] = Counter()
         self.joined: Counter[bytes] = Counter()     # subscriptions ever made, per prefix
         self._frames: dict[tuple, tuple] = {}   # (topic, type) -> their wire frames
         self.in_flight = 0   # large payloads sent and not yet released by zmq and every receiver
         self._landed = threading.Condition()
+        self.stop = threading.Event()   # set by the node on SIGINT/SIGTERM: stop waiting for a lossless subscriber
+        self.log = None                 # the node's logger (a wait for a lossless subscriber is logged)
+
+    @staticmethod
+    def _socket(ctx: zmq.Context, lossy: bool) -> zmq.Socket:
+        sock = ctx.socket(zmq.XPUB)
+        sock.setsockopt(zmq.SNDHWM, QUEUE_MESSAGES)
+        sock.setsockopt(zmq.XPUB_VERBOSE, 1)  # count every subscriber, not each prefix once
+        sock.setsockopt(zmq.LINGER, int(PUBLISHER_LINGER_S * 1000))   # flush a slow subscriber at close
+        if not lossy:
+            sock.setsockopt(zmq.XPUB_NODROP, 1)   # full: send says EAGAIN instead of dropping
+        return sock
 
     def bind_inproc(self, endpoint: str, token: str) -> dict:
         """Also bind `inproc://...` (a container: the nodes of one process share one Context and
         reach each other without a socket); returns what the node file says about it."""
         self.sock.bind(endpoint)
-        return {"endpoint": endpoint, "token": token}
+        self.lossless.bind(endpoint + ".lossless")
+        return {"endpoint": endpoint, "lossless": endpoint + ".lossless", "token": token}
 
     def poll_subscriptions(self) -> None:
-        while True:
-            try:
-                ev = self.sock.recv(zmq.NOBLOCK)
-            except zmq.Again:
-                return
-            if ev[:1] == b"\x01":
-                self.subscriptions[ev[1:]] += 1
-                self.joined[ev[1:]] += 1
-            elif ev[:1] == b"\x00" and self.subscriptions[ev[1:]] > 0:
-                self.subscriptions[ev[1:]] -= 1
+        for sock in (self.sock, self.lossless):
+            while True:
+                try:
+                    ev = sock.recv(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                if ev[:1] == b"\x01":
+                    self.subscriptions[ev[1:]] += 1
+                    self.joined[ev[1:]] += 1
+                elif ev[:1] == b"\x00" and self.subscriptions[ev[1:]] > 0:
+                    self.subscriptions[ev[1:]] -= 1
 
     def subscriber_count(self, topic: str) -> int:
         self.poll_subscriptions()
@@ -198,27 +235,51 @@ class Publisher:
         t = topic_frame(topic)
         return self.subscriptions[t], self.joined[t]
 
-    def send(self, topic: str, type_name: str, payload: bytes | memoryview) -> None:
-        """One message; a payload over LARGE bytes (bytes or a read-only view such as
-        `codec.encode_view` gives) goes without a copy: zmq holds on to it until it is sent
-        to every outside subscriber and every receiver in this process has let go of it
-        (`in_flight` counts those)."""
+    def send(self, topic: str, type_name: str, payload: bytes | memoryview, eos: bool = False) -> None:
+        """One message, on both sockets; a payload over LARGE bytes (bytes or a read-only view
+        such as `codec.encode_view` gives) goes without a copy: zmq holds on to it until it is
+        sent to every outside subscriber and every receiver in this process has let go of it
+        (`in_flight` counts those). Waits while a lossless subscriber is QUEUE_MESSAGES behind;
+        `eos`: an end of stream, also sent on the control channel."""
         frames = self._frames.get((topic, type_name))
         if frames is None:
             frames = self._frames[(topic, type_name)] = (topic_frame(topic), type_name.encode())
-        sock = self.sock
-        sock.send(frames[0], zmq.SNDMORE)
+        if len(payload) > LARGE:   # zero-copy only pays for large frames
+            # zmq keeps this array alive while the frame is in use (pyzmq drops it from its gc
+            # thread once libzmq frees the message); a memoryview can't carry the finalizer
+            payload = np.frombuffer(payload, np.uint8)
+            with self._landed:
+                self.in_flight += 1
+            weakref.finalize(payload, self._release)
+        self.sock.send(frames[0], zmq.SNDMORE)
+        self.sock.send(frames[1], zmq.SNDMORE)
+        self.sock.send(payload, copy=len(payload) <= LARGE)
+        self._send_waiting(self.lossless, frames, payload)   # no lossless subscriber: matches none, costs ~2 us
+        if eos:   # the lossy copy is lost if that queue is full: this one is not (see Queues above)
+            self._send_waiting(self.lossless, (CONTROL + frames[0], frames[1]), payload)
+
+    def _send_waiting(self, sock: zmq.Socket, frames: tuple, payload) -> None:
+        """Send on a XPUB_NODROP socket: while a subscriber's queue is full (EAGAIN on the first
+        frame; the others then always fit), wait for it, logging once if it takes WAIT_LOG_S;
+        gives up only when the node is told to stop."""
+        start, logged = None, False
+        while True:
+            try:
+                sock.send(frames[0], zmq.SNDMORE | zmq.NOBLOCK)
+                break
+            except zmq.Again:
+                now = time.monotonic()
+                start = start or now
+                if self.stop.is_set() and now - start > 1.0:
+                    return   # stopping (Ctrl-C): a stuck subscriber must not hold the node
+                time.sleep(0.001 if now - start < 0.05 else 0.01)
+                if now - start > WAIT_LOG_S and not logged and self.log is not None:
+                    logged = True
+                    self.log.warning("waiting for a lossless subscriber (the recorder?) that is %d messages "
+                                     "behind on %s: this node goes at its pace", QUEUE_MESSAGES,
+                                     frames[0].rstrip(b"\0").decode(errors="replace"))
         sock.send(frames[1], zmq.SNDMORE)
-        if len(payload) <= LARGE:   # zero-copy only pays for large frames
-            sock.send(payload)
-            return
-        # zmq keeps this array alive while the frame is in use (pyzmq drops it from its gc
-        # thread once libzmq frees the message); a memoryview can't carry the finalizer
-        held = np.frombuffer(payload, np.uint8)
-        with self._landed:
-            self.in_flight += 1
-        weakref.finalize(held, self._release)
-        sock.send(held, copy=False)
+        sock.send(payload, copy=len(payload) <= LARGE)
 
     def _release(self) -> None:
         with self._landed:
@@ -233,24 +294,28 @@ class Publisher:
 
     def close(self) -> None:
         self.sock.close()
+        self.lossless.close()
 
 
 class Subscriber:
-    """SUB sockets of one node: `latest` (drained on every wake-up, freshest message per topic
-    kept; ZMQ_CONFLATE is no use here, it breaks multipart messages) and `all` (keep-all)."""
+    """SUB sockets of one node, one per mode: `latest` (drained on every wake-up, freshest
+    message per topic kept; ZMQ_CONFLATE is no use here, it breaks multipart messages), `all`
+    (keep-all, losses counted) and `lossless` (connected to publishers' lossless sockets)."""
+
+    MODES = ("latest", "all", "lossless")
 
     def __init__(self, ctx: zmq.Context, keys=None):
         self.ctx = ctx
         self.keys = keys   # handmocap.runtime.keys.Keys: tcp connections go through CURVE sockets of their own
-        self.socks: dict[str, zmq.Socket] = {}   # "latest", "all" and, with keys, "latest+tcp", "all+tcp"
-        self.prefixes: dict[str, list[bytes]] = {"latest": [], "all": []}
-        self.connected: dict[str, set[str]] = {"latest": set(), "all": set()}
+        self.socks: dict[str, zmq.Socket] = {}   # per mode and, with keys, "<mode>+tcp"
+        self.prefixes: dict[str, list[bytes]] = {m: [] for m in self.MODES}
+        self.connected: dict[str, set[str]] = {m: set() for m in (*self.MODES, "control")}
 
     def socket(self, mode: str, tcp: bool = False) -> zmq.Socket:
         key = f"{mode}+tcp" if tcp else mode
         if key not in self.socks:
             s = self.ctx.socket(zmq.SUB)
-            s.setsockopt(zmq.RCVHWM, 0)   # latest-only drains eagerly; keep-all must lose nothing
+            s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES)   # bounded (a lossless publisher waits beyond it)
             s.setsockopt(zmq.LINGER, 0)
             if tcp:   # CURVE applies to a socket's every connection: local ones keep their own socket
                 from handmocap.runtime import keys as curve
@@ -265,9 +330,20 @@ class Subscriber:
         prefix = b"" if topic is None else topic_frame(topic)
         self.prefixes[mode].append(prefix)
         self.socket(mode)
+        if mode != "lossless" and "control" not in self.socks:   # made now: a node polls the sockets it has
+            s = self.socks["control"] = self.ctx.socket(zmq.SUB)
+            s.setsockopt(zmq.LINGER, 0)
+            s.subscribe(CONTROL)
         for key, s in self.socks.items():
             if key.split("+")[0] == mode:
                 s.subscribe(prefix)
+
+    def connect_control(self, endpoint: str) -> None:
+        """Take the control messages (ends of stream) of the publisher whose lossless socket
+        this is (see Queues above)."""
+        if endpoint not in self.connected["control"]:
+            self.socks["control"].connect(endpoint)
+            self.connected["control"].add(endpoint)
 
     def connect(self, endpoint: str, mode: str) -> bool:
         if endpoint in self.connected[mode]:

@@ -46,6 +46,9 @@ from handmocap.runtime.keys import Keys
 SCAN_S = 0.2          # how often subscribers look for new publishers
 POLL_MS = 100         # longest a receive blocks before the loop looks at scans, ticks and stop
 READY_TIMEOUT_S = 60  # how long a publisher waits for its graph to start
+LOST_LOG_S = 10.0     # at most one line per topic this often about messages a keep-all input lost
+PUBLISHER_WAIT_S = 10.0   # how long a closing node waits for its subscribers to take in its end of stream
+EOS_GRACE_S = 2.0     # an end of stream from the control channel waits this long for data still on its way
 
 
 _EOS = bus.EOS
@@ -166,19 +169,25 @@ class Node:
         self.ctx = zmq.Context() if self._own_ctx else _SHARED["ctx"]
         bind = _setting("HANDMOCAP_BIND") or f"ipc://{self.dir}/{self.name}.pub"
         curve_keys = Keys.from_env()   # CURVE on tcp endpoints (handmocap.runtime.keys), as the launch file says
-        self.pub = bus.Publisher(self.ctx, bind, curve_keys)
+        self.pub = bus.Publisher(self.ctx, bind, curve_keys, lossless_endpoint=f"ipc://{self.dir}/{self.name}.lossless")
+        self.pub.log = self.log
         self.sub = bus.Subscriber(self.ctx, curve_keys)
         self.extra_endpoints = json.loads(_setting("HANDMOCAP_CONNECT", "[]"))
         self.info = bus.NodeInfo(self.name, os.getpid(), self.pub.endpoint, observer=observer,
-                                 eos_token=secrets.token_hex(8))
+                                 eos_token=secrets.token_hex(8), lossless=self.pub.lossless_endpoint)
         self._eos_tokens: dict[str, str] = {}   # publisher name -> the token its end of stream must carry
         if not self._own_ctx:   # also bound in-process, for the container's other nodes
             self.info.inproc = self.pub.bind_inproc(f"inproc://{self.name}", _SHARED["token"])
         self._thread = threading.get_ident()   # the thread that runs this node (a container has several)
         self.types: dict[str, str] = {}            # subscribed topic -> expected type (None: any)
         self.seq: Counter[str] = Counter()
+        self._last_sent: dict[str, int] = {}   # topic -> header seq of the last publish() (its end of stream says it)
         self.stats = {"received": Counter(), "published": Counter(), "dropped": Counter(),
-                      "superseded": Counter()}
+                      "superseded": Counter(), "lost": Counter()}
+        self._last_seq: dict[tuple, int] = {}   # (topic, frame_id) -> last header seq, keep-all inputs
+        self._seen: dict[str, tuple] = {}        # topic -> (highest seq received, monotonic time of the last)
+        self._eos_pending: dict[tuple, tuple] = {}   # (topic, sender) -> (last seq, heard at): control ends
+        self._lost_logged: dict[str, tuple] = {}   # topic -> (time of its last loss line, lost then)
         self._received = self.stats["received"]
         self._logged_drops: set = set()
         self._names: dict[tuple, tuple] = {}   # (topic, type) frames -> their names
@@ -192,7 +201,7 @@ class Node:
         self._eos_seen = False
         self._graph_complete = False   # launched, and every node of the graph has announced itself
         self._graph_ready = "HANDMOCAP_LAUNCH_ID" not in os.environ
-        self._stop = threading.Event()
+        self._stop = self.pub.stop   # SIGINT/SIGTERM: also ends a wait for a lossless subscriber
         _OPEN_NODES.add(self)
         self._validate_send = bool(os.environ.get("HANDMOCAP_VALIDATE_SEND"))
         self._trace = [] if os.environ.get("HANDMOCAP_TRACE") else None   # timing of every message (diagnostics)
@@ -210,9 +219,12 @@ class Node:
         return self.remap.get(topic, topic)
 
     def subscribe(self, topic: str | None, type_name: str | None = None, mode: str = "latest") -> str:
-        """Receive `topic` (None: every topic) in mode 'latest' (freshest only) or 'all'."""
-        if mode not in ("latest", "all"):
-            raise ValueError(f"mode must be 'latest' or 'all', not {mode!r}")
+        """Receive `topic` (None: every topic) in mode 'latest' (freshest only), 'all' (every
+        message, unless this node falls bus.QUEUE_MESSAGES behind: then what it lost is
+        counted in stats["lost"] and logged) or 'lossless' (every message: the publisher waits
+        for this node; for the recorder, not for what must never slow the main path)."""
+        if mode not in bus.Subscriber.MODES:
+            raise ValueError(f"mode must be one of {', '.join(bus.Subscriber.MODES)}, not {mode!r}")
         topic = "*" if topic is None else self.resolve(topic)
         self.types[topic] = type_name
         self.info.subscribes[topic] = mode
@@ -239,6 +251,7 @@ class Node:
             raise KeyError(f"{self.name}: publish on {topic!r} without advertise()")
         seq = self.seq[topic]
         self.seq[topic] = seq + 1
+        self._last_sent[topic] = seq
         msg = {"header": codec.header(seq, frame_id, stamp_ns), **body}
         if self._trace is not None:
             self._trace.append(("pub0", topic, msg["header"]["stamp_ns"], time.time_ns()))
@@ -359,7 +372,8 @@ class Node:
 
     def _events(self, timeout, block):
         self.ready()
-        socks = {s: mode.split("+")[0] for mode, s in self.sub.socks.items()}   # "all+tcp": keep-all too
+        # keep-all, lossless and control sockets are read alike; "all+tcp": keep-all too
+        socks = {s: "latest" if mode.startswith("latest") else "all" for mode, s in self.sub.socks.items()}
         poller = None
         if len(socks) == 1:
             (only, only_mode), = socks.items()
@@ -369,7 +383,10 @@ class Node:
             for s in socks:
                 poller.register(s, zmq.POLLIN)
         last = time.monotonic()
+        idle_since = None
         while not self._stop.is_set():
+            if self._eos_pending:
+                self._settle_eos(idle_since)
             if self._scan() or self._eos_seen:
                 self._eos_seen = False
                 if not self.info.observer and self._inputs_ended():
@@ -407,7 +424,10 @@ class Node:
                         yield msg
             if got:
                 last = time.monotonic()
-            elif timeout is not None and time.monotonic() - last >= timeout:
+                idle_since = None
+            else:
+                idle_since = idle_since or time.monotonic()
+            if not got and timeout is not None and time.monotonic() - last >= timeout:
                 last = time.monotonic()
                 yield None
             if not block:
@@ -464,16 +484,22 @@ class Node:
                 self._names.clear()
         topic, type_name = names
         if type_b == _EOS:
-            sender, _, token = bytes(payload).decode(errors="replace").partition("\0")
+            control = topic.startswith("\0")   # its copy on the control channel (bus: Queues)
+            topic = topic.lstrip("\0")
+            sender, _, rest = bytes(payload).decode(errors="replace").partition("\0")
+            token, _, last_seq = rest.partition("\0")
             if sender not in self._eos_tokens and self.extra_endpoints:
                 return None   # a publisher on another host (connect:): its end does not end this node
             if not token or self._eos_tokens.get(sender) != token:   # not from the publisher it names
                 return self._drop(topic, "forged-eos", f"an end of stream that says it is from {sender!r} "
                                   f"but lacks that node's token", "an end of stream")
-            self._ended[topic].add(sender)
-            self._eos_seen = True
-            if "*" in self.info.subscribes:   # an every-topic subscription hears the end per topic
-                self._ended["*"].add(sender)
+            if sender in self._ended[topic]:
+                return None   # heard already, on the other path
+            last = int(last_seq) if last_seq.isdigit() else None
+            if control and self._mode(topic) != "lossless":   # may overtake its data: wait for it
+                self._eos_pending[(topic, sender)] = (last, time.monotonic())
+            else:
+                self._end_input(topic, sender, last)
             return None
         want = self.types[topic] if topic in self.types else self.types.get("*")
         if want is not None and want != type_name:
@@ -483,10 +509,62 @@ class Node:
         except codec.MalformedMessage as e:
             return self._drop(topic, e.reason, str(e))
         self._received[topic] += 1
+        if "header" in data:
+            seq = data["header"]["seq"]
+            self._seen[topic] = (max(seq, self._seen.get(topic, (seq, 0))[0]), time.monotonic())
+            if self._mode(topic) == "all":
+                self._count_lost(topic, data["header"])
         msg = Message(topic, type_name, data, payload, time.time_ns())
         if self._trace is not None:
             self._trace.append(("recv", topic, msg.stamp_ns, msg.recv_ns))
         return msg
+
+    def _mode(self, topic: str) -> str | None:
+        return self.info.subscribes.get(topic) or self.info.subscribes.get("*")
+
+    def _end_input(self, topic: str, sender: str, last: int | None) -> None:
+        """`sender`'s stream on `topic` is over; `last`: the seq of its last message, if known
+        (a keep-all input counts what it lost after the last one that came)."""
+        self._eos_pending.pop((topic, sender), None)
+        self._ended[topic].add(sender)
+        self._eos_seen = True
+        if sender not in self.info.heard_eos:   # its publisher waits for this before it closes its sockets
+            self.info.heard_eos.append(sender)
+            self._announce()
+        if "*" in self.info.subscribes:   # an every-topic subscription hears the end per topic
+            self._ended["*"].add(sender)
+        if last is not None and self._mode(topic) == "all":
+            self._count_lost(topic, {"seq": last + 1}, last=self._seen.get(topic, (-1, 0))[0])
+
+    def _settle_eos(self, idle_since: float | None) -> None:
+        """Ends of stream heard on the control channel take effect once the data caught up
+        (its last seq came) or, with nothing queued, after EOS_GRACE_S (the rest was lost)."""
+        now = time.monotonic()
+        for (topic, sender), (last, heard) in list(self._eos_pending.items()):
+            caught_up = last is not None and self._seen.get(topic, (-1, 0))[0] >= last
+            if caught_up or (idle_since is not None and now - max(idle_since, heard) >= EOS_GRACE_S):
+                self._end_input(topic, sender, last)
+
+    def _count_lost(self, topic: str, header: dict, last: int | None = None) -> None:
+        """A keep-all input's gap in the header's seq is what the bus dropped for this node
+        (it fell bus.QUEUE_MESSAGES behind): counted in stats["lost"], logged at most every
+        LOST_LOG_S per topic. A seq that goes back is a restarted or another stream. `last`:
+        the seq before this one (an end of stream's last seq against the last one received)."""
+        if last is None:
+            key = (topic, header["frame_id"])
+            last = self._last_seq.get(key)
+            self._last_seq[key] = header["seq"]
+        if last is None or header["seq"] <= last + 1:
+            return
+        lost = self.stats["lost"]
+        lost[topic] += header["seq"] - last - 1
+        now = time.monotonic()
+        logged_at, logged_count = self._lost_logged.get(topic, (-math.inf, 0))
+        if now - logged_at >= LOST_LOG_S:
+            self._lost_logged[topic] = (now, lost[topic])
+            self.log.warning("lost %d messages of %s (%d in all): this node is slower than its input and "
+                             "its queue holds %d; subscribe 'latest' to take the freshest only",
+                             lost[topic] - logged_count, topic, lost[topic], bus.QUEUE_MESSAGES)
 
     def _drop(self, topic: str, reason: str, detail: str, what: str = "a malformed message") -> None:
         self.stats["dropped"][f"{topic}:{reason}"] += 1
@@ -535,17 +613,23 @@ class Node:
                 continue
             if not info.alive:   # crashed, maybe to be respawned: its stream is not over
                 continue
-            endpoint = info.endpoint
+            endpoints = {"latest": info.endpoint, "all": info.endpoint, "lossless": info.lossless or info.endpoint}
             if info.inproc and info.inproc.get("token") == _SHARED["token"] and not self._own_ctx:
-                endpoint = info.inproc["endpoint"]   # same container: in-process, not through a socket
+                # same container: in-process, not through a socket
+                endpoints = {"latest": info.inproc["endpoint"], "all": info.inproc["endpoint"],
+                             "lossless": info.inproc.get("lossless", info.inproc["endpoint"])}
             self._eos_tokens[info.name] = info.eos_token
             if self._pub_pids.get(info.name) != info.pid:   # new, or respawned: its stream reopens
                 self._pub_pids[info.name] = info.pid
                 for ended in self._ended.values():
                     ended.discard(info.name)
+                for key in [k for k in self._eos_pending if k[1] == info.name]:
+                    del self._eos_pending[key]
             for topic, mode in self.info.subscribes.items():
                 if topic == "*" or topic in info.publishes:
-                    self.sub.connect(endpoint, mode)
+                    self.sub.connect(endpoints[mode], mode)
+                    if mode != "lossless" and endpoints["lossless"] != endpoints[mode]:
+                        self.sub.connect_control(endpoints["lossless"])   # its ends of stream, never dropped
                     self._publishers[topic].add(info.name)
         self._graph_complete = self._graph_complete or graph_complete
         return True
@@ -621,7 +705,10 @@ class Node:
         self.info.closing = True   # in the node file before the end of stream goes out (the launcher reads it)
         self._announce()
         for topic in self.info.publishes:
-            self.pub.send(topic, bus.EOS.decode(), f"{self.name}\0{self.info.eos_token}".encode())
+            last = self._last_sent.get(topic)   # lets a keep-all subscriber count a lost tail
+            self.pub.send(topic, bus.EOS.decode(), f"{self.name}\0{self.info.eos_token}\0"
+                          f"{'' if last is None else last}".encode(), eos=True)
+        self._wait_until_heard(PUBLISHER_WAIT_S)
         self._stop.set()
         with self._file_lock:
             self._closed = True
@@ -638,8 +725,27 @@ class Node:
             self.ctx.term()
         for sig, handler in self._old_handlers.items():
             signal.signal(sig, handler)
-        if self.pub.endpoint.startswith("ipc://"):
-            Path(self.pub.endpoint[len("ipc://"):]).unlink(missing_ok=True)
+        for endpoint in (self.pub.endpoint, self.pub.lossless_endpoint):
+            if endpoint.startswith("ipc://"):
+                Path(endpoint[len("ipc://"):]).unlink(missing_ok=True)
+
+    def _wait_until_heard(self, timeout_s: float) -> None:
+        """After the end of stream went out: wait until every live subscriber of our topics has
+        taken it in (its node file lists us in heard_eos), at most `timeout_s`. Closing the
+        sockets earlier would lose what a subscriber that is behind still has to take from them
+        (zmq drops it, LINGER notwithstanding, when that subscriber's receive queue is full)."""
+        if not self.info.publishes or self._stop.is_set():
+            return   # stopped (Ctrl-C): nobody is held
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            waiting = [n.name for n in bus.read_node_files(self.dir).values()
+                       if n.name != self.name and not n.observer and not n.closing and self.name not in n.heard_eos
+                       and any(t == "*" or t in self.info.publishes for t in n.subscribes)]
+            if not waiting or self._stop.is_set():
+                return
+            time.sleep(0.02)
+        self.log.warning("closing while %s had not yet taken in its end of stream (%.0f s): what they had not "
+                         "received is lost", ", ".join(waiting), timeout_s)
 
     def __enter__(self):
         return self

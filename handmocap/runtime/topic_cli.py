@@ -88,8 +88,9 @@ def cmd_nodes(args) -> int:
         pub = sum(n.stats.get("published", {}).values())
         rec = sum(n.stats.get("received", {}).values())
         drop = sum(n.stats.get("dropped", {}).values())
+        lost = sum(n.stats.get("lost", {}).values())
         print(f"{n.name:20s} pid {n.pid:<7d} {state:5s} heartbeat {age:5.1f}s ago  "
-              f"published {pub}  received {rec}  dropped {drop}")
+              f"published {pub}  received {rec}  dropped {drop}  lost {lost}")
     return 0
 
 

@@ -13,7 +13,7 @@ def main():
     node.wait_for_graph()
     node.wait_for_subscribers(5.0)
     for payload in (p["victim"].encode(), f"{p['victim']}\0{'0' * 16}".encode()):
-        node.pub.sock.send_multipart([bus.topic_frame(topic), bus.EOS, payload])
+        node.pub.send(topic, bus.EOS.decode(), payload, eos=True)   # every path: lossy, lossless, control
     node.close()
 
 

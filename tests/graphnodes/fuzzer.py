@@ -1,7 +1,8 @@
 """Test node: interleaves `valid` good Blob messages with malformed frames of every kind on
 `topic` (garbage bytes, truncated msgpack, wrong schema, wrong array size, wrong type name,
-wrong frame count, oversized), all through the node's real socket."""
+wrong frame count, oversized), all through the node's real socket, `pause_s` between rounds."""
 import random
+import time
 
 import msgpack
 import numpy as np
@@ -9,7 +10,7 @@ import numpy as np
 from handmocap.runtime import codec
 from handmocap.runtime.node import Node, run
 
-PARAMS = {"topic": "/test/blob", "valid": 50, "seed": 0, "oversize": 2_000_000}
+PARAMS = {"topic": "/test/blob", "valid": 50, "seed": 0, "oversize": 2_000_000, "pause_s": 0.02}
 
 
 def malformed(rng: random.Random, oversize: int):
@@ -38,6 +39,7 @@ def main():
             node.pub.sock.send_multipart(frames)
             sent_bad += 1
         node.publish(topic, {"data": np.full(8, i % 256, np.uint8)})
+        time.sleep(p["pause_s"])   # a keep-all subscriber's queue is bounded (bus.QUEUE_MESSAGES): not a flood
     node.log.info("sent %d valid and %d malformed messages", p["valid"], sent_bad)
     node.close()
 

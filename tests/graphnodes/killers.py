@@ -47,8 +47,8 @@ def main():
         node.publish(image, {"encoding": "bgr8", "width": W, "height": H, "data": frame})   # first: waits for the graph
         stamp = codec.header(0)["stamp_ns"]
         for _, payload in image_killers(stamp):
-            node.pub.sock.send_multipart([image.encode() + b"\0", b"Image", payload])
-        node.pub.sock.send_multipart([keypoints.encode() + b"\0", b"HandKeypoints", nan_keypoints(stamp)])
+            node.pub.send(image, "Image", payload)   # both sockets: keep-all and lossless subscribers get them
+        node.pub.send(keypoints, "HandKeypoints", nan_keypoints(stamp))
     node.close()
 
 

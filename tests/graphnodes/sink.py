@@ -22,8 +22,9 @@ def main():
         if p["max_messages"] and len(seqs) >= p["max_messages"]:   # stops by itself, inputs or not
             break
     dropped = sum(node.stats["dropped"].values())
+    lost = sum(node.stats["lost"].values())
     with open(p["out"], "w") as f:
-        json.dump({"seqs": seqs, "ages_ms": ages_ms, "dropped": dropped}, f)
+        json.dump({"seqs": seqs, "ages_ms": ages_ms, "dropped": dropped, "lost": lost}, f)
     node.close()
 
 
