@@ -7,10 +7,10 @@ one of /camera/image (raw 640x480 frames, 0.9 MB each), one of /hand/pose. With 
 recorder` only replay, recorder and the slow image consumer run (the recorder's memory over
 an hour, cheaply).
 
-Every 10 s it samples the resident memory (VmRSS) of every node process. Printed: per process
-the RSS after the first minute, the largest, the last, and the slope over the second half
-(MB/min); per slow consumer the messages taken and those it was told it lost (bus queue:
-handmocap.runtime.bus.QUEUE_MESSAGES); the bag: messages per topic and whether every topic's
+Every 10 s it samples the resident memory (VmRSS) of every node process. Printed: per process,
+while the source runs, the RSS after the first minute, the largest, the last, and the slope
+over the second half (MB/min); per slow consumer the messages taken and those it was told it lost (bus queue:
+handmocap.runtime.bus, Queues); the bag: messages per topic and whether every topic's
 sequence numbers run without a gap from 0 to the last one its publisher sent. Writes
 memory.csv and memory.png to --out.
 
@@ -90,7 +90,8 @@ def main() -> int:
            "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
     lf = launch_file(out, args.minutes, args.graph)
     print(f"drill: {args.graph} graph, {args.minutes:g} min, consumers at {SLOW_S * 1000:.0f} ms/message, "
-          f"queue {bus.QUEUE_MESSAGES} messages per side; RSS every {SAMPLE_S:.0f} s", flush=True)
+          f"queues {bus.QUEUE_MESSAGES} + {bus.QUEUE_MESSAGES} frames, {bus.QUEUE_MESSAGES} + "
+          f"{bus.QUEUE_MESSAGES_SMALL} other messages; RSS every {SAMPLE_S:.0f} s", flush=True)
     log = open(out / "handlaunch.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=env,
                             stdout=log, stderr=subprocess.STDOUT, text=True)
@@ -119,9 +120,10 @@ def main() -> int:
         csv.writer(f).writerows([("minute", "process", "rss_mb"), *samples])
     print(f"\n{'process':14s} {'RSS@1min':>9s} {'max':>7s} {'last':>7s} {'slope 2nd half':>15s}")
     bounded = True
-    for name in sorted({n for _, n, _ in samples}):
-        t = np.array([m for m, n, _ in samples if n == name])
-        mb = np.array([v for _, n, v in samples if n == name])
+    running = [s for s in samples if s[0] <= args.minutes]   # while the source ran (not the drain after it)
+    for name in sorted({n for _, n, _ in running}):
+        t = np.array([m for m, n, _ in running if n == name])
+        mb = np.array([v for _, n, v in running if n == name])
         after = mb[t >= 1.0] if (t >= 1.0).any() else mb
         half = t >= t[-1] / 2
         slope = np.polyfit(t[half], mb[half], 1)[0] if half.sum() >= 3 else float("nan")

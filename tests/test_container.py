@@ -284,7 +284,7 @@ def test_killed_container_with_the_source_respawns_and_poses_resume(tmp_path, ru
 def test_a_slow_keep_all_image_subscriber_outside_does_not_hold_the_source(tmp_path, run_dir):
     """The source in the container, a keep-all consumer of /camera/image in another process
     that takes 200 ms a frame (6x slower than the camera): zmq queues the frames for it up to
-    its bounded queue (bus.QUEUE_MESSAGES); the source keeps the 30 fps clock and the poses'
+    its bounded queue (bus: Queues, 32 + 32 frames); the source keeps the 30 fps clock and the poses'
     latency stays that of a frame's processing, not of the slow consumer's backlog; the
     consumer gets the frames in order, and those its queue could not hold are counted lost."""
     bag = tmp_path / "o.mcap"

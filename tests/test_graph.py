@@ -26,14 +26,15 @@ def sink_result(path):
 
 @pytest.mark.parametrize("mode", ["lossless", "all"])
 def test_10000_messages_flat_out_arrive_in_order_and_none_is_lost_silently(tmp_path, run_dir, mode):
-    """A source 10,000 messages flat out, faster than the sink decodes: a lossless subscriber
-    gets every one in order (the source waits for it); a keep-all one gets them in order up to
-    its bounded queue, and every message it lost is counted (stats["lost"], from seq gaps)."""
+    """A source 10,000 messages flat out, faster than the sink takes them: a lossless subscriber
+    gets every one in order (the source waits for it); a keep-all one (0.5 ms a message) gets
+    them in order up to its bounded queue, and every message it lost is counted
+    (stats["lost"], from seq gaps and the end of stream's last seq)."""
     out = tmp_path / "sink.json"
     lf = write(tmp_path, "g.yaml", f"""
 nodes:
   ticker: {{node: graphnodes.ticker, params: {{count: 10000, size: 64}}, required: true}}
-  sink: {{node: graphnodes.sink, params: {{mode: {mode}, out: {out}}}}}
+  sink: {{node: graphnodes.sink, params: {{mode: {mode}, out: {out}, work_s: {0.0 if mode == "lossless" else 0.0005}}}}}
 """)
     r = handlaunch([lf], run_dir)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -290,7 +291,7 @@ def test_one_node_with_latest_and_keep_all_inputs_small_and_large(run_dir):
     sub.ready()
     assert not pub.wait_for_subscribers(10.0)
     big = np.arange(1_000_000, dtype=np.uint8)
-    for i in range(20):   # fewer than bus.QUEUE_MESSAGES: none lost while nothing reads them
+    for i in range(20):   # fewer than the bus queues hold: none lost while nothing reads them
         pub.publish("/small", {"data": np.full(8, i, np.uint8)})
         pub.publish("/big", {"data": big})
     pub.close()

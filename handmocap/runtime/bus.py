@@ -14,14 +14,18 @@ the data path. A node on another host is reached with an explicit `tcp://` endpo
 file gives it a `bind: tcp://...` endpoint.
 
 Queues (bounded memory, nothing lost silently): each publisher has two sockets.
-- The main one is lossy: a subscriber that falls QUEUE_MESSAGES behind on one connection
-  (QUEUE_MESSAGES in the publisher's send queue, as many in the subscriber's receive queue:
-  at most 2 x QUEUE_MESSAGES messages, e.g. 59 MB of 640x480 raw frames or 3 MB of JPEG
-  ones) loses what comes next; a keep-all ('all') subscriber counts the loss from the gaps
-  in the header's seq (Node.stats["lost"]). The main path never waits for a slow consumer.
-- The lossless one (XPUB_NODROP, same bound) serves 'lossless' subscribers, the recorder:
-  when one of them is QUEUE_MESSAGES behind, the publisher waits, so a bag stays complete.
+- The main one is lossy. Per connection, the publisher queues QUEUE_MESSAGES = 32 messages
+  where it publishes images, else QUEUE_MESSAGES_SMALL = 1024, and the subscriber as many
+  again (32 where images may come through its socket): at most 64 frames (59 MB of 640x480
+  raw ones, about 3 MB of JPEG ones) or 2,048 small messages (a two-hand /hand/pose is
+  ~2.7 kB: ~6 MB). A subscriber that falls further behind loses what comes next; a keep-all
+  ('all') one counts the loss from the gaps in the header's seq (Node.stats["lost"]). The
+  main path never waits for it.
+- The lossless one (XPUB_NODROP, same bounds) serves 'lossless' subscribers, the recorder:
+  when one of them is that far behind, the publisher waits, so a bag stays complete.
   It is bound on this host only (ipc/inproc); across hosts every subscriber is keep-all.
+The sockets bind at the node's first send (zmq fixes a listener's queue when it binds, and by
+then the node has said what it publishes); a `tcp://` bind is made at start, with 32.
 An end of stream goes out on both, and once more on the lossless socket as a control message
 (topic frame prefixed CONTROL) that every latest and keep-all subscriber takes on a socket of
 its own: the copy in a full lossy queue may be dropped, that one is not. It carries the last
@@ -47,7 +51,13 @@ EOS = b"_eos"
 CONTROL = b"\0"   # topic-frame prefix of control messages (ends of stream), on the lossless socket
 LARGE = 65536   # payloads above this are sent without a copy (zmq holds on to the sender's buffer)
 HEARTBEAT_S = 0.5
-QUEUE_MESSAGES = int(os.environ.get("HANDMOCAP_QUEUE", "32"))   # per connection and side (see above)
+QUEUE_MESSAGES = int(os.environ.get("HANDMOCAP_QUEUE", "32"))   # see Queues above
+QUEUE_MESSAGES_SMALL = 1024   # a queue where no frame comes through it
+
+
+def queue_length(types) -> int:
+    """A send or receive queue per connection (messages) for these message types (None: any)."""
+    return QUEUE_MESSAGES if any(t in (None, "Image") for t in types) else QUEUE_MESSAGES_SMALL
 WAIT_LOG_S = 5.0   # a publisher held by a lossless subscriber says so after this long
 STALE_S = 5.0   # a node file whose heartbeat is older than this, or whose pid is gone, is dead
 
@@ -165,13 +175,35 @@ class Publisher:
     until every subscriber of the graph is connected."""
 
     def __init__(self, ctx: zmq.Context, endpoint: str, keys=None, lossless_endpoint: str | None = None):
-        self.sock = self._socket(ctx, lossy=True)
-        if keys is not None and endpoint.startswith("tcp://"):
+        self._ctx, self._keys = ctx, keys
+        self._inproc: list[str] = []
+        self.sock = self.lossless = None   # made by open(): zmq fixes a listener's queue when it binds
+        self.queue = 0                     # send queue per connection, messages (open)
+        self.endpoint, self.lossless_endpoint = endpoint, lossless_endpoint or ""
+        self.subscriptions: Counter[bytes] = Counter()
+        self.joined: Counter[bytes] = Counter()     # subscriptions ever made, per prefix
+        self._frames: dict[tuple, tuple] = {}   # (topic, type) -> their wire frames
+        self.in_flight = 0   # large payloads sent and not yet released by zmq and every receiver
+        self._landed = threading.Condition()
+        self.stop = threading.Event()   # set by the node on SIGINT/SIGTERM: stop waiting for a lossless subscriber
+        self.log = None                 # the node's logger (a wait for a lossless subscriber is logged)
+        if endpoint.startswith("tcp://"):   # now: a taken port is an error at start (its queue: the short one)
+            self.open(QUEUE_MESSAGES)
+
+    def open(self, queue: int) -> None:
+        """Make and bind the sockets, with a send queue of `queue` messages per connection
+        (queue_length of what the node publishes); the node's first send, subscriber count or
+        end of stream does it. Subscribers that connected before it did reconnect by themselves."""
+        if self.sock is not None:
+            return
+        self.queue = queue
+        self.sock = self._socket(self._ctx, lossy=True, queue=queue)
+        self.lossless = self._socket(self._ctx, lossy=False, queue=queue)
+        if self._keys is not None and self.endpoint.startswith("tcp://"):
             from handmocap.runtime import keys as curve
-            curve.serve(self.sock, ctx, keys)
-        self.lossless = self._socket(ctx, lossy=False)
-        for sock, where in ((self.sock, endpoint), (self.lossless, lossless_endpoint)):
-            if where is None:
+            curve.serve(self.sock, self._ctx, self._keys)
+        for sock, where in ((self.sock, self.endpoint), (self.lossless, self.lossless_endpoint)):
+            if not where:
                 continue
             try:
                 sock.bind(where)
@@ -181,20 +213,17 @@ class Publisher:
                 taken = e.errno == zmq.EADDRINUSE
                 raise OSError(f"cannot listen on {where}: " + ("the address is in use (another graph or program "
                               "listens there, or a node of this graph still does)" if taken else e.strerror)) from None
+        for where in self._inproc:
+            self.sock.bind(where)
+            self.lossless.bind(where + ".lossless")
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
-        self.lossless_endpoint = self.lossless.getsockopt_string(zmq.LAST_ENDPOINT) if lossless_endpoint else ""
-        self.subscriptions: Counter[bytes] = Counter()
-        self.joined: Counter[bytes] = Counter()     # subscriptions ever made, per prefix
-        self._frames: dict[tuple, tuple] = {}   # (topic, type) -> their wire frames
-        self.in_flight = 0   # large payloads sent and not yet released by zmq and every receiver
-        self._landed = threading.Condition()
-        self.stop = threading.Event()   # set by the node on SIGINT/SIGTERM: stop waiting for a lossless subscriber
-        self.log = None                 # the node's logger (a wait for a lossless subscriber is logged)
+        if self.lossless_endpoint:
+            self.lossless_endpoint = self.lossless.getsockopt_string(zmq.LAST_ENDPOINT)
 
     @staticmethod
-    def _socket(ctx: zmq.Context, lossy: bool) -> zmq.Socket:
+    def _socket(ctx: zmq.Context, lossy: bool, queue: int) -> zmq.Socket:
         sock = ctx.socket(zmq.XPUB)
-        sock.setsockopt(zmq.SNDHWM, QUEUE_MESSAGES)
+        sock.setsockopt(zmq.SNDHWM, queue)
         sock.setsockopt(zmq.XPUB_VERBOSE, 1)  # count every subscriber, not each prefix once
         sock.setsockopt(zmq.LINGER, int(PUBLISHER_LINGER_S * 1000))   # flush a slow subscriber at close
         if not lossy:
@@ -204,11 +233,15 @@ class Publisher:
     def bind_inproc(self, endpoint: str, token: str) -> dict:
         """Also bind `inproc://...` (a container: the nodes of one process share one Context and
         reach each other without a socket); returns what the node file says about it."""
-        self.sock.bind(endpoint)
-        self.lossless.bind(endpoint + ".lossless")
+        self._inproc.append(endpoint)   # bound by open() (inproc may be connected to first)
+        if self.sock is not None:
+            self.sock.bind(endpoint)
+            self.lossless.bind(endpoint + ".lossless")
         return {"endpoint": endpoint, "lossless": endpoint + ".lossless", "token": token}
 
     def poll_subscriptions(self) -> None:
+        if self.sock is None:
+            self.open(QUEUE_MESSAGES_SMALL)   # used directly, not by a Node (which opens it first)
         for sock in (self.sock, self.lossless):
             while True:
                 try:
@@ -241,6 +274,8 @@ class Publisher:
         sent to every outside subscriber and every receiver in this process has let go of it
         (`in_flight` counts those). Waits while a lossless subscriber is QUEUE_MESSAGES behind;
         `eos`: an end of stream, also sent on the control channel."""
+        if self.sock is None:
+            self.open(QUEUE_MESSAGES_SMALL)
         frames = self._frames.get((topic, type_name))
         if frames is None:
             frames = self._frames[(topic, type_name)] = (topic_frame(topic), type_name.encode())
@@ -276,7 +311,7 @@ class Publisher:
                 if now - start > WAIT_LOG_S and not logged and self.log is not None:
                     logged = True
                     self.log.warning("waiting for a lossless subscriber (the recorder?) that is %d messages "
-                                     "behind on %s: this node goes at its pace", QUEUE_MESSAGES,
+                                     "behind on %s: this node goes at its pace", self.queue,
                                      frames[0].rstrip(b"\0").decode(errors="replace"))
         sock.send(frames[1], zmq.SNDMORE)
         sock.send(payload, copy=len(payload) <= LARGE)
@@ -293,8 +328,9 @@ class Publisher:
             return self._landed.wait_for(lambda: self.in_flight < limit, timeout_s)
 
     def close(self) -> None:
-        self.sock.close()
-        self.lossless.close()
+        if self.sock is not None:
+            self.sock.close()
+            self.lossless.close()
 
 
 class Subscriber:
@@ -310,12 +346,13 @@ class Subscriber:
         self.socks: dict[str, zmq.Socket] = {}   # per mode and, with keys, "<mode>+tcp"
         self.prefixes: dict[str, list[bytes]] = {m: [] for m in self.MODES}
         self.connected: dict[str, set[str]] = {m: set() for m in (*self.MODES, "control")}
+        self.frames: set[str] = set()   # modes whose socket may carry images (a short receive queue)
 
     def socket(self, mode: str, tcp: bool = False) -> zmq.Socket:
         key = f"{mode}+tcp" if tcp else mode
         if key not in self.socks:
             s = self.ctx.socket(zmq.SUB)
-            s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES)   # bounded (a lossless publisher waits beyond it)
+            s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES if mode in self.frames else QUEUE_MESSAGES_SMALL)   # Queues
             s.setsockopt(zmq.LINGER, 0)
             if tcp:   # CURVE applies to a socket's every connection: local ones keep their own socket
                 from handmocap.runtime import keys as curve
@@ -325,11 +362,17 @@ class Subscriber:
             self.socks[key] = s
         return self.socks[key]
 
-    def subscribe(self, topic: str | None, mode: str) -> None:
-        """topic None: every topic (the recorder's 'record all')."""
+    def subscribe(self, topic: str | None, mode: str, frames: bool = True) -> None:
+        """topic None: every topic (the recorder's 'record all'); `frames`: images may come
+        (the receive queue is then QUEUE_MESSAGES long, else QUEUE_MESSAGES_SMALL)."""
         prefix = b"" if topic is None else topic_frame(topic)
         self.prefixes[mode].append(prefix)
         self.socket(mode)
+        if frames:   # set before it connects: a connection's queue is fixed when it is made
+            self.frames.add(mode)
+            for key, s in self.socks.items():
+                if key.split("+")[0] == mode:
+                    s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES)
         if mode != "lossless" and "control" not in self.socks:   # made now: a node polls the sockets it has
             s = self.socks["control"] = self.ctx.socket(zmq.SUB)
             s.setsockopt(zmq.LINGER, 0)

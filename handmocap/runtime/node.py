@@ -220,7 +220,7 @@ class Node:
 
     def subscribe(self, topic: str | None, type_name: str | None = None, mode: str = "latest") -> str:
         """Receive `topic` (None: every topic) in mode 'latest' (freshest only), 'all' (every
-        message, unless this node falls bus.QUEUE_MESSAGES behind: then what it lost is
+        message, unless this node falls a full queue behind (bus: Queues): then what it lost is
         counted in stats["lost"] and logged) or 'lossless' (every message: the publisher waits
         for this node; for the recorder, not for what must never slow the main path)."""
         if mode not in bus.Subscriber.MODES:
@@ -228,7 +228,7 @@ class Node:
         topic = "*" if topic is None else self.resolve(topic)
         self.types[topic] = type_name
         self.info.subscribes[topic] = mode
-        self.sub.subscribe(None if topic == "*" else topic, mode)
+        self.sub.subscribe(None if topic == "*" else topic, mode, frames=type_name in (None, "Image"))
         for ep in self.extra_endpoints:
             self.sub.connect(ep, mode)
         self._announce()
@@ -264,11 +264,17 @@ class Node:
             self._large ^= {topic}
         self.publish_raw(topic, type_name, payload)
 
+    def _open_publisher(self) -> None:
+        """Bind our sockets (once), with a send queue sized for what we publish (bus: Queues)."""
+        if self.pub.sock is None:
+            self.pub.open(bus.queue_length(self.info.publishes.values()))
+
     def publish_raw(self, topic: str, type_name: str, payload: bytes) -> None:
         """Send an already-encoded payload unchanged (bag playback)."""
         if topic not in self.info.publishes:
             self.info.publishes[topic] = type_name
             self._announce()
+        self._open_publisher()
         if not self._graph_ready:
             self.wait_for_graph()
         self.pub.send(topic, type_name, payload)
@@ -280,6 +286,7 @@ class Node:
         """(connected now, joined so far) of the subscribers that asked for `topic` (after this
         node's remaps) by name, catch-all ones not counted: for a topic that costs work to
         compute only while someone wants it (bus.Publisher.named_subscribers)."""
+        self._open_publisher()
         return self.pub.named_subscribers(self.resolve(topic))
 
     def wait_in_flight(self, limit: int, timeout_s: float = 1.0) -> bool:
@@ -311,6 +318,7 @@ class Node:
         """Block until every node of the graph that subscribes to one of our topics (or to
         every topic) is connected to us, at most `timeout_s`; returns {topic: "have/want"}
         still missing. Observers (handtopic) are not waited for."""
+        self._open_publisher()
         deadline = time.monotonic() + timeout_s
         launched = self._launched_subscribers()
         while True:
@@ -547,7 +555,7 @@ class Node:
 
     def _count_lost(self, topic: str, header: dict, last: int | None = None) -> None:
         """A keep-all input's gap in the header's seq is what the bus dropped for this node
-        (it fell bus.QUEUE_MESSAGES behind): counted in stats["lost"], logged at most every
+        (it fell a full queue behind, bus: Queues): counted in stats["lost"], logged at most every
         LOST_LOG_S per topic. A seq that goes back is a restarted or another stream. `last`:
         the seq before this one (an end of stream's last seq against the last one received)."""
         if last is None:
@@ -563,8 +571,8 @@ class Node:
         if now - logged_at >= LOST_LOG_S:
             self._lost_logged[topic] = (now, lost[topic])
             self.log.warning("lost %d messages of %s (%d in all): this node is slower than its input and "
-                             "its queue holds %d; subscribe 'latest' to take the freshest only",
-                             lost[topic] - logged_count, topic, lost[topic], bus.QUEUE_MESSAGES)
+                             "fell a full queue behind (bus: Queues); subscribe 'latest' to take the freshest only",
+                             lost[topic] - logged_count, topic, lost[topic])
 
     def _drop(self, topic: str, reason: str, detail: str, what: str = "a malformed message") -> None:
         self.stats["dropped"][f"{topic}:{reason}"] += 1
@@ -704,6 +712,8 @@ class Node:
             self.wait_for_subscribers(2.0)   # they must be connected to hear the end-of-stream
         self.info.closing = True   # in the node file before the end of stream goes out (the launcher reads it)
         self._announce()
+        if self.info.publishes:
+            self._open_publisher()
         for topic in self.info.publishes:
             last = self._last_sent.get(topic)   # lets a keep-all subscriber count a lost tail
             self.pub.send(topic, bus.EOS.decode(), f"{self.name}\0{self.info.eos_token}\0"
@@ -739,7 +749,8 @@ class Node:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             waiting = [n.name for n in bus.read_node_files(self.dir).values()
-                       if n.name != self.name and not n.observer and not n.closing and self.name not in n.heard_eos
+                       if n.pid != os.getpid()   # in this process: inproc, whose queue outlives the socket
+                       and not n.observer and not n.closing and self.name not in n.heard_eos
                        and any(t == "*" or t in self.info.publishes for t in n.subscribes)]
             if not waiting or self._stop.is_set():
                 return

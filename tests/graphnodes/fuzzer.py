@@ -39,7 +39,7 @@ def main():
             node.pub.sock.send_multipart(frames)
             sent_bad += 1
         node.publish(topic, {"data": np.full(8, i % 256, np.uint8)})
-        time.sleep(p["pause_s"])   # a keep-all subscriber's queue is bounded (bus.QUEUE_MESSAGES): not a flood
+        time.sleep(p["pause_s"])   # a keep-all subscriber's queue is bounded (bus: Queues): not a flood
     node.log.info("sent %d valid and %d malformed messages", p["valid"], sent_bad)
     node.close()
 
