@@ -90,7 +90,7 @@ def main() -> int:
            "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
     lf = launch_file(out, args.minutes, args.graph)
     print(f"drill: {args.graph} graph, {args.minutes:g} min, consumers at {SLOW_S * 1000:.0f} ms/message, "
-          f"queues {bus.QUEUE_MESSAGES} + {bus.QUEUE_MESSAGES} frames, {bus.QUEUE_MESSAGES} + "
+          f"queues {bus.QUEUE_MESSAGES} + {bus.QUEUE_MESSAGES} frames, {bus.QUEUE_MESSAGES_SMALL} + "
           f"{bus.QUEUE_MESSAGES_SMALL} other messages; RSS every {SAMPLE_S:.0f} s", flush=True)
     log = open(out / "handlaunch.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=env,

@@ -48,6 +48,27 @@ nodes:
         assert len(seqs) + seen["lost"] == 10000, (len(seqs), seen["lost"], seqs[-1])
 
 
+def test_a_slow_lossless_subscriber_holds_its_publisher_and_gets_everything(tmp_path, run_dir):
+    """6,000 small messages flat out to a lossless sink of 1 ms a message (6 s of work) and
+    a keep-all sink of 2 ms: the lossless one gets all in order, and none waited in a queue
+    longer than its bound (1,024 + 1,024 messages, ~2 s): the ticker waited for it instead of
+    queueing everything (else the last would be ~6 s old). The keep-all one gets what its
+    queue held, in order, and counts the rest."""
+    lf = write(tmp_path, "g.yaml", f"""
+nodes:
+  ticker: {{node: graphnodes.ticker, params: {{count: 6000, size: 64}}, required: true}}
+  lossless: {{node: graphnodes.sink, params: {{mode: lossless, work_s: 0.001, out: {tmp_path}/lossless.json}}}}
+  keep_all: {{node: graphnodes.sink, params: {{mode: all, work_s: 0.002, out: {tmp_path}/all.json}}}}
+""")
+    r = handlaunch([lf], run_dir)
+    assert r.returncode == 0, r.stdout + r.stderr
+    lossless, keep_all = sink_result(tmp_path / "lossless.json"), sink_result(tmp_path / "all.json")
+    assert lossless["seqs"] == list(range(6000)) and lossless["lost"] == 0
+    assert max(lossless["ages_ms"]) < 4000, max(lossless["ages_ms"])
+    seqs = np.array(keep_all["seqs"])
+    assert (np.diff(seqs) > 0).all() and len(seqs) + keep_all["lost"] == 6000 and keep_all["lost"] > 0
+
+
 def test_latest_only_slow_subscriber_sees_only_fresh_frames(tmp_path, run_dir):
     """100 Hz of 640x480 BGR-sized messages to a fast and a slow (100 ms/message) latest-only
     subscriber and a keep-all one: the fast one keeps up, the slow one skips to fresh frames
