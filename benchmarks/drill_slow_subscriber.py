@@ -135,7 +135,7 @@ def main() -> int:
             seen = json.loads(f.read_text())
             s = np.array(seen["seqs"])
             print(f"{name}: took {len(s)} messages in order: {bool((np.diff(s) > 0).all())}, told it lost "
-                  f"{seen['lost']}; taken + lost = {len(s) + seen['lost']} (last seq sent + 1 = "
+                  f"{seen['lost']}; taken + lost = {len(s) + seen['lost']} (highest seq taken + 1 = "
                   f"{'?' if not len(s) else int(s.max()) + 1} or more)")
     replayed = re.search(r"replayed (\d+) frame", text)
     checks = bag_check(out / "drill.mcap")
