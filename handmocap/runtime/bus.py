@@ -58,6 +58,7 @@ QUEUE_MESSAGES_SMALL = 1024   # a queue where no frame comes through it
 def queue_length(types) -> int:
     """A send or receive queue per connection (messages) for these message types (None: any)."""
     return QUEUE_MESSAGES if any(t in (None, "Image") for t in types) else QUEUE_MESSAGES_SMALL
+RECONNECT_MS = 10   # a subscriber retries a publisher not bound yet (it binds at its first send) this often
 WAIT_LOG_S = 5.0   # a publisher held by a lossless subscriber says so after this long
 STALE_S = 5.0   # a node file whose heartbeat is older than this, or whose pid is gone, is dead
 
@@ -354,6 +355,7 @@ class Subscriber:
             s = self.ctx.socket(zmq.SUB)
             s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES if mode in self.frames else QUEUE_MESSAGES_SMALL)   # Queues
             s.setsockopt(zmq.LINGER, 0)
+            s.setsockopt(zmq.RECONNECT_IVL, RECONNECT_MS)
             if tcp:   # CURVE applies to a socket's every connection: local ones keep their own socket
                 from handmocap.runtime import keys as curve
                 curve.client(s, self.keys)
@@ -376,6 +378,7 @@ class Subscriber:
         if mode != "lossless" and "control" not in self.socks:   # made now: a node polls the sockets it has
             s = self.socks["control"] = self.ctx.socket(zmq.SUB)
             s.setsockopt(zmq.LINGER, 0)
+            s.setsockopt(zmq.RECONNECT_IVL, RECONNECT_MS)
             s.subscribe(CONTROL)
         for key, s in self.socks.items():
             if key.split("+")[0] == mode:
