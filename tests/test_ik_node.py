@@ -76,6 +76,27 @@ def test_left_hand_is_solved_in_the_right_model_and_mirrored_back():
         assert np.linalg.norm(out_l["xyz"] - true_xyz, axis=-1).mean() < 0.05
 
 
+def test_estimator_solves_every_hand_of_a_frame_in_one_batch_as_it_would_one_by_one():
+    """Two hands of different people and sides in one message: one IKNet run and one clamp
+    for both give each hand exactly what it gets alone (the int8 IKNet is statically
+    quantized), with each track's own shape."""
+    right, _, d = synthetic_hands(2, 5, "right")
+    left, _, _ = synthetic_hands(2, 6, "left")
+    pair = [{**right[0], "track_id": 1}, {**left[1], "track_id": 2}]
+    shapes = [{"track_id": tid, "beta": d["beta"][i], "rest_xyz": normalize_joints(MODEL.rest_joints(d["beta"][i]))}
+              for i, tid in enumerate((1, 2))]
+    together = ik.PoseEstimator(SOLVER, MODEL, {"smooth": False})
+    together.set_shapes(shapes)
+    both = together.update(pair, K, 0.0)
+    for hand, out in zip(pair, both):
+        alone = ik.PoseEstimator(SOLVER, MODEL, {"smooth": False})
+        alone.set_shapes(shapes)
+        (single,) = alone.update([hand], K, 0.0)
+        assert single["track_id"] == out["track_id"] and single["handedness"] == out["handedness"]
+        for field in ("quat", "pose", "xyz", "root", "beta"):
+            np.testing.assert_allclose(out[field], single[field], atol=1e-6, err_msg=field)
+
+
 def test_estimator_uses_track_shapes_smooths_and_resets_lost_tracks():
     hands, _, d = synthetic_hands(1, 2)
     hand = hands[0]

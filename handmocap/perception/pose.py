@@ -149,15 +149,24 @@ class PoseEstimator:
         for tid in [tid for tid, s in self.tracks.items()
                     if tid not in seen or t - s.last_t > self.p["reset_after_s"]]:
             del self.tracks[tid]                                   # lost: start afresh
-        out = []
+        hands = [h for h in hands if np.all(np.isfinite(h["xyz_rel"])) and np.all(np.isfinite(h["uv"]))]
+        if not hands:
+            return []
+        betas, rests, seen_as = [], [], []
         for hand in hands:
-            if not (np.all(np.isfinite(hand["xyz_rel"])) and np.all(np.isfinite(hand["uv"]))):
-                continue
             beta, rest = self.shapes.get(hand["track_id"], (self.average, None))
             beta = self.model.sized(beta, self.p["hand_length"])   # the shape fit leaves size at 0
-            rest = self.model.rest_joints(beta) if rest is None else rest
-            q = solve_rotations(joints_for_iknet(hand, K, self.p["xy_from_keypoints"]), hand["handedness"], rest,
-                                self.solver, self.limits)
+            betas.append(beta)
+            rests.append(self.model.rest_joints(beta) if rest is None else rest)
+            xyz = joints_for_iknet(hand, K, self.p["xy_from_keypoints"])
+            seen_as.append(mirror_points(xyz) if hand["handedness"] == "left" else np.asarray(xyz, np.float64))
+        # every hand in one IKNet run and one clamp: per-call overheads once per frame, not per
+        # hand (IKNet's int8 is statically quantized: a hand's result does not depend on the others)
+        quats = self.solver.solve(np.stack(seen_as), np.stack(rests))                # (N,21,4)
+        if self.limits is not None:
+            quats = clamp_to_limits(quats, self.limits)
+        out = []
+        for hand, beta, q in zip(hands, betas, quats):
             if not self.p["smooth"]:
                 out.append(pose_fields(hand, q, beta, K, self.model))
                 continue
