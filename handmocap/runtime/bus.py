@@ -337,58 +337,55 @@ class Publisher:
 class Subscriber:
     """SUB sockets of one node, one per mode: `latest` (drained on every wake-up, freshest
     message per topic kept; ZMQ_CONFLATE is no use here, it breaks multipart messages), `all`
-    (keep-all, losses counted) and `lossless` (connected to publishers' lossless sockets)."""
+    (keep-all, losses counted) and `lossless` (connected to publishers' lossless sockets);
+    with keys, one more per mode for tcp connections (CURVE applies to a socket's every
+    connection); and `control`, the ends of stream of the publishers it takes (Queues)."""
 
     MODES = ("latest", "all", "lossless")
 
     def __init__(self, ctx: zmq.Context, keys=None):
         self.ctx = ctx
         self.keys = keys   # handmocap.runtime.keys.Keys: tcp connections go through CURVE sockets of their own
-        self.socks: dict[str, zmq.Socket] = {}   # per mode and, with keys, "<mode>+tcp"
+        self.socks: dict[tuple[str, bool], zmq.Socket] = {}   # (mode or "control", tcp) -> socket
         self.prefixes: dict[str, list[bytes]] = {m: [] for m in self.MODES}
         self.connected: dict[str, set[str]] = {m: set() for m in (*self.MODES, "control")}
         self.frames: set[str] = set()   # modes whose socket may carry images (a short receive queue)
 
     def socket(self, mode: str, tcp: bool = False) -> zmq.Socket:
-        key = f"{mode}+tcp" if tcp else mode
-        if key not in self.socks:
+        if (mode, tcp) not in self.socks:
             s = self.ctx.socket(zmq.SUB)
             s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES if mode in self.frames else QUEUE_MESSAGES_SMALL)   # Queues
             s.setsockopt(zmq.LINGER, 0)
             s.setsockopt(zmq.RECONNECT_IVL, RECONNECT_MS)
-            if tcp:   # CURVE applies to a socket's every connection: local ones keep their own socket
+            if tcp:
                 from handmocap.runtime import keys as curve
                 curve.client(s, self.keys)
-                for prefix in self.prefixes[mode]:
-                    s.subscribe(prefix)
-            self.socks[key] = s
-        return self.socks[key]
+            for prefix in ([CONTROL] if mode == "control" else self.prefixes[mode]):
+                s.subscribe(prefix)
+            self.socks[(mode, tcp)] = s
+        return self.socks[(mode, tcp)]
 
     def subscribe(self, topic: str | None, mode: str, frames: bool = True) -> None:
         """topic None: every topic (the recorder's 'record all'); `frames`: images may come
         (the receive queue is then QUEUE_MESSAGES long, else QUEUE_MESSAGES_SMALL)."""
         prefix = b"" if topic is None else topic_frame(topic)
-        self.prefixes[mode].append(prefix)
-        self.socket(mode)
         if frames:   # set before it connects: a connection's queue is fixed when it is made
             self.frames.add(mode)
-            for key, s in self.socks.items():
-                if key.split("+")[0] == mode:
-                    s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES)
-        if mode != "lossless" and "control" not in self.socks:   # made now: a node polls the sockets it has
-            s = self.socks["control"] = self.ctx.socket(zmq.SUB)
-            s.setsockopt(zmq.LINGER, 0)
-            s.setsockopt(zmq.RECONNECT_IVL, RECONNECT_MS)
-            s.subscribe(CONTROL)
-        for key, s in self.socks.items():
-            if key.split("+")[0] == mode:
+        self.socket(mode)                  # made with the prefixes so far, then given this one
+        self.prefixes[mode].append(prefix)
+        if mode != "lossless":   # made now: a node polls the sockets it has when its loop starts
+            self.socket("control")
+        for (m, _), s in self.socks.items():
+            if m == mode:
                 s.subscribe(prefix)
+                if frames:
+                    s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES)
 
     def connect_control(self, endpoint: str) -> None:
         """Take the control messages (ends of stream) of the publisher whose lossless socket
         this is (see Queues above)."""
         if endpoint not in self.connected["control"]:
-            self.socks["control"].connect(endpoint)
+            self.socket("control").connect(endpoint)
             self.connected["control"].add(endpoint)
 
     def connect(self, endpoint: str, mode: str) -> bool:

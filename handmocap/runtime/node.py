@@ -380,8 +380,8 @@ class Node:
 
     def _events(self, timeout, block):
         self.ready()
-        # keep-all, lossless and control sockets are read alike; "all+tcp": keep-all too
-        socks = {s: "latest" if mode.startswith("latest") else "all" for mode, s in self.sub.socks.items()}
+        # keep-all, lossless and control sockets are read alike (tcp ones as their mode's)
+        socks = {s: "latest" if mode == "latest" else "all" for (mode, _), s in self.sub.socks.items()}
         poller = None
         if len(socks) == 1:
             (only, only_mode), = socks.items()
