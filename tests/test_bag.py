@@ -107,6 +107,24 @@ def test_round_trip_is_byte_identical(tmp_path):
             assert json.loads(schema.data) == codec.schema(schema.name)
 
 
+def test_a_long_recording_keeps_no_chunk_index_in_memory_and_its_summary_has_them_all(tmp_path):
+    """Chunks close every 256 kB: their indexes go to a temporary file as they close (the
+    writer's memory stays flat over hours) and come back into the summary at close, where
+    the standard mcap reader finds every chunk, in order, and every message."""
+    path = tmp_path / "long.mcap"
+    payload = bytes(range(256)) * 80                   # ~20 kB, a JPEG frame's size
+    with bag.BagWriter(path) as w:
+        for i in range(3000):
+            w.write("/camera/image", "Image", payload, i, i)
+            assert len(w._chunk_indexes) <= 1          # spilled as each chunk closes
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        starts = [c.chunk_start_offset for c in summary.chunk_indexes]
+        assert len(starts) == summary.statistics.chunk_count > 200 and starts == sorted(starts)
+        assert [m.log_time for _, _, m in reader.iter_messages()] == list(range(3000))
+
+
 @pytest.mark.parametrize("cut", [-1, -37, 0.5, 0.1])
 def test_cut_file_reads_up_to_last_complete_record(tmp_path, cut):
     full, part = tmp_path / "full.mcap", tmp_path / "part.mcap"

@@ -26,6 +26,7 @@ import io
 import json
 import os
 import struct
+import tempfile
 import time
 import zlib
 from collections import Counter
@@ -33,10 +34,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
-from mcap.data_stream import ReadDataStream
+from mcap.data_stream import ReadDataStream, RecordBuilder
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Message, Schema
+from mcap.records import Channel, Chunk, ChunkIndex, Message, Schema
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
@@ -60,6 +61,10 @@ class BagWriter:
 
     `write(topic, type_name, payload, log_time_ns, publish_time_ns)`; `close()` finishes the
     last chunk and writes the summary and footer. Usable as a context manager.
+
+    Memory stays flat however long it records: mcap's Writer keeps every chunk's index (about
+    500 B; a chunk closes every second or 256 kB, for crash safety) for the summary it writes
+    at the end; they go to an anonymous temporary file as chunks close and come back at close.
     """
 
     def __init__(self, path: str | os.PathLike, chunk_bytes: int = CHUNK_BYTES,
@@ -75,6 +80,9 @@ class BagWriter:
         self._channels: dict[str, tuple[int, str]] = {}   # topic -> (channel id, message type)
         self._chunk_opened: float | None = None      # monotonic time of the open chunk's first message
         self._closed = False
+        # mcap's Writer has no public hook for its chunk indexes: the list it keeps for the summary
+        self._chunk_indexes = getattr(self._mcap, "_Writer__chunk_indices", None)
+        self._spill = tempfile.TemporaryFile() if self._chunk_indexes is not None else None
 
     def _channel(self, topic: str, type_name: str) -> int:
         known = self._channels.get(topic)
@@ -103,6 +111,7 @@ class BagWriter:
         if self._file.tell() != written_before:   # the size limit closed the chunk: to the OS now
             self._file.flush()
             self._chunk_opened = None
+            self._spill_chunk_indexes()
             return
         now = time.monotonic()
         if self._chunk_opened is None:
@@ -119,12 +128,40 @@ class BagWriter:
         """Finish the open chunk now and hand everything written to the OS."""
         self._mcap.flush()
         self._chunk_opened = None
+        self._spill_chunk_indexes()
+
+    def _spill_chunk_indexes(self) -> None:
+        if self._spill is None or not self._chunk_indexes:
+            return
+        builder = RecordBuilder()
+        for index in self._chunk_indexes:
+            index.write(builder)
+        self._spill.write(builder.end())
+        self._chunk_indexes.clear()
+
+    def _restore_chunk_indexes(self) -> None:
+        """The spilled chunk indexes back into the Writer's list, before those still in it."""
+        if self._spill is None:
+            return
+        self._spill.seek(0)
+        stream = ReadDataStream(self._spill)
+        spilled = []
+        while True:
+            prefix = self._spill.read(_RECORD_PREFIX.size)
+            if len(prefix) < _RECORD_PREFIX.size:
+                break
+            spilled.append(ChunkIndex.read(stream))
+        self._chunk_indexes[:0] = spilled
+        self._spill.close()
+        self._spill = None
 
     def close(self) -> None:
         """Finish the last chunk, write summary and footer, close the file. Idempotent."""
         if self._closed:
             return
         self._closed = True
+        self._mcap.flush()
+        self._restore_chunk_indexes()
         self._mcap.finish()
         self._file.close()
 
