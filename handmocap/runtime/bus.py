@@ -136,7 +136,7 @@ class NodeInfo:
     stats: dict = field(default_factory=dict)
     eos_token: str = ""      # this run's secret of the node: its end-of-stream carries it (Node._decode)
     closing: bool = False    # set before its end-of-stream goes out: its streams are ending normally
-    heard_eos: list = field(default_factory=list)   # publishers whose end of stream it has taken in
+    heard_eos: list = field(default_factory=list)   # eos_tokens of the publishers whose end of stream it took in
 
     @property
     def alive(self) -> bool:

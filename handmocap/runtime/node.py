@@ -536,8 +536,9 @@ class Node:
         self._eos_pending.pop((topic, sender), None)
         self._ended[topic].add(sender)
         self._eos_seen = True
-        if sender not in self.info.heard_eos:   # its publisher waits for this before it closes its sockets
-            self.info.heard_eos.append(sender)
+        token = self._eos_tokens.get(sender)   # this run of it: a respawned publisher has a new one
+        if token and token not in self.info.heard_eos:   # its publisher waits for this before it closes its sockets
+            self.info.heard_eos.append(token)
             self._announce()
         if "*" in self.info.subscribes:   # an every-topic subscription hears the end per topic
             self._ended["*"].add(sender)
@@ -741,7 +742,7 @@ class Node:
 
     def _wait_until_heard(self, timeout_s: float) -> None:
         """After the end of stream went out: wait until every live subscriber of our topics has
-        taken it in (its node file lists us in heard_eos), at most `timeout_s`. Closing the
+        taken it in (its node file lists our eos_token in heard_eos), at most `timeout_s`. Closing the
         sockets earlier would lose what a subscriber that is behind still has to take from them
         (zmq drops it, LINGER notwithstanding, when that subscriber's receive queue is full)."""
         if not self.info.publishes or self._stop.is_set():
@@ -750,7 +751,7 @@ class Node:
         while time.monotonic() < deadline:
             waiting = [n.name for n in bus.read_node_files(self.dir).values()
                        if n.pid != os.getpid()   # in this process: inproc, whose queue outlives the socket
-                       and not n.observer and not n.closing and self.name not in n.heard_eos
+                       and not n.observer and not n.closing and self.info.eos_token not in n.heard_eos
                        and any(t == "*" or t in self.info.publishes for t in n.subscribes)]
             if not waiting or self._stop.is_set():
                 return
