@@ -332,7 +332,7 @@ def test_one_node_with_latest_and_keep_all_inputs_small_and_large(run_dir):
 
 def test_a_forged_end_of_stream_is_ignored_and_counted(tmp_path, run_dir):
     """A node of the graph sends end-of-stream marks on /test/blob that name the ticker (no
-    token, a wrong one), on the data path and the control channel: the sink ignores all four,
+    token, a wrong one), on the data path and the control channel: the sink ignores them,
     counts them, and still gets all 300 messages."""
     out = tmp_path / "sink.json"
     lf = write(tmp_path, "g.yaml", f"""
@@ -344,7 +344,9 @@ nodes:
     r = handlaunch([lf], run_dir)
     assert r.returncode == 0, r.stdout + r.stderr
     res = sink_result(out)
-    assert res["seqs"] == list(range(300)) and res["dropped"] == 4
+    # the two on the data path always arrive (the forger waits for its subscribers); the two
+    # on the control channel only if the sink's control socket had connected by then
+    assert res["seqs"] == list(range(300)) and 2 <= res["dropped"] <= 4
     assert sum("[sink] WARNING dropped an end of stream on /test/blob" in line for line in r.stdout.splitlines()) == 1
 
 
