@@ -1,6 +1,6 @@
 """HandTracker.process against MediaPipe Hands, matched, and the tracker's parts.
 
-    python benchmarks/bench_tracker.py [--videos V ...] [--max-hands 1 2] [--repeat 3] [--threads 1]
+    python benchmarks/bench_tracker.py [--videos V ...] [--max-hands 1 2] [--rounds 5] [--repeat 1] [--threads 1]
                                        [--detnet PATH] [--finder PATH] [--iknet int8|float32|PATH]
                                        [--set KEY=VALUE ...]
 
@@ -10,7 +10,8 @@ data pack is beside the repository, two real clips: one hand at 540x960, two han
 HandTracker.process and of MediaPipe Hands in tracking mode (scripts/mediapipe_reference.py
 --bench in /tmp/mpenv, a subprocess) on the same frames at their own size, with the same
 maximum number of hands, and the BGR -> RGB conversion MediaPipe needs counted on its side
-(HandTracker takes the camera's BGR frames as they are); ratio = ours / MediaPipe's.
+(HandTracker takes the camera's BGR frames as they are); ratio = ours / MediaPipe's, the
+median over `--rounds` alternating rounds (one pass each, after a warm-up pass).
 
 Then, on the first video with the first max-hands: median and p90 ms per frame of the
 whole pipeline (detector + shape + IKNet + FK + translation + smoothing), its stages as
@@ -45,19 +46,24 @@ def default_videos():
                                                           if (SHARED_DATA / c).is_file()]
 
 
-def mediapipe_ms(video, max_hands):
+def mediapipe_ms(video, max_hands, repeat=1):
     """MediaPipe's tracking mode on the video's first MAX_FRAMES frames (a subprocess in
     /tmp/mpenv): its JSON line (median_ms, hands_per_frame, ...) or a string saying why not."""
     if not MP_PYTHON.is_file():
         return "not measured: /tmp/mpenv absent"
     r = subprocess.run([str(MP_PYTHON), str(ROOT / "scripts" / "mediapipe_reference.py"), "--bench", str(video),
-                        "--frames", str(MAX_FRAMES), "--max-hands", str(max_hands)], capture_output=True, text=True)
+                        "--frames", str(MAX_FRAMES), "--max-hands", str(max_hands),
+                        "--repeat", str(repeat)], capture_output=True, text=True)
     lines = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]
     return json.loads(lines[-1]) if r.returncode == 0 and lines else f"failed: {r.stderr[-300:]}"
 
 
 def matched(videos, max_hands_list, args, settings):
-    """Rows (dicts) of the matched comparison, and its markdown table."""
+    """Rows (dicts) of the matched comparison, and its markdown table. Each row is `rounds`
+    rounds of one pass of ours then one of MediaPipe's (after a warm-up pass each), and
+    the ratio is the median of the rounds' ratios: on a shared machine the speed of the
+    whole machine drifts by a third over minutes (session 24), which a ratio of two runs
+    minutes apart would take for a difference between the two."""
     from handmocap.runtime.frames import read_video
     from handmocap.perception.tracker import HandTracker
     rows = []
@@ -67,23 +73,35 @@ def matched(videos, max_hands_list, args, settings):
             tracker = HandTracker(detnet=args.detnet, finder=args.finder, iknet=args.iknet, threads=args.threads,
                                   max_hands=max_hands, **settings)
             hands = [len(tracker.process(f)) for f in frames]         # warm-up; the hands are tracked from here on
-            ours = stats(timed(tracker.process, frames, args.repeat))
-            mp = mediapipe_ms(video, max_hands)
+            ours, theirs, failed = [], [], None
+            for _ in range(args.rounds):
+                ours.append(stats(timed(tracker.process, frames, args.repeat)))
+                mp = mediapipe_ms(video, max_hands, args.repeat)
+                if not isinstance(mp, dict):
+                    failed = mp
+                    break
+                theirs.append(mp)
             row = {"video": Path(video).name, "size": f"{frames[0].shape[1]}x{frames[0].shape[0]}",
-                   "max_hands": max_hands, "ours_ms": ours["median_ms"], "ours_cpu_ms": ours["median_cpu_ms"],
-                   "ours_hands_per_frame": float(np.mean(hands)), "mediapipe": mp}
-            if isinstance(mp, dict):
-                row["ratio"] = ours["median_ms"] / mp["median_ms"]
+                   "max_hands": max_hands, "rounds": len(ours),
+                   "ours_ms": float(np.median([o["median_ms"] for o in ours])),
+                   "ours_cpu_ms": float(np.median([o["median_cpu_ms"] for o in ours])),
+                   "ours_hands_per_frame": float(np.mean(hands)), "mediapipe": failed}
+            if theirs:
+                ratios = [o["median_ms"] / m["median_ms"] for o, m in zip(ours, theirs)]
+                row["mediapipe"] = {"median_ms": float(np.median([m["median_ms"] for m in theirs])),
+                                    "hands_per_frame": theirs[-1]["hands_per_frame"]}
+                row.update(ratio=float(np.median(ratios)), ratio_range=[float(min(ratios)), float(max(ratios))])
             rows.append(row)
             print(json.dumps(row), flush=True)
-    table = ["| video | size | max hands | ours ms (hands/frame) | MediaPipe ms (hands/frame) | ours / MediaPipe |",
-             "|---|---|---|---|---|---|"]
+    table = ["| video | size | max hands | ours ms (hands/frame) | MediaPipe ms (hands/frame) | ours / MediaPipe, "
+             "median (range) of the rounds |", "|---|---|---|---|---|---|"]
     for r in rows:
         mp = r["mediapipe"]
         mp_cell = f"{mp['median_ms']:.1f} ({mp['hands_per_frame']:.2f})" if isinstance(mp, dict) else mp
         table.append(f"| {r['video']} | {r['size']} | {r['max_hands']} | {r['ours_ms']:.1f} "
                      f"({r['ours_hands_per_frame']:.2f}) | {mp_cell} | "
-                     f"{r['ratio']:.2f} |" if "ratio" in r else "– |")
+                     + (f"{r['ratio']:.2f} ({r['ratio_range'][0]:.2f}-{r['ratio_range'][1]:.2f}) |"
+                        if "ratio" in r else "– |"))
     return rows, "\n".join(table)
 
 
@@ -168,7 +186,9 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--videos", nargs="+", default=None,
                    help="clips (default: the demo clip and the data pack's two real clips where it is there)")
-    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--repeat", type=int, default=1, help="passes over the frames per round (default %(default)s)")
+    p.add_argument("--rounds", type=int, default=5,
+                   help="matched comparison: rounds of ours then MediaPipe's, alternating (default %(default)s)")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads per network")
     p.add_argument("--detnet", help="DetNet: int8 (default, models/detnet_int8.onnx), float32 "
                                      "(models/detnet.onnx) or an ONNX path")
@@ -198,23 +218,23 @@ def main():
                           max_hands=max_hands, **settings)
     for f in frames:                   # warm-up pass, and the hand is tracked from here on
         tracker.process(f)
-    results["tracker"] = stats(timed(tracker.process, frames, args.repeat))
+    results["tracker"] = stats(timed(tracker.process, frames, max(args.repeat, 3)))
     results["tracker"]["hands_per_frame"] = float(np.mean([len(tracker.process(f)) for f in frames]))
     results["tracker_stages_cpu_ms_per_frame"] = stage_cpu_ms(tracker, frames)
 
     det = HandDetector.load(args.detnet, args.finder, threads=args.threads, max_hands=max_hands, **settings)
     for f in frames:
         det.process(f)
-    results["detector"] = stats(timed(det.process, frames, args.repeat))
+    results["detector"] = stats(timed(det.process, frames, max(args.repeat, 3)))
     results["detector"]["finder_runs_per_frame"] = det.stats["finder_runs"] / det.stats["frames"]
 
     crops = np.random.default_rng(0).integers(0, 255, (16, 128, 128, 3), np.uint8)
-    one = stats(timed(lambda c: det.detnet(c[None]), list(crops), args.repeat * 4))
-    batch = stats(timed(det.detnet, [crops] * 10, args.repeat))
+    one = stats(timed(lambda c: det.detnet(c[None]), list(crops), max(args.repeat, 3) * 4))
+    batch = stats(timed(det.detnet, [crops] * 10, max(args.repeat, 3)))
     results["detnet_1_crop"] = {**one, "crops_per_s": 1e3 / one["median_ms"], "crops_per_cpu_s": 1e3 / one["median_cpu_ms"]}
     results["detnet_16_crops"] = {**batch, "crops_per_s": 16e3 / batch["median_ms"],
                                   "crops_per_cpu_s": 16e3 / batch["median_cpu_ms"]}
-    results["finder"] = stats(timed(det.finder.find, frames[:30], args.repeat))
+    results["finder"] = stats(timed(det.finder.find, frames[:30], max(args.repeat, 3)))
 
     print(json.dumps(results, indent=1))
     print(table)

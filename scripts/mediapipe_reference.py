@@ -123,21 +123,24 @@ def predict(args):
 
 
 def bench(args):
-    """Median ms per frame of MediaPipe's tracking (video) mode on a video's frames."""
+    """Median ms per frame of MediaPipe's tracking (video) mode on a video's frames: one
+    warm-up pass, then `--repeat` timed passes pooled (one pass's median wanders by up to
+    a third on a shared 2-core machine)."""
     import mediapipe as mp
     images = list(frames(args.bench))[:args.frames]
     times, found = [], []
     with mp.solutions.hands.Hands(static_image_mode=False, max_num_hands=args.max_hands,
                                   model_complexity=1) as hands:
-        for _ in range(2):   # second pass timed: models warm
-            times, found = [], []
+        for rep in range(1 + args.repeat):     # the first pass is a warm-up: models load
+            if rep <= 1:
+                times, found = [], []
             for frame in images:
                 t = time.perf_counter()      # the BGR -> RGB conversion counts: a camera gives BGR frames
                 result = hands.process(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
                 times.append(time.perf_counter() - t)
                 found.append(len(result.multi_hand_landmarks or []))
     print(json.dumps({"median_ms": 1e3 * float(np.median(times)), "p90_ms": 1e3 * float(np.percentile(times, 90)),
-                      "frames": len(times), "hands_per_frame": float(np.mean(found)), "max_hands": args.max_hands,
+                      "frames": len(images), "passes": args.repeat, "hands_per_frame": float(np.mean(found)), "max_hands": args.max_hands,
                       "size": list(images[0].shape[1::-1])}))
 
 
@@ -152,6 +155,7 @@ def main():
     p.add_argument("--bench", help="a video: print MediaPipe's median ms per frame (JSON) instead")
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--max-hands", type=int, default=2, help="with --bench: max_num_hands (default %(default)s)")
+    p.add_argument("--repeat", type=int, default=1, help="with --bench: timed passes (default %(default)s)")
     args = p.parse_args()
     if args.bench:
         bench(args)

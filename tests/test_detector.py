@@ -131,8 +131,10 @@ def test_crop_round_trip_and_pixels_land_where_the_transform_says(mirrored, angl
         uv = rng.uniform(-100, 700, (21, 2))
         np.testing.assert_allclose(crop.to_frame(crop.to_crop(uv)), uv, atol=1e-9)
     frame = np.zeros((H, W, 3), np.uint8)
-    # inside (shrunk by 2 first), past two edges, small, large and past an edge (shrunk by 4)
-    for centre, side in (((300, 200), 257), ((20, 460), 200), ((600, 30), 90), ((330, 260), 600)):
+    # inside (shrunk by 2 first), past two edges, small, large and past an edge (shrunk by 4),
+    # 3.3x and 5.5x the crop (shrunk by 2 and 4, then bilinear by 1.6 and 1.4)
+    for centre, side in (((300, 200), 257), ((20, 460), 200), ((600, 30), 90), ((330, 260), 600),
+                         ((310, 240), 420), ((290, 250), 700)):
         crop = CropTransform.around(centre, side, mirrored=mirrored, angle=angle)
         dot = np.array(centre) + (17, -11)
         frame[:] = 0

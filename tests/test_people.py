@@ -108,3 +108,25 @@ def test_handeval_people_without_the_second_drop_is_one_clear_error(tmp_path, ca
     assert main(["people", "--data", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "video/wild" in err and "Traceback" not in err
+
+
+def test_jittered_frames_move_each_pixel_by_at_most_one_level_the_same_way_per_seed(monkeypatch):
+    """`handeval people --jitter N`: frames moved by a seeded -1/0/+1, repeatable per seed
+    and clip, and the table's mean and spread rows over the runs."""
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 256, (24, 32, 3), np.uint8) for _ in range(3)]
+    lab = labels([[(hand(16, 12, 10), 0)]] * 3)
+    monkeypatch.setattr(real_data, "load_pseudo_labels", lambda v: lab)
+    monkeypatch.setattr(real_data, "read_video", lambda v, frames_=None: enumerate(frames))
+    plain = [f[0] for f in eval_people.frames_of_clip("clip.mp4")]
+    moved = [f[0] for f in eval_people.frames_of_clip("clip.mp4", jitter_seed=0)]
+    again = [f[0] for f in eval_people.frames_of_clip("clip.mp4", jitter_seed=0)]
+    other = [f[0] for f in eval_people.frames_of_clip("clip.mp4", jitter_seed=1)]
+    for p, m, a, o in zip(plain, moved, again, other):
+        d = m.astype(int) - p
+        assert np.abs(d).max() == 1 and 0.5 < (d != 0).mean() < 0.8       # 2 in 3 move (less at 0 and 255)
+        assert np.array_equal(m, a) and not np.array_equal(m, o)
+    runs = [{"found": f, "false_per_frame": 0.1, "median_err": 0.1, "mean_err": 0.2, "pck": 0.5, "side": 0.8}
+            for f in (0.80, 0.84, 0.82)]
+    rows = eval_people.jitter_rows(runs)
+    assert rows[-2].startswith("| **mean** | 82.000 |") and rows[-1].startswith("| **spread (max - min)** | 4.000 |")

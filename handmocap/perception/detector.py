@@ -178,12 +178,15 @@ class CropTransform:
 
     def cut(self, image):
         """(size,size,C) uint8 crop of `image` (H,W,C); outside the frame the border pixels
-        are repeated. Cost is independent of the crop's side: a crop more than twice the
-        output size is first shrunk by an integer factor k (INTER_AREA, in-frame part only,
-        exact pixel mapping u_small + 0.5 = (u - x + 0.5) / k), then one bilinear warp."""
+        are repeated. Cost is about independent of the crop's side: a crop at least twice
+        the output size is first shrunk by k, the largest power of two that leaves at least
+        `size` px (halvings by 2x2 means, in-frame part only, exact pixel mapping
+        u_small + 0.5 = (u - x + 0.5) / k), then one bilinear warp (shrinking by less than 2).
+        Powers of two because OpenCV's area shrink is vectorised for a factor of 2 alone:
+        by 3 it costs 8x a halving, by 5 20x (docs/experiment_log.md, session 24)."""
         h, w = image.shape[:2]
         s = self.size / self.side                       # crop px per frame px
-        k = max(1, int(1.0 / s))
+        k = 1 << max(0, int(1.0 / s).bit_length() - 1)
         src, ox, oy = image, 0, 0
         if k >= 2:                                      # the in-frame part (+ margin), whole k-blocks
             lo = self.box[:2] + 0.5                     # (x0, y0) at angle 0
@@ -195,13 +198,17 @@ class CropTransform:
             if nx < 1 or ny < 1:                        # wholly outside: nearest frame pixels only
                 k, ox, oy = 1, 0, 0
             else:
-                src = cv2.resize(image[oy:oy + ny * k, ox:ox + nx * k], (nx, ny), interpolation=cv2.INTER_AREA)
+                src = image[oy:oy + ny * k, ox:ox + nx * k]
+                for _ in range(k.bit_length() - 1):     # 2x2 means, k/2 ... 1 times: one k x k mean
+                    src = cv2.resize(src, (src.shape[1] // 2, src.shape[0] // 2), interpolation=cv2.INTER_AREA)
         # frame u = k (u_src + 0.5) - 0.5 + o, then the crop mapping of the class doc
         A = self.rotation * s
         t = A @ (np.array([0.5 * k - 0.5 + ox, 0.5 * k - 0.5 + oy]) - self.centre) + (self.size - 1) / 2
         M = np.hstack([A * k, t[:, None]])
-        crop = cv2.warpAffine(src, M, (self.size, self.size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return np.ascontiguousarray(crop[:, ::-1]) if self.mirrored else crop
+        if self.mirrored:                               # u_crop -> size - 1 - u_crop, inside the one warp
+            M[0] = -M[0]
+            M[0, 2] += self.size - 1
+        return cv2.warpAffine(src, M, (self.size, self.size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def crop_to_frame_xyz(crop, xyz):

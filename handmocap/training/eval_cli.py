@@ -5,7 +5,7 @@
     handeval score --pred PRED.npz --gt GT.npz [--png CURVE.png] [--json OUT.json]
     handeval splits [--data shared/data] [--work /tmp/handeval] [--markdown TABLE.md]
                     [--methods ours mediapipe] [--only SPLIT ...] [--detnet ...]
-    handeval people [--data shared/data] [--png PCK.png] [--json OUT.json] [--detnet ...]
+    handeval people [--data shared/data] [--png PCK.png] [--json OUT.json] [--jitter N] [--detnet ...]
 
 predict: HandTracker on every image of DIR sorted by name (each image on its own: tracks
 reset, no smoothing; --sequence treats the images as consecutive video frames) or on every
@@ -461,15 +461,16 @@ def run_splits(data, work, markdown=None, methods=("ours", "mediapipe"), models=
         Path(markdown).write_text(table + "\n")
 
 
-def run_people(data, models=None, png=None, json_path=None):
+def run_people(data, models=None, png=None, json_path=None, jitter=0):
     """`handeval people`: print (and return) the held-back people's table."""
     from handmocap.training import eval_people
     if not (data / "video" / "wild").is_dir():
         raise ValueError(f"{data}: no video/wild (the data pack's second drop) here")
-    table, results = eval_people.run(data, detector_keywords(models))
+    table, results = eval_people.run(data, detector_keywords(models), jitter=jitter)
     print(table, flush=True)
     if png:
-        plot_curves({k.split(" (")[0]: (eval_people.CURVE, v["curve"]) for k, v in results.items()}, png,
+        plot_curves({k.split(" (")[0]: (eval_people.CURVE, v["curve"]) for k, v in results.items()
+                     if "curve" in v}, png,
                     "held-back people", xlabel="error threshold (share of hand size)", ylabel="2D PCK")
         print(f"wrote {png}")
     if json_path:
@@ -566,7 +567,7 @@ def cmd_splits(args):
 
 
 def cmd_people(args):
-    run_people(Path(args.data), model_paths(args), args.png, args.json)
+    run_people(Path(args.data), model_paths(args), args.png, args.json, args.jitter)
 
 
 def main(argv=None):
@@ -601,6 +602,9 @@ def main(argv=None):
     q.add_argument("--data", default=str(SHARED_DATA))
     q.add_argument("--png", help="write the PCK curve (error / hand size) here")
     q.add_argument("--json", help="write every number here")
+    q.add_argument("--jitter", type=int, default=0, metavar="N",
+                   help="run the clips N more times with every pixel moved by -1/0/+1 and print the figures' "
+                        "mean and spread: what a change must beat to be told apart (about 40 s each)")
     add_model_arguments(q)
     q.set_defaults(run=cmd_people)
     args = parser.parse_args(argv)

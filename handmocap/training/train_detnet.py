@@ -128,6 +128,12 @@ def add_arguments(p):
     p.add_argument("--workers", type=int, default=0, metavar="N",
                    help="processes that make the batches ahead (default 0: in the training loop, as on the 2-core "
                         "CPU); a GPU run wants about one per core")
+    p.add_argument("--pack", type=Path, default=None, metavar="DIR",
+                   help="train from a device pack (handmocap.training.device_pack: real and synthetic crops "
+                        "as JPEGs, small enough to carry to a lent GPU) instead of --data, --val and --shared")
+    p.add_argument("--minutes", type=float, default=None,
+                   help="stop after this many minutes of training and export (the learning rate decays over "
+                        "whichever of --iters and --minutes comes first): a job that must end on time")
     p.add_argument("--val-every", type=int, default=250)
     p.add_argument("--ckpt-every", type=int, default=50)
     p.add_argument("--run-dir", type=Path, default=None, help="default runs/detnet/<backbone>")
@@ -650,8 +656,9 @@ def shown_as_right(image, uv, xyz, left):
 
 def synth_val_set(path, limit=512):
     """Held-out synthetic crops as the detector sees them: left hands mirrored to the right
-    (image, uv, xyz_rel), plus the unmirrored images for the handedness head."""
-    s = load_synth([path], limit)
+    (image, uv, xyz_rel), plus the unmirrored images for the handedness head. `path`: a
+    shard directory, or the arrays load_synth gives (a device pack's)."""
+    s = path if isinstance(path, dict) else load_synth([path], limit)
     if s is None:
         return None
     left = s["handedness"] == 1
@@ -922,13 +929,19 @@ def main(args):
         print(f"exported {args.export} (refine {refine})")
         return
 
-    dirs = synth_dirs(args.data)
-    synth = load_synth(dirs, args.max_synth)
-    if synth is None:
-        raise SystemExit(f"no synthetic shards match {args.data}: run `handsynth generate -n 8192 -o "
-                         f"{DATA_DIR}/synth_train_0` first")
-    print(f"synthetic: {len(synth['image'])} crops from {len(dirs)} directories")
-    real = load_real(args.shared)
+    if args.pack:                       # everything from the pack: nothing read from runs/detnet_data or shared
+        from handmocap.training.device_pack import load_pack
+        real, synth, synth_val = load_pack(args.pack)
+        dirs, args.shared = [], Path("/nonexistent")
+        print(f"pack {args.pack}: synthetic {len(synth['image'])} crops, held-out {len(synth_val['image'])}")
+    else:
+        dirs = synth_dirs(args.data)
+        synth = load_synth(dirs, args.max_synth)
+        if synth is None:
+            raise SystemExit(f"no synthetic shards match {args.data}: run `handsynth generate -n 8192 -o "
+                             f"{DATA_DIR}/synth_train_0` first")
+        print(f"synthetic: {len(synth['image'])} crops from {len(dirs)} directories")
+        real = load_real(args.shared)
     if real is not None:
         print(f"real: {int((~real['held']).sum())} training hand crops, {int(real['held'].sum())} held out; "
               f"{int((~real['neg_held']).sum())} negatives ({int(real['neg_held'].sum())} held out)")
@@ -938,7 +951,10 @@ def main(args):
               + ("" if args.part_neg else ", measured only (--part-neg 0)"))
     maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright, args.real_3d,
                        args.left_2d, parts, args.part_neg)
-    sval = synth_val_set(args.val) if (Path(args.val) / "meta.json").exists() else None
+    if args.pack:
+        sval = synth_val_set(synth_val)
+    else:
+        sval = synth_val_set(args.val) if (Path(args.val) / "meta.json").exists() else None
     if sval is None:
         print(f"note: no held-out synthetic set at {args.val}")
     rval = real_val_set(real)
@@ -961,9 +977,10 @@ def main(args):
               f"(residual blocks starting as the identity: {', '.join(grown) or 'none'})")
     run_dir.mkdir(parents=True, exist_ok=True)
 
-    def save(it):
+    def save(it, refine_now=None):
         tmp = ckpt_path.with_suffix(".tmp")
-        torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "iteration": it, "refine": refine,
+        torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "iteration": it,
+                    "refine": refine_now or refine,
                     "history": history, "backbone": args.backbone, "fine": args.fine_head,
                     "args": {k: str(v) for k, v in vars(args).items()}}, tmp)
         os.replace(tmp, ckpt_path)
@@ -983,6 +1000,20 @@ def main(args):
             degrade(batch["image"], batch["presence"] > 0, args.degrade, rng)
         return to_torch(batch, rng, args.grey)
 
+    def validate_and_save(done):
+        """Validate, log, checkpoint and export at iteration `done`; -> the read-out chosen."""
+        metrics = validate(net, sval, rval, refines=read_outs(net))
+        best = refine
+        if sval is not None:                        # the read-out that measures best on held-out synthetic
+            best = min(read_outs(net), key=lambda r: metrics[f"syn_px_{r}"])
+        history.append({"iteration": done, "seconds": time.monotonic() - t0, "refine": best,
+                        "synthetic_crops": len(synth["image"]), **metrics})
+        bar.write(f"iter {done}: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v
+                                                 for k, v in history[-1].items()}))
+        save(done, best)
+        export_onnx(net, run_dir / "detnet.onnx", best)
+        return best
+
     # --workers N: N processes make the batches ahead (in order, each from its iteration's
     # seed, so a run gives the same batches either way), which keeps a GPU fed; they hold
     # the data as it was at the start (no new synthetic folders picked up)
@@ -992,15 +1023,24 @@ def main(args):
     bar = tqdm(range(start, args.iters), initial=start, total=args.iters, desc=f"detnet-{args.backbone}",
                dynamic_ncols=True, mininterval=5)
     t0 = time.monotonic()
+    budget_s = None if args.minutes is None else 60.0 * args.minutes
+    done = start
     for it in bar:
-        if it % 500 == 0 and it > start and len(synth["image"]) < args.max_synth and not args.workers:
+        elapsed = time.monotonic() - t0
+        if budget_s is not None and elapsed >= budget_s:
+            bar.write(f"--minutes {args.minutes}: stopping at iteration {it}")
+            break
+        if it % 500 == 0 and it > start and len(synth["image"]) < args.max_synth and not args.workers and dirs:
             new_dirs = synth_dirs(args.data)
             if new_dirs != dirs:
                 dirs, synth = new_dirs, load_synth(new_dirs, args.max_synth)
                 maker.synth = synth
                 bar.write(f"synthetic: now {len(synth['image'])} crops from {len(dirs)} directories")
         for group in opt.param_groups:
-            group["lr"] = warmup_cosine_lr(it, args.lr, args.iters, warmup=300, floor=0.02)
+            # with --minutes, the cosine runs on whichever of iterations and time is further along
+            # (the warm-up stays 300 iterations)
+            at = it if budget_s is None or it < 300 else max(it, int(300 + (args.iters - 300) * elapsed / budget_s))
+            group["lr"] = warmup_cosine_lr(at, args.lr, args.iters, warmup=300, floor=0.02)
         b = {k: v.to(device, non_blocking=True) for k, v in (next(batches) if batches else batch_at(it)).items()}
         train_mode()                    # validation and export leave every module in training mode
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.amp):   # --amp: bf16 mixed precision
@@ -1014,18 +1054,12 @@ def main(args):
             bar.set_postfix({k: f"{v.item():.4f}" for k, v in losses.items()})
         done = it + 1
         if done % args.val_every == 0 or done == args.iters:
-            metrics = validate(net, sval, rval, refines=read_outs(net))
-            if sval is not None:                        # the read-out that measures best on held-out synthetic
-                refine = min(read_outs(net), key=lambda r: metrics[f"syn_px_{r}"])
-            history.append({"iteration": done, "seconds": time.monotonic() - t0, "refine": refine,
-                            "synthetic_crops": len(synth["image"]), **metrics})
-            bar.write(f"iter {done}: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v
-                                                     for k, v in history[-1].items()}))
-            save(done)
-            export_onnx(net, run_dir / "detnet.onnx", refine)
+            refine = validate_and_save(done)
         elif done % args.ckpt_every == 0:
             save(done)
+    if done > start and (not history or history[-1]["iteration"] != done):      # stopped by --minutes
+        refine = validate_and_save(done)
     args.export.parent.mkdir(parents=True, exist_ok=True)
     export_onnx(net, args.export, refine)
     print(f"exported {args.export} ({args.export.stat().st_size / 1e6:.1f} MB, refine {refine}) "
-          f"after {args.iters} iterations")
+          f"after {done} iterations")

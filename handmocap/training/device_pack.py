@@ -1,0 +1,163 @@
+"""A DetNet training job's data, packed small enough to travel to a lent GPU machine.
+
+    python -m handmocap.training.device_pack [--out runs/device/pack] [--mb 24] [--quality 85]
+    handtrain detnet --pack runs/device/pack --device cuda --amp --workers 14 --minutes 8 ...
+
+A lent machine reaches nothing outside it and gets the checkout and at most 64 MiB of
+carried files; `../shared` does not travel. So the job's data goes as one folder:
+
+* real.npz: real context crops (train_detnet.CTX px, JPEG) of the training people, with
+  their labels as in the real cache (uv, right, weight, source, xyz, has_3d), the
+  held-back people's crops for the run's own validation log (`held`; never trained on:
+  BatchMaker draws from ~held alone), and no-hand crops;
+* synth.npz: rendered 128 px crops (JPEG) with their 2D and 3D labels, and a held-out
+  synthetic set for validation.
+
+Which crops go: the byte budget (`--mb`) is split between real and synthetic crops
+(`--real-share`); every 11K Hands photo of a training person goes (each is another person),
+then every 2nd, 3rd ... frame of the clips and scenes, evenly over the sources, until the
+real budget is spent. JPEG at quality 85 costs about 5 kB a 176 px crop.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+PACK_DIR = Path("runs/device/pack")
+HAND_KEYS = ("uv", "right", "weight", "held", "source", "xyz", "has_3d")
+SYNTH_KEYS = ("uv", "xyz_rel", "xyz", "handedness", "in_image")
+LABEL_BYTES = 250           # a crop's labels (float16 uv and xyz) in the compressed .npz, about
+
+
+def encode_jpegs(images, quality=85):
+    """(n,H,W,3) uint8 -> (bytes (m,) uint8, offsets (n+1,) int64): the JPEGs end to end."""
+    blobs = [cv2.imencode(".jpg", np.ascontiguousarray(im), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])[1]
+             for im in images]
+    offsets = np.concatenate([[0], np.cumsum([len(b) for b in blobs])]).astype(np.int64)
+    return (np.concatenate(blobs) if blobs else np.zeros(0, np.uint8)), offsets
+
+
+def decode_jpegs(data, offsets):
+    """Inverse of encode_jpegs: (n,H,W,3) uint8 (the channel order they were encoded in)."""
+    if len(offsets) < 2:
+        return np.zeros((0, 128, 128, 3), np.uint8)
+    return np.stack([cv2.imdecode(data[offsets[i]:offsets[i + 1]], cv2.IMREAD_COLOR) for i in range(len(offsets) - 1)])
+
+
+def pick_real(real, budget_bytes, crop_bytes):
+    """Indices of the real cache's hands to pack, within budget_bytes given each crop's
+    bytes (crop_bytes (n,)): every held-back crop of a person (for validation, at most 400),
+    every training 11K Hands photo, then the other training crops thinned evenly per source
+    (the largest share of each that fits, evenly spaced in time)."""
+    source = real["source"].astype(str)
+    held = np.flatnonzero(real["held"] & np.char.startswith(source, "heldback/"))
+    held = held[np.linspace(0, len(held) - 1, min(400, len(held))).astype(int)] if len(held) else held
+    train = np.flatnonzero(~real["held"])
+    photos = train[np.char.find(source[train], "11k") >= 0]
+    rest = np.setdiff1d(train, photos)
+    groups = [rest[source[rest] == s] for s in np.unique(source[rest])]
+
+    def thinned(share):
+        return [g[np.unique(np.linspace(0, len(g) - 1, int(round(share * len(g)))).astype(int))] for g in groups]
+    room = budget_bytes - crop_bytes[held].sum() - crop_bytes[photos].sum()
+    lo, hi = 0.0, 1.0
+    for _ in range(20):                 # the largest share that fits (bisection)
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if sum(crop_bytes[g].sum() for g in thinned(mid)) <= room else (lo, mid)
+    return np.sort(np.concatenate([held, photos, *thinned(lo)]))
+
+
+def pack(out_dir, mb=24.0, real_share=0.75, quality=85, shared=None, synth_patterns=None, log=print):
+    """Write out_dir/real.npz and synth.npz within about `mb` megabytes together, from the
+    real cache and the synthetic shards under runs/detnet_data; -> the pack's size, bytes."""
+    from handmocap.training import train_detnet as td
+    real = td.load_real(shared or td.SHARED_DATA, log=log)
+    if real is None:
+        raise SystemExit(f"no real data pack at {shared or td.SHARED_DATA}: the pack needs the data pack's real crops")
+    synth = td.load_synth(td.synth_dirs(synth_patterns or [str(td.DATA_DIR / "synth_train_*")]), 65536)
+    val = td.load_synth([str(td.DATA_DIR / "synth_val")], 256)
+    if synth is None or val is None:
+        raise SystemExit(f"no synthetic shards under {td.DATA_DIR}: run `handsynth generate` first (model card)")
+    budget = mb * 1e6
+    log(f"encoding {len(real['image'])} real crops once to know their sizes")
+    crop_bytes = np.diff(encode_jpegs(real["image"], quality)[1]) + LABEL_BYTES
+    idx = pick_real(real, real_share * budget, crop_bytes)
+    neg = np.flatnonzero(~real["neg_held"])[::3]
+    per_synth = _jpeg_bytes(synth["image"], quality) + LABEL_BYTES
+    room = budget - crop_bytes[idx].sum() - len(neg) * _jpeg_bytes(real["neg"], quality) - len(val["image"]) * per_synth
+    n = int(np.clip(room / per_synth, 0, len(synth["image"])))
+    pick = np.sort(np.random.default_rng(1).choice(len(synth["image"]), n, replace=False))
+    hands = {k: real[k][idx] for k in HAND_KEYS + ("image",)}
+    negs = {"neg": real["neg"][neg], "neg_arm": real["neg_arm"][neg]}
+    size = write_pack(out_dir, hands, negs, {k: v[pick] for k, v in synth.items()}, val, quality)
+    log(f"real: {int((~hands['held']).sum())} training crops of {int((~real['held']).sum())}, "
+        f"{int(hands['held'].sum())} held-back for validation, {len(neg)} no-hand crops; synthetic: {n} of "
+        f"{len(synth['image'])}, {len(val['image'])} held out; wrote {out_dir}: {size / 1e6:.1f} MB")
+    return size
+
+
+def _jpeg_bytes(images, quality, n=256):
+    """Mean JPEG size of n of `images` (evenly spaced), bytes."""
+    pick = np.linspace(0, len(images) - 1, min(n, len(images))).astype(int)
+    return encode_jpegs(images[pick], quality)[1][-1] / len(pick)
+
+
+def write_pack(out_dir, hands, negs, synth, val, quality=85):
+    """Write the pack: hands {image (n,CTX,CTX,3), HAND_KEYS}, negs {neg (m,128,128,3), neg_arm},
+    synth and val {image (k,128,128,3), SYNTH_KEYS} (load_synth's arrays); -> bytes written."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    arrays = {k: hands[k] for k in HAND_KEYS}
+    arrays["uv"], arrays["xyz"] = hands["uv"].astype(np.float16), hands["xyz"].astype(np.float16)
+    arrays["image_jpeg"], arrays["image_offsets"] = encode_jpegs(hands["image"], quality)
+    arrays["neg_jpeg"], arrays["neg_offsets"] = encode_jpegs(negs["neg"], quality)
+    arrays["neg_arm"] = negs["neg_arm"]
+    np.savez_compressed(out_dir / "real.npz", **arrays)
+    arrays = {}
+    for prefix, s in (("", synth), ("val_", val)):
+        arrays[f"{prefix}image_jpeg"], arrays[f"{prefix}image_offsets"] = encode_jpegs(s["image"], quality)
+        for k in SYNTH_KEYS:
+            arrays[prefix + k] = s[k].astype(np.float16) if s[k].dtype.kind == "f" else s[k]
+    np.savez_compressed(out_dir / "synth.npz", **arrays)
+    return sum((out_dir / f).stat().st_size for f in ("real.npz", "synth.npz"))
+
+
+def load_pack(pack_dir):
+    """-> (real, synth, synth_val): the dicts train_detnet's BatchMaker and validation take."""
+    pack_dir = Path(pack_dir)
+    for f in ("real.npz", "synth.npz"):
+        if not (pack_dir / f).is_file():
+            raise SystemExit(f"--pack {pack_dir}: no {f} there (make one with `python -m "
+                             f"handmocap.training.device_pack --out {pack_dir}`)")
+    with np.load(pack_dir / "real.npz") as z:
+        real = {k: z[k] for k in HAND_KEYS + ("neg_arm",)}
+        real["image"] = decode_jpegs(z["image_jpeg"], z["image_offsets"])
+        real["neg"] = decode_jpegs(z["neg_jpeg"], z["neg_offsets"])
+    real["neg_held"] = np.zeros(len(real["neg"]), bool)     # only training negatives travel
+    real["uv"], real["xyz"] = real["uv"].astype(np.float32), real["xyz"].astype(np.float32)
+    with np.load(pack_dir / "synth.npz") as z:
+        synth, val = ({k: z[prefix + k] for k in SYNTH_KEYS} for prefix in ("", "val_"))
+        synth["image"] = decode_jpegs(z["image_jpeg"], z["image_offsets"])
+        val["image"] = decode_jpegs(z["val_image_jpeg"], z["val_image_offsets"])
+    for s in (synth, val):
+        for k in ("uv", "xyz_rel", "xyz"):
+            s[k] = s[k].astype(np.float32)
+    return real, synth, val
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=PACK_DIR)
+    p.add_argument("--mb", type=float, default=24.0, help="size of the pack, MB (default %(default)s)")
+    p.add_argument("--real-share", type=float, default=0.75, help="share of the bytes for real crops")
+    p.add_argument("--quality", type=int, default=85, help="JPEG quality (default %(default)s)")
+    p.add_argument("--shared", type=Path, default=None, help="the data pack (default ../shared/data)")
+    args = p.parse_args(argv)
+    pack(args.out, args.mb, args.real_share, args.quality, args.shared)
+
+
+if __name__ == "__main__":
+    main()

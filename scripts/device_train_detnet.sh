@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# One complete DetNet training job on a lent GPU machine (issue 27, point 4), in about
+# MINUTES + 2 minutes: train from the carried pack, export ONNX, print the validation log.
+#
+# Here, first (once; about 2 minutes, needs ../shared and runs/detnet_data):
+#     python -m handmocap.training.device_pack --out runs/device/pack --mb 24
+# Then the device tool's run, with carry ["runs/device/pack"] and a timeout of about 600 s:
+#     bash scripts/device_train_detnet.sh
+# What comes back under $OUT: detnet.onnx, last.pt (the checkpoint, for --resume or
+# --init-from here) and train.log. Here, after it: int8 copy and the held-back people,
+#     python -m handmocap.training.quantize_detnet --src F.onnx --out F_int8.onnx
+#     handeval people --detnet F_int8.onnx
+# and ship it only if it measures better (model card, "DetNet").
+#
+# The machine has python3 with torch, numpy, opencv, onnx and onnxruntime, and no registry:
+# the repository runs from the checkout (PYTHONPATH), nothing is installed. The same script
+# runs on a CPU for a check (DEVICE=cpu MINUTES=0.2 WORKERS=0 BATCH=8).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PACK=${PACK:-runs/device/pack}
+OUT=${OUT:-runs/device/out}
+MINUTES=${MINUTES:-7}
+DEVICE=${DEVICE:-cuda}
+WORKERS=${WORKERS:-14}
+BATCH=${BATCH:-256}
+BACKBONE=${BACKBONE:-fast-deep}
+INIT=${INIT:-models/detnet.onnx}
+LR=${LR:-1e-3}
+mkdir -p "$OUT"
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+python3 - <<'EOF'
+import torch
+print("torch", torch.__version__, "cuda", torch.cuda.is_available(),
+      torch.cuda.get_device_name() if torch.cuda.is_available() else "")
+EOF
+AMP=(); [ "$DEVICE" = cuda ] && AMP=(--amp)
+python3 -m handmocap.training.train_cli detnet --pack "$PACK" --device "$DEVICE" "${AMP[@]}" \
+    --workers "$WORKERS" --batch "$BATCH" --backbone "$BACKBONE" --init-from "$INIT" --lr "$LR" \
+    --iters 1000000 --minutes "$MINUTES" --val-every 2000 --ckpt-every 1000000 \
+    --share-real 0.5 --share-neg 0.12 --upright 60 --real-3d 0.5 \
+    --run-dir "$OUT/run" --export "$OUT/detnet.onnx" 2>&1 | tee "$OUT/train.log"
+cp "$OUT/run/last.pt" "$OUT/last.pt"
+rm -rf "$OUT/run"           # only 2 folder levels come back; detnet.onnx and last.pt are what matter
+ls -l "$OUT"
