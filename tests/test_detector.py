@@ -422,13 +422,13 @@ def test_tracked_hands_do_not_run_the_finder_unless_it_checks_the_tracks():
     for f in frames:
         det.process(f)
     # + three more quarter turns and the refinement of each new track
-    # and the mirror vote: each new track's first and refined crop, then every third frame (ages 3 .. 27)
-    assert det.finder.calls == 1 and det.stats["crops"] == 2 * 30 + 2 * 3 + 2 + 2 * 2 + 2 * 9
+    # and the mirror vote: each new track's first and refined crop, then every sixth frame (ages 6 .. 24)
+    assert det.finder.calls == 1 and det.stats["crops"] == 2 * 30 + 2 * 3 + 2 + 2 * 2 + 2 * 4
     det = detector(redetect_every=5)          # default: the finder checks the tracks every 5 frames
     for f in frames:
         det.process(f)
     assert det.finder.calls == 1 + 29 // 5 and det.stats["reseeds"] == 0
-    assert det.stats["crops"] == 2 * 30 + 2 * 3 + 2 + 2 * 2 + 2 * 9
+    assert det.stats["crops"] == 2 * 30 + 2 * 3 + 2 + 2 * 2 + 2 * 4
 
 
 def test_a_track_whose_joints_left_the_found_hand_is_reseeded_from_the_finder():
@@ -824,15 +824,15 @@ def test_tracked_test_time_crops_read_every_tracked_hand_on_variants_on_every_fr
 
 def test_second_look_reads_a_hand_again_when_its_size_jumps():
     """second_look=f: a tracked hand whose joints' box changed size by more than f since the
-    last frame is read again on 4 variants of its crop; a steady hand is read once."""
+    last frame is read again on `second_look_crops` variants of its crop; a steady hand is read once."""
     steady = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((320, 260), 110))
     bigger = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((320, 260), 135))
-    det = HandDetector(FakeDetNet(), FakeFinder(), mirror_vote_every=0, second_look=0.15)
+    det = HandDetector(FakeDetNet(), FakeFinder(), mirror_vote_every=0, second_look=0.15, second_look_crops=3)
     plain = HandDetector(FakeDetNet(), FakeFinder(), mirror_vote_every=0, second_look=0)
     for frame in (steady, steady, steady, bigger, bigger):
         out, base = det.process(frame), plain.process(frame)
         np.testing.assert_allclose(out[0]["uv"], base[0]["uv"], atol=DOT_TOL)    # the median of good readings
-    assert det.stats["second_looks"] == 1 and det.stats["crops"] == plain.stats["crops"] + 4
+    assert det.stats["second_looks"] == 1 and det.stats["crops"] == plain.stats["crops"] + 3
 
 
 def test_crop_and_frame_camera_axes_are_inverse_for_mirrored_and_turned_crops():

@@ -33,7 +33,7 @@ Per frame (`HandDetector.process`):
    `test_time_crops` (photos) a new track's reading, with `tracked_test_time_crops` every
    tracked hand's on every frame, is the median over its crop and that many variants of it;
    a tracked hand whose joints' box changed size by more than `second_look` (10%) since the
-   last frame gets that second look on 4 variants too.
+   last frame gets that second look on `second_look_crops` (2) variants.
 4. The next frame's crop of a track comes from this frame's 2D joints (their box, centre
    moved on by half the last displacement, side changing by at most 1.33x per frame), as
    MediaPipe and the paper's videos do.
@@ -91,7 +91,6 @@ ACCURATE_VIDEO_SETTINGS = {"tracked_test_time_crops": 4}
 # (side factor, extra turn in degrees) of the crops a new track's reading is averaged over
 # besides its own (`test_time_crops`): within the jitter DetNet was trained with
 TEST_TIME_VARIANTS = ((0.9, 0.0), (1.1, 0.0), (1.0, -20.0), (1.0, 20.0), (0.95, -10.0), (1.05, 10.0))
-SECOND_LOOK_CROPS = 4       # variants read for a tracked hand whose size jumped (`second_look`)
 
 
 def _variant_count(name, value):
@@ -367,11 +366,12 @@ class DetectorSettings:
     opposite_hands: float | None = 0.4  # two tracks this sure are a left and a right hand (None: off)
     upright_step: float | None = 90.0   # crops turn in steps of this many degrees (0: any; None: never)
     finder_handedness: float = 0.3      # the finder's side against one DetNet reading
-    mirror_vote_every: int | None = 3   # frames between readings of the crop flipped (0 or None: never)
+    mirror_vote_every: int | None = 6   # frames between readings of the crop flipped (0 or None: never)
     test_time_crops: int | None = 0     # more crops read for a new track, median kept (photos: 4)
     reseed_margin: float | None = 0.2   # a re-seed must come this close to the track's heatmap peak
     tracked_test_time_crops: int | None = 0   # the same for every tracked hand on every frame
     second_look: float | None = 0.1     # a hand whose box changed size by more is read again on more crops
+    second_look_crops: int = 2          # ... on this many variants of its crop (TEST_TIME_VARIANTS)
     handedness_memory: int = 20         # readings in a track's running side
     handedness: str | None = None       # "left" / "right": every hand is that side; None: per track
     settle_side: bool = True            # a track whose side turns is read again, mirrored for it
@@ -477,9 +477,10 @@ class HandDetector:
         # hand and frame, for accuracy where the time is there
         self.tracked_test_time_crops = _variant_count("tracked_test_time_crops", s.tracked_test_time_crops)
         # a tracked hand whose joints' box changed size by more than this fraction since the
-        # last frame is read again on SECOND_LOOK_CROPS variants of its crop and the median kept (0: never):
+        # last frame is read again on `second_look_crops` variants of its crop and the median kept (0: never):
         # a hand does not change size that fast, and such readings were often wrong
         self.second_look = s.second_look or 0.0
+        self.second_look_crops = _variant_count("second_look_crops", s.second_look_crops)
         # a re-seed must convince DetNet: its mean heatmap peak on the found box's crop at
         # least the track's running peak minus this (None: every re-seed is taken). A track
         # whose crop has swollen around an exploded prediction holds boxes of other things,
@@ -708,7 +709,7 @@ class HandDetector:
             jumped = [i for i in tracked if self._size_jumped(self.tracks[i], out["uv_peak"][i])]
             if jumped:
                 self.stats["second_looks"] += len(jumped)
-                self._median_over_nearby_crops(image_bgr, jumped, out, SECOND_LOOK_CROPS)
+                self._median_over_nearby_crops(image_bgr, jumped, out, self.second_look_crops)
         counted = set()
         if self.settle_side:
             counted = self._settle_sides(image_bgr, idx, out, self.test_time_crops) | \
