@@ -3,7 +3,7 @@
 # MINUTES + 2 minutes: train from the carried pack, export ONNX, print the validation log.
 #
 # Here, first (once; about 2 minutes, needs ../shared and runs/detnet_data):
-#     python -m handmocap.training.device_pack --out runs/device/pack --mb 24
+#     handtrain detnet --write-pack runs/device/pack --pack-mb 24
 # Then the device tool's run, with carry ["runs/device/pack"] and a timeout of about 600 s:
 #     bash scripts/device_train_detnet.sh
 # What comes back under $OUT: detnet.onnx, last.pt (the checkpoint, for --resume or

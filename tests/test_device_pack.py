@@ -73,5 +73,5 @@ def test_handtrain_detnet_trains_from_a_pack_and_stops_on_time(tmp_path):
 
 
 def test_a_missing_pack_is_one_error_saying_how_to_make_one(tmp_path):
-    with pytest.raises(SystemExit, match="device_pack --out"):
+    with pytest.raises(SystemExit, match="handtrain detnet --write-pack"):
         device_pack.load_pack(tmp_path / "nothing")

@@ -1,7 +1,7 @@
 """A DetNet training job's data, packed small enough to travel to a lent GPU machine.
 
-    python -m handmocap.training.device_pack [--out runs/device/pack] [--mb 24] [--quality 85]
-    handtrain detnet --pack runs/device/pack --device cuda --amp --workers 14 --minutes 8 ...
+    handtrain detnet --write-pack runs/device/pack [--pack-mb 24]      (here, beside the data)
+    handtrain detnet --pack runs/device/pack --device cuda --amp --workers 14 --minutes 7 ...
 
 A lent machine reaches nothing outside it and gets the checkout and at most 64 MiB of
 carried files; `../shared` does not travel. So the job's data goes as one folder:
@@ -16,11 +16,11 @@ carried files; `../shared` does not travel. So the job's data goes as one folder
 Which crops go: the byte budget (`--mb`) is split between real and synthetic crops
 (`--real-share`); every 11K Hands photo of a training person goes (each is another person),
 then every 2nd, 3rd ... frame of the clips and scenes, evenly over the sources, until the
-real budget is spent. JPEG at quality 85 costs about 5 kB a 176 px crop.
+real budget is spent. JPEG at quality 85 costs about 5 kB a 176 px crop. This module is the
+format only; train_detnet reads the caches and calls pack().
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import cv2
@@ -70,17 +70,10 @@ def pick_real(real, budget_bytes, crop_bytes):
     return np.sort(np.concatenate([held, photos, *thinned(lo)]))
 
 
-def pack(out_dir, mb=24.0, real_share=0.75, quality=85, shared=None, synth_patterns=None, log=print):
+def pack(out_dir, real, synth, val, mb=24.0, real_share=0.75, quality=85, log=print):
     """Write out_dir/real.npz and synth.npz within about `mb` megabytes together, from the
-    real cache and the synthetic shards under runs/detnet_data; -> the pack's size, bytes."""
-    from handmocap.training import train_detnet as td
-    real = td.load_real(shared or td.SHARED_DATA, log=log)
-    if real is None:
-        raise SystemExit(f"no real data pack at {shared or td.SHARED_DATA}: the pack needs the data pack's real crops")
-    synth = td.load_synth(td.synth_dirs(synth_patterns or [str(td.DATA_DIR / "synth_train_*")]), 65536)
-    val = td.load_synth([str(td.DATA_DIR / "synth_val")], 256)
-    if synth is None or val is None:
-        raise SystemExit(f"no synthetic shards under {td.DATA_DIR}: run `handsynth generate` first (model card)")
+    real cache (train_detnet.load_real), the synthetic crops and the held-out synthetic set
+    (train_detnet.load_synth); -> the pack's size, bytes."""
     budget = mb * 1e6
     log(f"encoding {len(real['image'])} real crops once to know their sizes")
     crop_bytes = np.diff(encode_jpegs(real["image"], quality)[1]) + LABEL_BYTES
@@ -130,8 +123,8 @@ def load_pack(pack_dir):
     pack_dir = Path(pack_dir)
     for f in ("real.npz", "synth.npz"):
         if not (pack_dir / f).is_file():
-            raise SystemExit(f"--pack {pack_dir}: no {f} there (make one with `python -m "
-                             f"handmocap.training.device_pack --out {pack_dir}`)")
+            raise SystemExit(f"--pack {pack_dir}: no {f} there (make one beside the data pack with "
+                             f"`handtrain detnet --write-pack {pack_dir}`)")
     with np.load(pack_dir / "real.npz") as z:
         real = {k: z[k] for k in HAND_KEYS + ("neg_arm",)}
         real["image"] = decode_jpegs(z["image_jpeg"], z["image_offsets"])
@@ -146,18 +139,3 @@ def load_pack(pack_dir):
         for k in ("uv", "xyz_rel", "xyz"):
             s[k] = s[k].astype(np.float32)
     return real, synth, val
-
-
-def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", type=Path, default=PACK_DIR)
-    p.add_argument("--mb", type=float, default=24.0, help="size of the pack, MB (default %(default)s)")
-    p.add_argument("--real-share", type=float, default=0.75, help="share of the bytes for real crops")
-    p.add_argument("--quality", type=int, default=85, help="JPEG quality (default %(default)s)")
-    p.add_argument("--shared", type=Path, default=None, help="the data pack (default ../shared/data)")
-    args = p.parse_args(argv)
-    pack(args.out, args.mb, args.real_share, args.quality, args.shared)
-
-
-if __name__ == "__main__":
-    main()

@@ -131,6 +131,10 @@ def add_arguments(p):
     p.add_argument("--pack", type=Path, default=None, metavar="DIR",
                    help="train from a device pack (handmocap.training.device_pack: real and synthetic crops "
                         "as JPEGs, small enough to carry to a lent GPU) instead of --data, --val and --shared")
+    p.add_argument("--write-pack", type=Path, default=None, metavar="DIR",
+                   help="write a device pack of --data's synthetic crops, the held-out set and the real cache to "
+                        "DIR (about --pack-mb MB) and stop")
+    p.add_argument("--pack-mb", type=float, default=24.0, help="size of a --write-pack pack, MB (default %(default)s)")
     p.add_argument("--minutes", type=float, default=None,
                    help="stop after this many minutes of training and export (the learning rate decays over "
                         "whichever of --iters and --minutes comes first): a job that must end on time")
@@ -929,6 +933,15 @@ def main(args):
         print(f"exported {args.export} (refine {refine})")
         return
 
+    if args.write_pack:
+        from handmocap.training.device_pack import pack
+        real, synth = load_real(args.shared), load_synth(synth_dirs(args.data), args.max_synth)
+        val = load_synth([args.val], 256)
+        if real is None or synth is None or val is None:
+            raise SystemExit(f"--write-pack needs the real cache (the data pack at {args.shared}), synthetic shards "
+                             f"({' '.join(args.data)}) and the held-out set ({args.val}): see the model card")
+        pack(args.write_pack, real, synth, val, args.pack_mb)
+        return
     if args.pack:                       # everything from the pack: nothing read from runs/detnet_data or shared
         from handmocap.training.device_pack import load_pack
         real, synth, synth_val = load_pack(args.pack)
