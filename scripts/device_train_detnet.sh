@@ -33,6 +33,13 @@ import torch
 print("torch", torch.__version__, "cuda", torch.cuda.is_available(),
       torch.cuda.get_device_name() if torch.cuda.is_available() else "")
 EOF
+# the loader processes hand batches over in shared memory: 4 batches ahead each, 192 kB a crop
+# (float32); keep them within half of /dev/shm, which a container may keep small
+shm_kb=$(df -k --output=avail /dev/shm 2>/dev/null | tail -1 || echo 0)
+fit=$(( ${shm_kb:-0} / 2 / (4 * BATCH * 192) ))
+if [ "$WORKERS" -gt "$fit" ]; then
+  echo "note: /dev/shm has ${shm_kb} kB free: $fit loader processes instead of $WORKERS"; WORKERS=$fit
+fi
 AMP=(); [ "$DEVICE" = cuda ] && AMP=(--amp)
 python3 -m handmocap.training.train_cli detnet --pack "$PACK" --device "$DEVICE" "${AMP[@]}" \
     --workers "$WORKERS" --batch "$BATCH" --backbone "$BACKBONE" --init-from "$INIT" --lr "$LR" \
