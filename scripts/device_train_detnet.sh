@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # One complete DetNet training job on a lent GPU machine (issue 27, point 4), in about
-# MINUTES + 2 minutes: train from the carried pack, export ONNX, print the validation log.
+# MINUTES + 2 minutes (default 6: with the machine's start, one run fits the 15 minutes of
+# device time a session gets): train from the carried pack, export ONNX, log validation.
 #
 # Here, first (once; about 2 minutes, needs ../shared and runs/detnet_data):
 #     handtrain detnet --write-pack runs/device/pack --pack-mb 24
-# Then the device tool's run, with carry ["runs/device/pack"] and a timeout of about 600 s:
-#     bash scripts/device_train_detnet.sh
+# Then the device tool's run: command "bash scripts/device_train_detnet.sh", carry
+# ["runs/device/pack"], timeout_s 600 (the tool sets $OUT there; its files come back).
 # What comes back under $OUT: detnet.onnx, last.pt (the checkpoint, for --resume or
 # --init-from here) and train.log. Here, after it: int8 copy and the held-back people,
 #     python -m handmocap.training.quantize_detnet --src F.onnx --out F_int8.onnx
@@ -19,7 +20,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PACK=${PACK:-runs/device/pack}
 OUT=${OUT:-runs/device/out}
-MINUTES=${MINUTES:-7}
+MINUTES=${MINUTES:-6}
 DEVICE=${DEVICE:-cuda}
 WORKERS=${WORKERS:-14}
 BATCH=${BATCH:-256}
