@@ -218,23 +218,24 @@ def main():
                           max_hands=max_hands, **settings)
     for f in frames:                   # warm-up pass, and the hand is tracked from here on
         tracker.process(f)
-    results["tracker"] = stats(timed(tracker.process, frames, max(args.repeat, 3)))
+    passes = max(args.repeat, 3)       # the parts below: at least 3 passes each
+    results["tracker"] = stats(timed(tracker.process, frames, passes))
     results["tracker"]["hands_per_frame"] = float(np.mean([len(tracker.process(f)) for f in frames]))
     results["tracker_stages_cpu_ms_per_frame"] = stage_cpu_ms(tracker, frames)
 
     det = HandDetector.load(args.detnet, args.finder, threads=args.threads, max_hands=max_hands, **settings)
     for f in frames:
         det.process(f)
-    results["detector"] = stats(timed(det.process, frames, max(args.repeat, 3)))
+    results["detector"] = stats(timed(det.process, frames, passes))
     results["detector"]["finder_runs_per_frame"] = det.stats["finder_runs"] / det.stats["frames"]
 
     crops = np.random.default_rng(0).integers(0, 255, (16, 128, 128, 3), np.uint8)
-    one = stats(timed(lambda c: det.detnet(c[None]), list(crops), max(args.repeat, 3) * 4))
-    batch = stats(timed(det.detnet, [crops] * 10, max(args.repeat, 3)))
+    one = stats(timed(lambda c: det.detnet(c[None]), list(crops), passes * 4))
+    batch = stats(timed(det.detnet, [crops] * 10, passes))
     results["detnet_1_crop"] = {**one, "crops_per_s": 1e3 / one["median_ms"], "crops_per_cpu_s": 1e3 / one["median_cpu_ms"]}
     results["detnet_16_crops"] = {**batch, "crops_per_s": 16e3 / batch["median_ms"],
                                   "crops_per_cpu_s": 16e3 / batch["median_cpu_ms"]}
-    results["finder"] = stats(timed(det.finder.find, frames[:30], max(args.repeat, 3)))
+    results["finder"] = stats(timed(det.finder.find, frames[:30], passes))
 
     print(json.dumps(results, indent=1))
     print(table)

@@ -64,11 +64,19 @@ def posed_joints(quats, model, beta, rest=None):
 
 
 def solve_rotations(xyz_rel, handedness, rest, solver, limits=None):
-    """Global bone quaternions (21,4) of the right-hand model for one hand's joints as seen;
-    with limits (a JointLimits), finger angles are clipped into them."""
-    xyz = mirror_points(xyz_rel) if handedness == "left" else np.asarray(xyz_rel, dtype=np.float64)
+    """Global bone quaternions of the right-hand model for hands' joints as seen: one hand's
+    xyz_rel (21,3) and side "left"/"right" -> (21,4), or N hands' (N,21,3) and N sides ->
+    (N,21,4), in one IKNet run and one clamp (IKNet's int8 is statically quantized: a hand's
+    result does not depend on the others). rest: (21,3) or (N,21,3); with limits (a
+    JointLimits), finger angles are clipped into them."""
+    one = isinstance(handedness, str)
+    xyz = np.array(xyz_rel, dtype=np.float64)
+    xyz = xyz.reshape(-1, *xyz.shape[-2:])
+    left = np.asarray([handedness] if one else handedness) == "left"
+    xyz[left] = mirror_points(xyz[left])
     quats = solver.solve(xyz, rest)
-    return (quats if limits is None else clamp_to_limits(quats, limits))[0]
+    quats = quats if limits is None else clamp_to_limits(quats, limits)
+    return quats[0] if one else quats
 
 
 def pose_fields(hand, quats, beta, K, model):
@@ -152,19 +160,15 @@ class PoseEstimator:
         hands = [h for h in hands if np.all(np.isfinite(h["xyz_rel"])) and np.all(np.isfinite(h["uv"]))]
         if not hands:
             return []
-        betas, rests, seen_as = [], [], []
+        betas, rests = [], []
         for hand in hands:
             beta, rest = self.shapes.get(hand["track_id"], (self.average, None))
             beta = self.model.sized(beta, self.p["hand_length"])   # the shape fit leaves size at 0
             betas.append(beta)
             rests.append(self.model.rest_joints(beta) if rest is None else rest)
-            xyz = joints_for_iknet(hand, K, self.p["xy_from_keypoints"])
-            seen_as.append(mirror_points(xyz) if hand["handedness"] == "left" else np.asarray(xyz, np.float64))
-        # every hand in one IKNet run and one clamp: per-call overheads once per frame, not per
-        # hand (IKNet's int8 is statically quantized: a hand's result does not depend on the others)
-        quats = self.solver.solve(np.stack(seen_as), np.stack(rests))                # (N,21,4)
-        if self.limits is not None:
-            quats = clamp_to_limits(quats, self.limits)
+        # every hand in one IKNet run and one clamp: per-call overheads once per frame, not per hand
+        quats = solve_rotations(np.stack([joints_for_iknet(h, K, self.p["xy_from_keypoints"]) for h in hands]),
+                                [h["handedness"] for h in hands], np.stack(rests), self.solver, self.limits)
         out = []
         for hand, beta, q in zip(hands, betas, quats):
             if not self.p["smooth"]:

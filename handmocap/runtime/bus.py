@@ -53,14 +53,14 @@ LARGE = 65536   # payloads above this are sent without a copy (zmq holds on to t
 HEARTBEAT_S = 0.5
 QUEUE_MESSAGES = int(os.environ.get("HANDMOCAP_QUEUE", "32"))   # see Queues above
 QUEUE_MESSAGES_SMALL = 1024   # a queue where no frame comes through it
+RECONNECT_MS = 10   # a subscriber retries a publisher not bound yet (it binds at its first send) this often
+WAIT_LOG_S = 5.0   # a publisher held by a lossless subscriber says so after this long
+STALE_S = 5.0   # a node file whose heartbeat is older than this, or whose pid is gone, is dead
 
 
 def queue_length(types) -> int:
     """A send or receive queue per connection (messages) for these message types (None: any)."""
     return QUEUE_MESSAGES if any(t in (None, "Image") for t in types) else QUEUE_MESSAGES_SMALL
-RECONNECT_MS = 10   # a subscriber retries a publisher not bound yet (it binds at its first send) this often
-WAIT_LOG_S = 5.0   # a publisher held by a lossless subscriber says so after this long
-STALE_S = 5.0   # a node file whose heartbeat is older than this, or whose pid is gone, is dead
 
 
 class RunDirError(PermissionError):
@@ -241,8 +241,7 @@ class Publisher:
         return {"endpoint": endpoint, "lossless": endpoint + ".lossless", "token": token}
 
     def poll_subscriptions(self) -> None:
-        if self.sock is None:
-            self.open(QUEUE_MESSAGES_SMALL)   # used directly, not by a Node (which opens it first)
+        self.open(QUEUE_MESSAGES_SMALL)   # no-op once open; used directly, not by a Node (which opens it first)
         for sock in (self.sock, self.lossless):
             while True:
                 try:
@@ -275,8 +274,7 @@ class Publisher:
         sent to every outside subscriber and every receiver in this process has let go of it
         (`in_flight` counts those). Waits while a lossless subscriber is QUEUE_MESSAGES behind;
         `eos`: an end of stream, also sent on the control channel."""
-        if self.sock is None:
-            self.open(QUEUE_MESSAGES_SMALL)
+        self.open(QUEUE_MESSAGES_SMALL)   # no-op once open (a Node opens it first, sized for what it publishes)
         frames = self._frames.get((topic, type_name))
         if frames is None:
             frames = self._frames[(topic, type_name)] = (topic_frame(topic), type_name.encode())

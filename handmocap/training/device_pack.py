@@ -32,12 +32,21 @@ SYNTH_KEYS = ("uv", "xyz_rel", "xyz", "handedness", "in_image")
 LABEL_BYTES = 250           # a crop's labels (float16 uv and xyz) in the compressed .npz, about
 
 
-def encode_jpegs(images, quality=85):
-    """(n,H,W,3) uint8 -> (bytes (m,) uint8, offsets (n+1,) int64): the JPEGs end to end."""
-    blobs = [cv2.imencode(".jpg", np.ascontiguousarray(im), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])[1]
-             for im in images]
+def jpeg_blobs(images, quality=85):
+    """(n,H,W,3) uint8 -> n JPEG files, each a (bytes,) uint8 array."""
+    return [cv2.imencode(".jpg", np.ascontiguousarray(im), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])[1]
+            for im in images]
+
+
+def joined(blobs):
+    """JPEG files -> (bytes (m,) uint8, offsets (n+1,) int64): end to end."""
     offsets = np.concatenate([[0], np.cumsum([len(b) for b in blobs])]).astype(np.int64)
     return (np.concatenate(blobs) if blobs else np.zeros(0, np.uint8)), offsets
+
+
+def encode_jpegs(images, quality=85):
+    """(n,H,W,3) uint8 -> (bytes (m,) uint8, offsets (n+1,) int64): the JPEGs end to end."""
+    return joined(jpeg_blobs(images, quality))
 
 
 def decode_jpegs(data, offsets):
@@ -76,14 +85,15 @@ def pack(out_dir, real, synth, val, mb=24.0, real_share=0.75, quality=85, log=pr
     (train_detnet.load_synth); -> the pack's size, bytes."""
     budget = mb * 1e6
     log(f"encoding {len(real['image'])} real crops once to know their sizes")
-    crop_bytes = np.diff(encode_jpegs(real["image"], quality)[1]) + LABEL_BYTES
+    blobs = jpeg_blobs(real["image"], quality)                  # each crop encoded once: sized, then written
+    crop_bytes = np.array([len(b) for b in blobs]) + LABEL_BYTES
     idx = pick_real(real, real_share * budget, crop_bytes)
     neg = np.flatnonzero(~real["neg_held"])[::3]
     per_synth = _jpeg_bytes(synth["image"], quality) + LABEL_BYTES
     room = budget - crop_bytes[idx].sum() - len(neg) * _jpeg_bytes(real["neg"], quality) - len(val["image"]) * per_synth
     n = int(np.clip(room / per_synth, 0, len(synth["image"])))
     pick = np.sort(np.random.default_rng(1).choice(len(synth["image"]), n, replace=False))
-    hands = {k: real[k][idx] for k in HAND_KEYS + ("image",)}
+    hands = {**{k: real[k][idx] for k in HAND_KEYS}, "jpeg": [blobs[i] for i in idx]}
     negs = {"neg": real["neg"][neg], "neg_arm": real["neg_arm"][neg]}
     size = write_pack(out_dir, hands, negs, {k: v[pick] for k, v in synth.items()}, val, quality)
     log(f"real: {int((~hands['held']).sum())} training crops of {int((~real['held']).sum())}, "
@@ -99,13 +109,15 @@ def _jpeg_bytes(images, quality, n=256):
 
 
 def write_pack(out_dir, hands, negs, synth, val, quality=85):
-    """Write the pack: hands {image (n,CTX,CTX,3), HAND_KEYS}, negs {neg (m,128,128,3), neg_arm},
+    """Write the pack: hands {image (n,CTX,CTX,3) or jpeg (n JPEG files, jpeg_blobs), HAND_KEYS},
+    negs {neg (m,128,128,3), neg_arm},
     synth and val {image (k,128,128,3), SYNTH_KEYS} (load_synth's arrays); -> bytes written."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     arrays = {k: hands[k] for k in HAND_KEYS}
     arrays["uv"], arrays["xyz"] = hands["uv"].astype(np.float16), hands["xyz"].astype(np.float16)
-    arrays["image_jpeg"], arrays["image_offsets"] = encode_jpegs(hands["image"], quality)
+    arrays["image_jpeg"], arrays["image_offsets"] = \
+        joined(hands["jpeg"]) if "jpeg" in hands else encode_jpegs(hands["image"], quality)
     arrays["neg_jpeg"], arrays["neg_offsets"] = encode_jpegs(negs["neg"], quality)
     arrays["neg_arm"] = negs["neg_arm"]
     np.savez_compressed(out_dir / "real.npz", **arrays)

@@ -892,6 +892,15 @@ def identity_init_new_blocks(net, state):
 
 
 def main(args):
+    if args.write_pack:                 # the data only: no network
+        from handmocap.training.device_pack import pack
+        real, synth = load_real(args.shared), load_synth(synth_dirs(args.data), args.max_synth)
+        val = load_synth([args.val], 256)
+        if real is None or synth is None or val is None:
+            raise SystemExit(f"--write-pack needs the real cache (the data pack at {args.shared}), synthetic shards "
+                             f"({' '.join(args.data)}) and the held-out set ({args.val}): see the model card")
+        pack(args.write_pack, real, synth, val, args.pack_mb)
+        return
     import torch
     from tqdm import tqdm
 
@@ -933,19 +942,10 @@ def main(args):
         print(f"exported {args.export} (refine {refine})")
         return
 
-    if args.write_pack:
-        from handmocap.training.device_pack import pack
-        real, synth = load_real(args.shared), load_synth(synth_dirs(args.data), args.max_synth)
-        val = load_synth([args.val], 256)
-        if real is None or synth is None or val is None:
-            raise SystemExit(f"--write-pack needs the real cache (the data pack at {args.shared}), synthetic shards "
-                             f"({' '.join(args.data)}) and the held-out set ({args.val}): see the model card")
-        pack(args.write_pack, real, synth, val, args.pack_mb)
-        return
     if args.pack:                       # everything from the pack: nothing read from runs/detnet_data or shared
         from handmocap.training.device_pack import load_pack
         real, synth, synth_val = load_pack(args.pack)
-        dirs, args.shared = [], Path("/nonexistent")
+        dirs, sval = [], synth_val_set(synth_val)
         print(f"pack {args.pack}: synthetic {len(synth['image'])} crops, held-out {len(synth_val['image'])}")
     else:
         dirs = synth_dirs(args.data)
@@ -955,19 +955,16 @@ def main(args):
                              f"{DATA_DIR}/synth_train_0` first")
         print(f"synthetic: {len(synth['image'])} crops from {len(dirs)} directories")
         real = load_real(args.shared)
+        sval = synth_val_set(args.val) if (Path(args.val) / "meta.json").exists() else None
     if real is not None:
         print(f"real: {int((~real['held']).sum())} training hand crops, {int(real['held'].sum())} held out; "
               f"{int((~real['neg_held']).sum())} negatives ({int(real['neg_held'].sum())} held out)")
-    parts = load_parts(args.shared) if real is not None else None
+    parts = load_parts(args.shared) if real is not None and not args.pack else None
     if parts is not None:
         print(f"part-of-hand close-ups: {int((~parts['part_held']).sum())} ({int(parts['part_held'].sum())} held out)"
               + ("" if args.part_neg else ", measured only (--part-neg 0)"))
     maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright, args.real_3d,
                        args.left_2d, parts, args.part_neg)
-    if args.pack:
-        sval = synth_val_set(synth_val)
-    else:
-        sval = synth_val_set(args.val) if (Path(args.val) / "meta.json").exists() else None
     if sval is None:
         print(f"note: no held-out synthetic set at {args.val}")
     rval = real_val_set(real)
@@ -990,10 +987,9 @@ def main(args):
               f"(residual blocks starting as the identity: {', '.join(grown) or 'none'})")
     run_dir.mkdir(parents=True, exist_ok=True)
 
-    def save(it, refine_now=None):
+    def save(it):
         tmp = ckpt_path.with_suffix(".tmp")
-        torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "iteration": it,
-                    "refine": refine_now or refine,
+        torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "iteration": it, "refine": refine,
                     "history": history, "backbone": args.backbone, "fine": args.fine_head,
                     "args": {k: str(v) for k, v in vars(args).items()}}, tmp)
         os.replace(tmp, ckpt_path)
@@ -1014,18 +1010,18 @@ def main(args):
         return to_torch(batch, rng, args.grey)
 
     def validate_and_save(done):
-        """Validate, log, checkpoint and export at iteration `done`; -> the read-out chosen."""
+        """Validate, log, checkpoint and export at iteration `done` (`refine` becomes the
+        read-out that measures best on held-out synthetic crops)."""
+        nonlocal refine
         metrics = validate(net, sval, rval, refines=read_outs(net))
-        best = refine
-        if sval is not None:                        # the read-out that measures best on held-out synthetic
-            best = min(read_outs(net), key=lambda r: metrics[f"syn_px_{r}"])
-        history.append({"iteration": done, "seconds": time.monotonic() - t0, "refine": best,
+        if sval is not None:
+            refine = min(read_outs(net), key=lambda r: metrics[f"syn_px_{r}"])
+        history.append({"iteration": done, "seconds": time.monotonic() - t0, "refine": refine,
                         "synthetic_crops": len(synth["image"]), **metrics})
         bar.write(f"iter {done}: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v
                                                  for k, v in history[-1].items()}))
-        save(done, best)
-        export_onnx(net, run_dir / "detnet.onnx", best)
-        return best
+        save(done)
+        export_onnx(net, run_dir / "detnet.onnx", refine)
 
     # --workers N: N processes make the batches ahead (in order, each from its iteration's
     # seed, so a run gives the same batches either way), which keeps a GPU fed; they hold
@@ -1067,11 +1063,11 @@ def main(args):
             bar.set_postfix({k: f"{v.item():.4f}" for k, v in losses.items()})
         done = it + 1
         if done % args.val_every == 0 or done == args.iters:
-            refine = validate_and_save(done)
+            validate_and_save(done)
         elif done % args.ckpt_every == 0:
             save(done)
     if done > start and (not history or history[-1]["iteration"] != done):      # stopped by --minutes
-        refine = validate_and_save(done)
+        validate_and_save(done)
     args.export.parent.mkdir(parents=True, exist_ok=True)
     export_onnx(net, args.export, refine)
     print(f"exported {args.export} ({args.export.stat().st_size / 1e6:.1f} MB, refine {refine}) "
