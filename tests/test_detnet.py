@@ -410,10 +410,37 @@ def test_arm_negatives_hold_no_keypoint_and_lie_beyond_the_wrist():
         assert centre[1] > hand[0, 1]                      # past the wrist, on the forearm's side
 
 
+def test_exit_negatives_show_the_frames_edge_without_the_hand_that_left_it():
+    """exit_crop: the frame cut so that the hand lies wholly beyond the cut, whichever way
+    its fingers point; the crop straddles the new edge by the wrist and shows no hand pixel;
+    None where another hand would be in it or too little frame is left."""
+    from handmocap.training.train_detnet import exit_crop
+    rng = np.random.default_rng(0)
+    ramp = np.linspace(0, 200, 600)
+    frame = np.stack([ramp[None, :].repeat(600, 0), ramp[:, None].repeat(600, 1), np.full((600, 600), 90.0)], -1)
+    frame = frame.astype(np.uint8)
+    for way in ((0, 1), (0, -1), (1, 0), (-1, 0)):         # fingers down, up, right, left
+        image = frame.copy()
+        wrist = np.array([300.0, 300.0])
+        hand = wrist + np.outer(np.linspace(0, 1, 21), np.array(way) * 80) + rng.uniform(-15, 15, (21, 2))
+        hand[0] = wrist
+        lo, hi = np.floor(hand.min(0)).astype(int), np.ceil(hand.max(0)).astype(int)
+        image[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] = (255, 0, 255)       # the hand: a colour the ramp never has
+        for _ in range(10):
+            crop = exit_crop(image, hand, rng)
+            assert crop is not None and crop.shape == (128, 128, 3)
+            magenta = (crop[..., 0] > 230) & (crop[..., 1] < 20) & (crop[..., 2] > 230)
+            assert not magenta.any(), way
+    hand = np.array([300.0, 300.0]) + np.outer(np.linspace(0, 1, 21), (0, 80))
+    assert exit_crop(frame, hand, rng, others=[hand - (0, 60)]) is None    # another hand beside the wrist
+    assert exit_crop(frame[:330], hand + (0, -250), rng) is None          # fingers down from y 50: no frame left above
+
+
 def test_part_negatives_show_part_of_a_hand_too_close_to_be_a_whole_one():
     """part_crop: a square 0.25-0.5 of the hand's crop side around one of its joints (never
     the whole hand), None where it would be a blur of under 40 frame px; BatchMaker with
-    --part-neg P takes about P of its negatives from the part crops, labelled no hand."""
+    --part-neg P takes about P of its negatives from the part crops, labelled no hand (and
+    likewise --arm-neg from the arm crops)."""
     from handmocap.training import real_data
     from handmocap.training.train_detnet import BatchMaker, part_crop
     rng = np.random.default_rng(0)
@@ -431,13 +458,17 @@ def test_part_negatives_show_part_of_a_hand_too_close_to_be_a_whole_one():
     synth = {"image": np.zeros((n, 128, 128, 3), np.uint8), "uv": rng.uniform(30, 98, (n, 21, 2)),
              "xyz_rel": np.zeros((n, 21, 3)), "handedness": np.zeros(n, np.int8)}
     parts = {"part": np.full((8, 128, 128, 3), 77, np.uint8), "part_held": np.array([False] * 6 + [True] * 2)}
-    maker = BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts, share_part=0.4)
+    arms = {"arm": np.full((4, 128, 128, 3), 33, np.uint8), "arm_held": np.array([False] * 3 + [True])}
+    maker = BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts, share_part=0.4, arms=arms, share_arm=0.2)
     if maker.procedural is None:
         pytest.skip("the synthetic engine's procedural backgrounds are needed for the other negatives")
     batch = maker.make(1000, np.random.default_rng(1))
     is_part = np.all(batch["image"] == 77, axis=(1, 2, 3))
     assert 0.33 < is_part.mean() < 0.47
+    assert 0.15 < np.all(batch["image"] == 33, axis=(1, 2, 3)).mean() < 0.25      # the arm crops (--arm-neg)
     assert not batch["presence"].any() and np.all(batch["uv"] == -1000.0)
+    with pytest.raises(ValueError, match="at most 1"):
+        BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts, share_part=0.7, arms=arms, share_arm=0.4)
     off = BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts).make(200, np.random.default_rng(1))
     assert not np.all(off["image"] == 77, axis=(1, 2, 3)).any()
 

@@ -461,12 +461,13 @@ def run_splits(data, work, markdown=None, methods=("ours", "mediapipe"), models=
         Path(markdown).write_text(table + "\n")
 
 
-def run_people(data, models=None, png=None, json_path=None, jitter=0):
-    """`handeval people`: print (and return) the held-back people's table."""
+def run_people(data, models=None, png=None, json_path=None, jitter=0, training=False):
+    """`handeval people`: print (and return) the held-back people's table (training=True:
+    the training people's clips, for choosing settings)."""
     from handmocap.training import eval_people
     if not (data / "video" / "wild").is_dir():
         raise ValueError(f"{data}: no video/wild (the data pack's second drop) here")
-    table, results = eval_people.run(data, detector_keywords(models), jitter=jitter)
+    table, results = eval_people.run(data, detector_keywords(models), jitter=jitter, training=training)
     print(table, flush=True)
     if png:
         plot_curves({k.split(" (")[0]: (eval_people.CURVE, v["curve"]) for k, v in results.items()
@@ -567,7 +568,7 @@ def cmd_splits(args):
 
 
 def cmd_people(args):
-    run_people(Path(args.data), model_paths(args), args.png, args.json, args.jitter)
+    run_people(Path(args.data), model_paths(args), args.png, args.json, args.jitter, args.training_clips)
 
 
 def main(argv=None):
@@ -605,6 +606,9 @@ def main(argv=None):
     q.add_argument("--jitter", type=int, default=0, metavar="N",
                    help="run the clips N more times with every pixel moved by -1/0/+1 and print the figures' "
                         "mean and spread: what a change must beat to be told apart (about 40 s each)")
+    q.add_argument("--training-clips", action="store_true",
+                   help="the training people's video/wild clips instead of the held-back people: where detector "
+                        "settings are chosen (the networks trained on these frames: never accuracy)")
     add_model_arguments(q)
     q.set_defaults(run=cmd_people)
     args = parser.parse_args(argv)

@@ -137,30 +137,40 @@ def jitter_rows(runs):
     return out
 
 
-def run(shared, models=None, per_clip=True, jitter=0, log=print):
+CLIPS = "wild clips (9 people, tracked)"
+TRAINING_CLIPS = "training people's wild clips (tracked; DetNet trained on every 2nd frame)"
+
+
+def run(shared, models=None, per_clip=True, jitter=0, log=print, training=False):
     """Score the detector (HandDetector.load keywords `models`: detnet_path, finder_path and
     settings) on every held-back person; -> (markdown table, {set: summary}). jitter: the
-    clips again this many times with their frames moved by -1/0/+1 (jitter_rows)."""
+    clips again this many times with their frames moved by -1/0/+1 (jitter_rows).
+    training=True: the training people's video/wild clips instead (no photos), to choose
+    detector settings on without reading the held-back people; DetNet and the finder
+    trained on their frames, so these figures are never accuracy."""
     from handmocap.perception.detector import PHOTO_SETTINGS, HandDetector
     models = dict(models or {})
     video_det = HandDetector.load(**models)
-    photo_det = HandDetector.load(**{**PHOTO_SETTINGS, **models})
     rows, clips = [HEAD], []
-    for video in real_data.wild_clips(shared, held_back=True):
+    videos = real_data.wild_clips(shared, held_back=not training)
+    for video in videos:
         clips.append(score_frames(video_det, frames_of_clip(video)))
         if per_clip:
             rows.append(row(video.stem, summary(clips[-1])))
         log(f"  {video.stem}: {summary(clips[-1])['found']:.1%} found")
-    photos = score_frames(photo_det, frames_of_photos(real_data.load_11khands(shared, held_back=True)), stills=True)
-    results = {"wild clips (9 people, tracked)": summary(merge(clips)),
-               "11K Hands photos (37 people, stills)": summary(photos)}
-    results["all held-back people"] = summary(merge(clips + [photos]))
+    name = TRAINING_CLIPS if training else CLIPS
+    results = {name: summary(merge(clips))}
+    if not training:
+        photo_det = HandDetector.load(**{**PHOTO_SETTINGS, **models})
+        photos = score_frames(photo_det, frames_of_photos(real_data.load_11khands(shared, held_back=True)),
+                              stills=True)
+        results["11K Hands photos (37 people, stills)"] = summary(photos)
+        results["all held-back people"] = summary(merge(clips + [photos]))
     rows += [row(f"**{k}**", v) for k, v in results.items()]
     if jitter:
-        runs = [results["wild clips (9 people, tracked)"]]
+        runs = [results[name]]
         for seed in range(jitter):
-            runs.append(summary(merge([score_frames(video_det, frames_of_clip(v, seed))
-                                       for v in real_data.wild_clips(shared, held_back=True)])))
+            runs.append(summary(merge([score_frames(video_det, frames_of_clip(v, seed)) for v in videos])))
             log(f"  clips, frames moved (seed {seed}): {runs[-1]['found']:.1%} found")
         rows += jitter_rows(runs)
         results["clips, frames moved"] = {k: [m[k] for m in runs] for k, _, _ in JITTER_KEYS}

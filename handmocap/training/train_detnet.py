@@ -26,7 +26,11 @@ batches the uninterrupted run would have) mixes:
   slid up the arm must lose its presence), and procedural background textures
   (handmocap.training.synth.backgrounds); with --part-neg P, that share of them close-ups of part
   of a real hand (`part_crop`: a fingertip or the knuckles seen too close to be a whole
-  hand, as a finder box on a photo-filling hand shows it).
+  hand, as a finder box on a photo-filling hand shows it); with --arm-neg P, that share
+  an arm without its hand: the frame's edge just after a hand left it (`exit_crop`: the
+  forearm or whatever was beside the hand, border pixels repeated as the detector repeats
+  them, where a track that followed its hand out of the frame stays) and the arm by the
+  elbow (`arm_crop` at ELBOW_REACHES), where a false track sat on a bent arm.
 Handedness ("does the crop show a right hand as it appears"): a share (--share-left) of
 hand crops is presented as a LEFT hand (a right hand mirrored, a left one left as it is);
 those train presence and handedness only, every other hand crop is presented as a right
@@ -70,6 +74,8 @@ REAL_CACHE = "real_v5.npz"          # v2: + arm-only negatives; v3: frame edges 
                                     # (real_data.reliable_hands); the held-back people, validation only
 HELD_BACK_SOURCE = "heldback/"      # source prefix of the held-back people's crops (never trained on)
 PART_CACHE = "parts_v1.npz"         # close-ups of part of a hand (build_part_cache), negatives for --part-neg
+ARM_CACHE = "arms_v1.npz"           # an arm without its hand (build_arm_cache), negatives for --arm-neg
+ELBOW_REACHES = (1.6, 2.0, 2.4)     # arm_crop reaches (crop sides beyond the wrist) by the elbow
 PALM_M = 0.093               # |wrist - middle MCP| that real held-out 3D errors are quoted at (temugeb's median)
 
 
@@ -119,6 +125,10 @@ def add_arguments(p):
                    help="share of the no-hand crops that are close-ups of part of a real hand (a fingertip, "
                         "knuckles: the crop of a finder box on a hand that fills a photo), taught as no hand "
                         "(default %(default)s)")
+    p.add_argument("--arm-neg", type=float, default=0.0, metavar="P",
+                   help="share of the no-hand crops that show an arm without its hand: the frame's edge just "
+                        "after a hand left it (`exit_crop`, the border repeated as the detector repeats it) or the "
+                        "arm by the elbow, taught as no hand (default %(default)s)")
     p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
@@ -282,17 +292,18 @@ def build_real_cache(shared, path, seed=0, log=print):
     return arrays
 
 
-def arm_crop(uv, rng, scale=1.3):
+def arm_crop(uv, rng, scale=1.3, reaches=(0.7, 0.85, 1.0, 1.2)):
     """The (2,3) affine of a 128 px crop of the forearm beside a hand with keypoints uv
     (21,2): the hand's crop side (keypoint box x `scale`, x 0.8-1.2), centred beyond the
-    wrist along middle MCP -> wrist, far enough that no keypoint is inside it; None for a
-    degenerate hand. The forearm may be out of the frame (the warp repeats its border)."""
+    wrist along middle MCP -> wrist, at the first of `reaches` (crop sides from the wrist;
+    ELBOW_REACHES: further up the arm, by the elbow) where no keypoint is inside it; None
+    for a degenerate hand. The forearm may be out of the frame (the warp repeats its border)."""
     side = float(np.max(uv.max(0) - uv.min(0))) * scale * rng.uniform(0.8, 1.2)
     d = uv[0] - uv[9]
     if side < 16 or np.linalg.norm(d) < 1e-3:
         return None
     d = d / np.linalg.norm(d)
-    for reach in (0.7, 0.85, 1.0, 1.2):      # crop edge beyond the wrist, in crop sides
+    for reach in reaches:                     # crop edge beyond the wrist, in crop sides
         c = uv[0] + d * side * (reach + rng.uniform(-0.05, 0.1))
         if not np.any(np.all(np.abs(uv - c) < side / 2 * 1.25, axis=1)):   # margin: the crop turns by up to 30 deg
             return real_data.crop_affine(c[0], c[1], side, 128, angle_deg=rng.uniform(-30, 30))
@@ -358,6 +369,99 @@ def load_parts(shared, log=print):
                    f"cutting part-of-hand close-ups from {shared}", log)
 
 
+def exit_crop(image, uv, rng, others=(), scale=1.3):
+    """A 128 px crop of the frame's edge just after the hand with keypoints uv (21,2) left it,
+    or None. The frame `image` (H,W,3) is cut along the axis nearest the hand's direction
+    (wrist -> middle knuckle) so that the hand lies wholly beyond the cut; the crop (the
+    hand's crop side x 0.8-1.2, turned at random) is centred from a fifth of its side beyond
+    that new edge to half of it inside, by the wrist (+-a quarter side), with the border
+    pixels repeated as the detector repeats them: the forearm, or whatever was beside the
+    hand, where a track that followed its hand out of the frame is left. None where the cut
+    frame is narrower than the crop or one of `others` (other hands' keypoints) is in it."""
+    side = float(np.max(uv.max(0) - uv.min(0))) * scale * rng.uniform(0.8, 1.2)
+    way = uv[9] - uv[0]
+    if side < 16 or not np.all(np.isfinite(uv)) or np.linalg.norm(way) < 1e-3:
+        return None
+    axis = int(abs(way[1]) > abs(way[0]))                  # 0: x (left / right edge), 1: y (top / bottom)
+    length = image.shape[1 - axis]
+    margin = 0.05 * side
+    if way[axis] > 0:           # the hand left through the far edge: the frame ends before it
+        lo, hi = 0, int(np.floor(uv[:, axis].min() - margin))
+        edge, inward = hi - lo, -1.0
+    else:
+        lo, hi = int(np.ceil(uv[:, axis].max() + margin)), length
+        edge, inward = 0.0, 1.0
+    if hi - lo < side:
+        return None
+    centre = np.empty(2)
+    centre[axis] = edge + inward * side * rng.uniform(-0.2, 0.5)
+    centre[1 - axis] = uv[0, 1 - axis] + rng.uniform(-0.25, 0.25) * side
+    shift = np.zeros(2)
+    shift[axis] = lo                                       # frame px -> cut-frame px
+    M = real_data.crop_affine(centre[0], centre[1], side, 128, angle_deg=rng.uniform(-180, 180))
+    for other in others:
+        if np.any(np.all(np.abs(real_data.apply_affine(M, other - shift) - 63.5) < 80, axis=1)):
+            return None
+    kept = image[:, lo:hi] if axis == 0 else image[lo:hi]
+    return real_data.warp(np.ascontiguousarray(kept), M, 128, replicate=True)
+
+
+def build_arm_cache(shared, path, seed=0, log=print):
+    """Crops of an arm without its hand, from each reliable pseudo-labelled hand on every 2nd
+    frame of the training videos, every 3rd of the training clips of video/wild and every
+    images/scenes photo: the frame's edge after the hand left (`exit_crop`) and the arm by
+    the elbow (`arm_crop` at ELBOW_REACHES, mostly inside the frame, no other hand in it).
+    arm (m,128,128,3) uint8, arm_held (m,) bool (the training videos' held-out tails).
+    Never from the held-back people."""
+    rng = np.random.default_rng([seed, 11])
+    crops, held_out = [], []
+
+    def add_frame(image, hands, held):
+        h, w = image.shape[:2]
+        for k, uv in enumerate(hands):
+            others = [o for j, o in enumerate(hands) if j != k]
+            crop = exit_crop(image, uv, rng, others)
+            elbow = arm_crop(uv, rng, reaches=ELBOW_REACHES)
+            if elbow is not None:
+                box = arm_box(elbow)
+                grown = [np.r_[o.min(0) - 0.3 * np.ptp(o, 0), o.max(0) + 0.3 * np.ptp(o, 0)] for o in others]
+                if _boxes_overlap(box, grown) or _inside_share(box, w, h) < 0.6:
+                    elbow = None
+            for c in (crop, None if elbow is None else real_data.warp(image, elbow, 128, replicate=True)):
+                if c is not None:
+                    crops.append(c)
+                    held_out.append(held)
+
+    videos = [(Path(shared) / rel, real_data.video_split, 2) for rel in real_data.TRAIN_VIDEOS]
+    videos += [(v, lambda n: (np.ones(n, bool), np.zeros(n, bool)), 3) for v in real_data.wild_clips(shared)]
+    for video, split, stride in videos:
+        lab = real_data.load_pseudo_labels(video)
+        train, held = split(len(lab["found"]))
+        reliable = real_data.reliable_hands(lab)
+        for f, image in real_data.read_video(video, frames=set(range(0, len(lab["found"]), stride))):
+            if f < len(lab["found"]) and (train[f] or held[f]) and reliable[f].any():
+                add_frame(image, lab["uv"][f][reliable[f]], bool(held[f]))
+        log(f"  {video.name}: {len(crops)} arm crops so far")
+    scenes = {}
+    for s in real_data.load_scenes(shared):          # a photo with two hands is two samples
+        scenes.setdefault(s["name"], (s["image"], []))[1].append(s["uv"])
+    for image, hands in scenes.values():
+        add_frame(image, np.asarray(hands), False)
+    log(f"  images/scenes: {len(crops)} arm crops")
+    arrays = {"arm": np.asarray(crops, np.uint8).reshape(-1, 128, 128, 3), "arm_held": np.asarray(held_out, bool)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **arrays)
+    return arrays
+
+
+def load_arms(shared, log=print):
+    """The arm-without-its-hand cache (built on first use under runs/detnet_data/), or None without shared/."""
+    if not (Path(shared) / "labelled2d").exists():
+        return None
+    return _cached(DATA_DIR / ARM_CACHE, lambda path: build_arm_cache(shared, path, log=log),
+                   f"cutting arm crops from {shared}", log)
+
+
 def _cached(path, build, what, log):
     """The arrays of the .npz at `path`, or those build(path) writes there (once)."""
     if path.exists():
@@ -399,11 +503,16 @@ class BatchMaker:
     presence, right, w_hand (B,) float32."""
 
     def __init__(self, synth, real, share_real, share_neg, share_left, upright=None, real_3d=0.0, left_2d=0.0,
-                 parts=None, share_part=0.0):
+                 parts=None, share_part=0.0, arms=None, share_arm=0.0):
         self.synth, self.real = synth, real
-        # close-ups of part of a hand (build_part_cache): that share of the negatives
-        self.part_train = np.flatnonzero(~parts["part_held"]) if parts is not None else np.zeros(0, int)
-        self.parts, self.share_part = parts, share_part if len(self.part_train) else 0.0
+        # hard negatives, each that share of the negatives: close-ups of part of a hand
+        # (build_part_cache), an arm without its hand (build_arm_cache);
+        # (crops (m,128,128,3), training indices, share) each
+        self.hard = [(pool[kind], np.flatnonzero(~pool[f"{kind}_held"]), share)
+                     for kind, pool, share in (("part", parts, share_part), ("arm", arms, share_arm))
+                     if pool is not None and share > 0 and (~pool[f"{kind}_held"]).any()]
+        if sum(share for _, _, share in self.hard) > 1:
+            raise ValueError("--part-neg and --arm-neg are shares of the negatives: together at most 1")
         self.real_3d = real_3d
         self.left_2d = left_2d
         self.share_left = share_left
@@ -488,16 +597,17 @@ class BatchMaker:
                 "presence": np.ones(n, np.float32), "right": (~show_left).astype(np.float32), "w_hand": weight}
 
     def _negatives(self, n, rng):
-        n_part = int(rng.binomial(n, self.share_part)) if self.share_part else 0
-        n_other = n - n_part
+        counts = rng.multinomial(n, [share for _, _, share in self.hard] + [1 - sum(s for _, _, s in self.hard)])
+        n_other = int(counts[-1])
         n_real = int(rng.binomial(n_other, 0.6)) if len(self.neg_train) else 0
         if self.procedural is None:
             n_real = n_other if len(self.neg_train) else 0
         images = [self.real["neg"][self.neg_train[rng.integers(0, len(self.neg_train), n_real)]]] if n_real else []
         if n_other - n_real:
             images.append(self.procedural.sample(rng, n_other - n_real, 128)[0])
-        if n_part:
-            images.append(self.parts["part"][self.part_train[rng.integers(0, len(self.part_train), n_part)]])
+        for (pool, train, _), k in zip(self.hard, counts):
+            if k:
+                images.append(pool[train[rng.integers(0, len(train), k)]])
         images = np.concatenate(images)
         for i in np.flatnonzero(rng.random(len(images)) < 0.5):
             images[i] = images[i, :, ::-1]
@@ -785,8 +895,9 @@ def validate(net, sval, rval, refines=("softmax",)):
         m["real_presence"] = float((pres > 0.5).mean())
         if len(rval["neg"]):
             m["neg_rejected"] = float((predict(net, rval["neg"], ())[1] < 0.5).mean())
-        if len(rval.get("part", ())):
-            m["part_rejected"] = float((predict(net, rval["part"], ())[1] < 0.5).mean())
+        for kind in ("part", "arm"):
+            if len(rval.get(kind, ())):
+                m[f"{kind}_rejected"] = float((predict(net, rval[kind], ())[1] < 0.5).mean())
     return m
 
 
@@ -899,7 +1010,7 @@ def main(args):
         if real is None or synth is None or val is None:
             raise SystemExit(f"--write-pack needs the real cache (the data pack at {args.shared}), synthetic shards "
                              f"({' '.join(args.data)}) and the held-out set ({args.val}): see the model card")
-        pack(args.write_pack, real, synth, val, args.pack_mb)
+        pack(args.write_pack, real, synth, val, args.pack_mb, arms=load_arms(args.shared))
         return
     import torch
     from tqdm import tqdm
@@ -959,17 +1070,25 @@ def main(args):
     if real is not None:
         print(f"real: {int((~real['held']).sum())} training hand crops, {int(real['held'].sum())} held out; "
               f"{int((~real['neg_held']).sum())} negatives ({int(real['neg_held'].sum())} held out)")
-    parts = load_parts(args.shared) if real is not None and not args.pack else None
-    if parts is not None:
-        print(f"part-of-hand close-ups: {int((~parts['part_held']).sum())} ({int(parts['part_held'].sum())} held out)"
-              + ("" if args.part_neg else ", measured only (--part-neg 0)"))
+    hard = {}
+    for kind, load, share, what in (("part", load_parts, args.part_neg, "part-of-hand close-ups"),
+                                    ("arm", load_arms, args.arm_neg, "arm crops (edge of frame, elbow)")):
+        hard[kind] = load(args.shared) if real is not None and not args.pack else None
+        if args.pack and kind in real:                  # the pack's own (training crops only)
+            crops = real.pop(kind)
+            hard[kind] = {kind: crops, f"{kind}_held": np.zeros(len(crops), bool)}
+        if hard[kind] is not None:
+            held = hard[kind][f"{kind}_held"]
+            print(f"{what}: {int((~held).sum())} ({int(held.sum())} held out)"
+                  + ("" if share else f", measured only (--{kind}-neg 0)"))
     maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright, args.real_3d,
-                       args.left_2d, parts, args.part_neg)
+                       args.left_2d, hard["part"], args.part_neg, hard["arm"], args.arm_neg)
     if sval is None:
         print(f"note: no held-out synthetic set at {args.val}")
     rval = real_val_set(real)
-    if rval is not None and parts is not None:
-        rval["part"] = parts["part"][parts["part_held"]]
+    for kind, pool in hard.items():
+        if rval is not None and pool is not None:
+            rval[kind] = pool[kind][pool[f"{kind}_held"]]
     if args.init_from and not args.resume:
         if args.init_from.suffix == ".onnx":        # an exported model: BN statistics from a batch of training crops
             try:
