@@ -27,6 +27,7 @@ BATCH=${BATCH:-256}
 BACKBONE=${BACKBONE:-fast-deep}
 INIT=${INIT:-models/detnet.onnx}
 LR=${LR:-1e-3}
+ARM_NEG=${ARM_NEG:-0}     # share of the negatives that are arms without their hand (--arm-neg; a pack written with --arm-neg)
 mkdir -p "$OUT"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 python3 - <<'EOF'
@@ -45,7 +46,7 @@ AMP=(); [ "$DEVICE" = cuda ] && AMP=(--amp)
 python3 -m handmocap.training.train_cli detnet --pack "$PACK" --device "$DEVICE" "${AMP[@]}" \
     --workers "$WORKERS" --batch "$BATCH" --backbone "$BACKBONE" --init-from "$INIT" --lr "$LR" \
     --iters 1000000 --minutes "$MINUTES" --val-every 2000 --ckpt-every 1000000 \
-    --share-real 0.5 --share-neg 0.12 --upright 60 --real-3d 0.5 \
+    --share-real 0.5 --share-neg 0.12 --upright 60 --real-3d 0.5 --arm-neg "$ARM_NEG" \
     --run-dir "$OUT/run" --export "$OUT/detnet.onnx" 2>&1 | tee "$OUT/train.log"
 cp "$OUT/run/last.pt" "$OUT/last.pt"
 rm -rf "$OUT/run"           # only 2 folder levels come back; detnet.onnx and last.pt are what matter

@@ -716,6 +716,32 @@ def test_a_found_hand_evicts_the_track_detnet_believes_less_when_every_slot_is_t
         assert kept["track_id"] == 0 and np.linalg.norm(kept["uv"].mean(0) - decoy[:18].mean(0)) < 40
 
 
+def test_a_track_the_finder_no_longer_sees_ends_or_yields_its_slot():
+    """A track on something DetNet stays sure of but the finder does not see (curly hair, the
+    arm a hand left the frame from: here a decoy the finder is blind to). unconfirmed_drop 2:
+    it ends on the finder's 2nd run without it (redetect_every 5: by frame 10), never with
+    None. max_hands 1 and a hand the finder does see, DetNet as sure of both: the evict margin
+    keeps the decoy's track, unless unconfirmed_evict 2 lets the found hand take the slot."""
+    from handmocap.perception.hand_finder import FoundHand
+    decoy, hand = canonical_hand((150, 330), 160), canonical_hand((500, 330), 120)
+    lone = [draw(np.zeros((480, 640, 3), np.uint8), decoy) for _ in range(14)]
+
+    def run(frames, finder, **kwargs):
+        det = HandDetector(FakeDetNet(), finder, max_hands=1, birth_confidence=0.0, redetect_every=5, **kwargs)
+        det.tracks, det.next_id = [Track(0, crop_for_joints(decoy), uv=decoy)], 1
+        return det, [det.process(f) for f in frames]
+
+    det, out = run(lone, ScriptedFinder([]), unconfirmed_drop=2)
+    assert det.stats["unconfirmed_drops"] == 1 and out[3] and not out[-1]
+    assert all(run(lone, ScriptedFinder([]))[1])                       # never ended without the setting
+    both = [draw(draw(np.zeros((480, 640, 3), np.uint8), decoy), hand) for _ in range(14)]
+    box = np.concatenate([hand.min(0), hand.max(0)])
+    for evict, taken in ((None, False), (2, True)):
+        det, out = run(both, ScriptedFinder([FoundHand(box, 0.9, 0.9)]), unconfirmed_evict=evict)
+        assert (np.abs(out[-1][0]["uv"] - hand).max() < 3 * DOT_TOL) == taken, evict
+        assert det.stats["evictions"] == int(taken)
+
+
 def test_a_fallback_finder_is_tried_only_where_the_first_gave_no_track():
     frames, truth = two_hand_frames(3)
 

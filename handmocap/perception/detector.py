@@ -324,6 +324,7 @@ class Track:
     birth_confidence: float | None = None   # its own birth threshold (None: the detector's)
     fixed_side: bool = False          # the side was given (HandDetector `handedness`): readings are ignored
     memory: int = 20                  # handedness readings the running mean is over (`handedness_memory`)
+    unconfirmed: int = 0              # finder runs in a row on which no found box was this track's hand
 
     @property
     def is_right(self) -> bool:
@@ -375,6 +376,8 @@ class DetectorSettings:
     handedness_memory: int = 20         # readings in a track's running side
     handedness: str | None = None       # "left" / "right": every hand is that side; None: per track
     settle_side: bool = True            # a track whose side turns is read again, mirrored for it
+    unconfirmed_evict: int | None = None    # finder runs without its box after which any found hand may replace a track
+    unconfirmed_drop: int | None = None     # finder runs without its box after which a track ends (None: never)
 
 
 class HandDetector:
@@ -496,12 +499,19 @@ class HandDetector:
         # than the free track slots are new, DetNet's mean heatmap peak on each one's crop
         # picks which become tracks (the finder's own score ranks desk objects too high)
         self.candidates = s.candidates
+        # a track the finder has not seen on `unconfirmed_evict` of its runs in a row loses the
+        # evict margin's protection: a found hand DetNet would let be born replaces it; on
+        # `unconfirmed_drop` runs it ends (None: never). DetNet stays sure of a crop that slid
+        # onto curly hair or the arm a hand left the frame from (held-back clips: such tracks
+        # lasted 60-100 frames and kept the real hand from a slot); the finder, which sees the
+        # whole frame, does not see a hand there
+        self.unconfirmed_evict, self.unconfirmed_drop = s.unconfirmed_evict, s.unconfirmed_drop
         self.tracks: list[Track] = []
         self.next_id = 0
         self.frames_since_find = 0
         self.lost_last_frame = False
         self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
-                      "evictions": 0, "handedness_turns": 0, "second_looks": 0, "side_rereads": 0,
+                      "evictions": 0, "unconfirmed_drops": 0, "handedness_turns": 0, "second_looks": 0, "side_rereads": 0,
                       "grey_finder_runs": 0}
 
     @classmethod
@@ -593,6 +603,8 @@ class HandDetector:
                     reseeded.append(t)
                 continue
             fresh.append((box, right_prob))
+        if not centre:
+            self._count_unconfirmed(set(owner.values()))
         free = self.max_hands - len(self.tracks)
         if self.candidates and len(fresh) > free > 0:   # DetNet says which of them look most like a hand
             fresh = [fresh[i] for i in np.argsort(-self._found_peaks(image, fresh), kind="stable")]
@@ -604,6 +616,17 @@ class HandDetector:
         if free <= 0 and fresh and self.evict_margin is not None:
             new += self._evict(image, fresh, reseeded)
         return new + reseeded
+
+    def _count_unconfirmed(self, seen):
+        """After a finder run: each track's count of runs in a row that found no box of its
+        hand (`seen`: the ids of the tracks a found box was matched to); the tracks at
+        `unconfirmed_drop` end."""
+        for t in self.tracks:
+            t.unconfirmed = 0 if t.track_id in seen else t.unconfirmed + 1
+        if self.unconfirmed_drop:
+            kept = [t for t in self.tracks if t.unconfirmed < self.unconfirmed_drop]
+            self.stats["unconfirmed_drops"] += len(self.tracks) - len(kept)
+            self.tracks = kept
 
     def _found_peaks(self, image, found):
         """(M,) DetNet's mean heatmap peak on the crop of each found (box, right_prob)."""
@@ -629,15 +652,19 @@ class HandDetector:
     def _evict(self, image, fresh, keep):
         """New tracks for found boxes `fresh` ((box, right_prob) list) that DetNet believes
         more than the tracks they replace (mean heatmap peak on the box's crop above the
-        weakest track's running peak by `evict_margin`); tracks in `keep` stay."""
+        weakest track's running peak by `evict_margin`; a track unseen by the finder on
+        `unconfirmed_evict` runs goes first, to any box whose peak reaches birth_confidence);
+        tracks in `keep` stay."""
         peak = self._found_peaks(image, fresh)
         born = []
         for i in np.argsort(-peak, kind="stable"):
             held = [t for t in self.tracks if t not in keep and t not in born]
             if not held:
                 break
-            weakest = min(held, key=lambda t: t.confidence)
-            if peak[i] < weakest.confidence + self.evict_margin:
+            unseen = [t for t in held if self.unconfirmed_evict and t.unconfirmed >= self.unconfirmed_evict]
+            weakest = min(unseen or held, key=lambda t: t.confidence)
+            bar = self.birth_confidence if unseen else weakest.confidence + self.evict_margin
+            if peak[i] < bar:
                 break
             born.append(self._new_track(*fresh[i]))
             self.tracks[self.tracks.index(weakest)] = born[-1]

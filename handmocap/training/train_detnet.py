@@ -1010,7 +1010,8 @@ def main(args):
         if real is None or synth is None or val is None:
             raise SystemExit(f"--write-pack needs the real cache (the data pack at {args.shared}), synthetic shards "
                              f"({' '.join(args.data)}) and the held-out set ({args.val}): see the model card")
-        pack(args.write_pack, real, synth, val, args.pack_mb, arms=load_arms(args.shared))
+        # arm crops only for a pack meant for an --arm-neg run: they take the room of ~900 rendered crops
+        pack(args.write_pack, real, synth, val, args.pack_mb, arms=load_arms(args.shared) if args.arm_neg else None)
         return
     import torch
     from tqdm import tqdm
