@@ -436,11 +436,33 @@ def test_exit_negatives_show_the_frames_edge_without_the_hand_that_left_it():
     assert exit_crop(frame[:330], hand + (0, -250), rng) is None          # fingers down from y 50: no frame left above
 
 
+def test_near_negatives_show_the_scene_beside_a_hand_and_no_hand():
+    """near_crop: a crop of the hand's crop size beside the hand, never on it nor on another
+    hand (their boxes grown by 30%), and mostly inside the frame; None where no such place is."""
+    from handmocap.training.train_detnet import near_crop
+    rng = np.random.default_rng(0)
+    frame = np.full((600, 800, 3), 90, np.uint8)
+    hand = np.array([300.0, 300.0]) + rng.uniform(0, 80, (21, 2))
+    other = np.array([520.0, 260.0]) + rng.uniform(0, 80, (21, 2))
+    for uv in (hand, other):
+        lo, hi = np.floor(uv.min(0)).astype(int), np.ceil(uv.max(0)).astype(int)
+        frame[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] = (255, 0, 255)       # the hands: a colour nothing else has
+    made = 0
+    for _ in range(40):
+        crop = near_crop(frame, hand, rng, [other])
+        if crop is not None:
+            made += 1
+            assert crop.shape == (128, 128, 3)
+            assert not ((crop[..., 0] > 200) & (crop[..., 1] < 50)).any()
+    assert made >= 10
+    assert all(near_crop(frame[250:420, 250:420], hand - 250, rng) is None for _ in range(20))   # no room beside it
+
+
 def test_part_negatives_show_part_of_a_hand_too_close_to_be_a_whole_one():
     """part_crop: a square 0.25-0.5 of the hand's crop side around one of its joints (never
     the whole hand), None where it would be a blur of under 40 frame px; BatchMaker with
     --part-neg P takes about P of its negatives from the part crops, labelled no hand (and
-    likewise --arm-neg from the arm crops)."""
+    likewise --arm-neg from the arm crops and --near-neg from the crops beside a hand)."""
     from handmocap.training import real_data
     from handmocap.training.train_detnet import BatchMaker, part_crop
     rng = np.random.default_rng(0)
@@ -459,13 +481,16 @@ def test_part_negatives_show_part_of_a_hand_too_close_to_be_a_whole_one():
              "xyz_rel": np.zeros((n, 21, 3)), "handedness": np.zeros(n, np.int8)}
     parts = {"part": np.full((8, 128, 128, 3), 77, np.uint8), "part_held": np.array([False] * 6 + [True] * 2)}
     arms = {"arm": np.full((4, 128, 128, 3), 33, np.uint8), "arm_held": np.array([False] * 3 + [True])}
-    maker = BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts, share_part=0.4, arms=arms, share_arm=0.2)
+    nears = {"near": np.full((4, 128, 128, 3), 55, np.uint8), "near_held": np.zeros(4, bool)}
+    maker = BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts, share_part=0.4, arms=arms, share_arm=0.2,
+                       nears=nears, share_near=0.1)
     if maker.procedural is None:
         pytest.skip("the synthetic engine's procedural backgrounds are needed for the other negatives")
     batch = maker.make(1000, np.random.default_rng(1))
     is_part = np.all(batch["image"] == 77, axis=(1, 2, 3))
     assert 0.33 < is_part.mean() < 0.47
     assert 0.15 < np.all(batch["image"] == 33, axis=(1, 2, 3)).mean() < 0.25      # the arm crops (--arm-neg)
+    assert 0.06 < np.all(batch["image"] == 55, axis=(1, 2, 3)).mean() < 0.14      # beside a hand (--near-neg)
     assert not batch["presence"].any() and np.all(batch["uv"] == -1000.0)
     with pytest.raises(ValueError, match="at most 1"):
         BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts, share_part=0.7, arms=arms, share_arm=0.4)

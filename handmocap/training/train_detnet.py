@@ -75,6 +75,7 @@ REAL_CACHE = "real_v5.npz"          # v2: + arm-only negatives; v3: frame edges 
 HELD_BACK_SOURCE = "heldback/"      # source prefix of the held-back people's crops (never trained on)
 PART_CACHE = "parts_v1.npz"         # close-ups of part of a hand (build_part_cache), negatives for --part-neg
 ARM_CACHE = "arms_v1.npz"           # an arm without its hand (build_arm_cache), negatives for --arm-neg
+NEAR_CACHE = "near_v1.npz"          # the scene just beside a hand (build_near_cache), negatives for --near-neg
 ELBOW_REACHES = (1.6, 2.0, 2.4)     # arm_crop reaches (crop sides beyond the wrist) by the elbow
 PALM_M = 0.093               # |wrist - middle MCP| that real held-out 3D errors are quoted at (temugeb's median)
 
@@ -129,6 +130,9 @@ def add_arguments(p):
                    help="share of the no-hand crops that show an arm without its hand: the frame's edge just "
                         "after a hand left it (`exit_crop`, the border repeated as the detector repeats it) or the "
                         "arm by the elbow, taught as no hand (default %(default)s)")
+    p.add_argument("--near-neg", type=float, default=0.0, metavar="P",
+                   help="share of the no-hand crops that show the scene just beside a hand (hair, a face, "
+                        "clothes: where a track that lost its hand drifts), taught as no hand (default %(default)s)")
     p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
@@ -355,18 +359,28 @@ def build_part_cache(shared, path, seed=0, log=print):
                 for s in np.flatnonzero(lab["found"][f]):
                     add(image, lab["uv"][f, s], bool(held[f]))
         log(f"  {rel}: {len(parts)} part-of-hand close-ups so far")
-    arrays = {"part": np.asarray(parts, np.uint8).reshape(-1, 128, 128, 3), "part_held": np.asarray(held_out, bool)}
+    return _save_crops(path, "part", parts, held_out)
+
+
+def _save_crops(path, kind, crops, held_out):
+    """{kind: (m,128,128,3) uint8, kind_held: (m,) bool}, also written to the .npz `path`."""
+    arrays = {kind: np.asarray(crops, np.uint8).reshape(-1, 128, 128, 3), f"{kind}_held": np.asarray(held_out, bool)}
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **arrays)
     return arrays
 
 
-def load_parts(shared, log=print):
-    """The part-of-hand cache (built on first use under runs/detnet_data/), or None without shared/."""
+def _crop_cache(shared, name, build, what, log):
+    """A hard-negative cache (built by build(shared, path) on first use under runs/detnet_data/),
+    or None without shared/."""
     if not (Path(shared) / "labelled2d").exists():
         return None
-    return _cached(DATA_DIR / PART_CACHE, lambda path: build_part_cache(shared, path, log=log),
-                   f"cutting part-of-hand close-ups from {shared}", log)
+    return _cached(DATA_DIR / name, lambda path: build(shared, path, log=log), f"cutting {what} from {shared}", log)
+
+
+def load_parts(shared, log=print):
+    """The part-of-hand cache (build_part_cache)."""
+    return _crop_cache(shared, PART_CACHE, build_part_cache, "part-of-hand close-ups", log)
 
 
 def exit_crop(image, uv, rng, others=(), scale=1.3):
@@ -406,6 +420,32 @@ def exit_crop(image, uv, rng, others=(), scale=1.3):
     return real_data.warp(np.ascontiguousarray(kept), M, 128, replicate=True)
 
 
+def for_training_frames(shared, add_frame, progress, every_found_reliable=False):
+    """add_frame(image (H,W,3) RGB, hands (k,21,2) reliable pseudo-labelled keypoints, held)
+    for every 2nd frame of the training videos (held: their held-out tails), every 3rd of the
+    training clips of video/wild and every images/scenes photo; progress(name) after each
+    source. every_found_reliable: only frames whose every hand MediaPipe found is reliable.
+    Never the held-back people."""
+    videos = [(Path(shared) / rel, real_data.video_split, 2) for rel in real_data.TRAIN_VIDEOS]
+    videos += [(v, lambda n: (np.ones(n, bool), np.zeros(n, bool)), 3) for v in real_data.wild_clips(shared)]
+    for video, split, stride in videos:
+        lab = real_data.load_pseudo_labels(video)
+        train, held = split(len(lab["found"]))
+        reliable = real_data.reliable_hands(lab)
+        for f, image in real_data.read_video(video, frames=set(range(0, len(lab["found"]), stride))):
+            if f >= len(lab["found"]) or not (train[f] or held[f]) or not reliable[f].any():
+                continue
+            if not every_found_reliable or np.array_equal(reliable[f], lab["found"][f]):
+                add_frame(image, lab["uv"][f][reliable[f]], bool(held[f]))
+        progress(video.name)
+    scenes = {}
+    for s in real_data.load_scenes(shared):          # a photo with two hands is two samples
+        scenes.setdefault(s["name"], (s["image"], []))[1].append(s["uv"])
+    for image, hands in scenes.values():
+        add_frame(image, np.asarray(hands), False)
+    progress("images/scenes")
+
+
 def build_arm_cache(shared, path, seed=0, log=print):
     """Crops of an arm without its hand, from each reliable pseudo-labelled hand on every 2nd
     frame of the training videos, every 3rd of the training clips of video/wild and every
@@ -432,34 +472,62 @@ def build_arm_cache(shared, path, seed=0, log=print):
                     crops.append(c)
                     held_out.append(held)
 
-    videos = [(Path(shared) / rel, real_data.video_split, 2) for rel in real_data.TRAIN_VIDEOS]
-    videos += [(v, lambda n: (np.ones(n, bool), np.zeros(n, bool)), 3) for v in real_data.wild_clips(shared)]
-    for video, split, stride in videos:
-        lab = real_data.load_pseudo_labels(video)
-        train, held = split(len(lab["found"]))
-        reliable = real_data.reliable_hands(lab)
-        for f, image in real_data.read_video(video, frames=set(range(0, len(lab["found"]), stride))):
-            if f < len(lab["found"]) and (train[f] or held[f]) and reliable[f].any():
-                add_frame(image, lab["uv"][f][reliable[f]], bool(held[f]))
-        log(f"  {video.name}: {len(crops)} arm crops so far")
-    scenes = {}
-    for s in real_data.load_scenes(shared):          # a photo with two hands is two samples
-        scenes.setdefault(s["name"], (s["image"], []))[1].append(s["uv"])
-    for image, hands in scenes.values():
-        add_frame(image, np.asarray(hands), False)
-    log(f"  images/scenes: {len(crops)} arm crops")
-    arrays = {"arm": np.asarray(crops, np.uint8).reshape(-1, 128, 128, 3), "arm_held": np.asarray(held_out, bool)}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, **arrays)
-    return arrays
+    for_training_frames(shared, add_frame, lambda where: log(f"  {where}: {len(crops)} arm crops so far"))
+    return _save_crops(path, "arm", crops, held_out)
+
+
+def near_crop(image, uv, rng, others=(), scale=1.3):
+    """A 128 px crop of the scene just beside the hand with keypoints uv (21,2), or None: the
+    hand's crop side x 0.8-1.2, centred 0.9-1.6 sides from the hand's box centre in a random
+    direction, where a track that lost its hand drifts (hair, a face, clothes). None where it
+    overlaps this hand's or one of `others`' boxes grown by 30%, or is under 80% inside the frame."""
+    lo, hi = uv.min(0), uv.max(0)
+    side = float(np.max(hi - lo)) * scale * rng.uniform(0.8, 1.2)
+    if side < 16 or not np.all(np.isfinite(uv)):
+        return None
+    way = rng.uniform(0, 2 * np.pi)
+    cx, cy = (lo + hi) / 2 + rng.uniform(0.9, 1.6) * side * np.array([np.cos(way), np.sin(way)])
+    box = (cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2)
+    grown = [np.r_[o.min(0) - 0.3 * np.ptp(o, 0), o.max(0) + 0.3 * np.ptp(o, 0)] for o in (uv, *others)]
+    h, w = image.shape[:2]
+    if _boxes_overlap(box, grown) or _inside_share(box, w, h) < 0.8:
+        return None
+    return real_data.warp(image, real_data.crop_affine(cx, cy, side, 128, angle_deg=rng.uniform(-30, 30)), 128,
+                          replicate=True)
+
+
+def build_near_cache(shared, path, seed=0, log=print):
+    """Crops of the scene beside each reliable pseudo-labelled hand (`near_crop`, two tries a
+    hand) on every 2nd frame of the training videos where MediaPipe found a hand, every 3rd
+    of the training clips of video/wild and every images/scenes photo: near (m,128,128,3)
+    uint8, near_held (m,) bool (the training videos' held-out tails). Frames where MediaPipe
+    found fewer hands than are there would give a crop of a hand: only frames whose every
+    found hand is reliable are used. Never from the held-back people."""
+    rng = np.random.default_rng([seed, 12])
+    crops, held_out = [], []
+
+    def add_frame(image, hands, held):
+        for k, uv in enumerate(hands):
+            for _ in range(2):
+                crop = near_crop(image, uv, rng, [o for j, o in enumerate(hands) if j != k])
+                if crop is not None:
+                    crops.append(crop)
+                    held_out.append(held)
+                    break
+
+    for_training_frames(shared, add_frame, lambda where: log(f"  {where}: {len(crops)} crops beside a hand so far"),
+                        every_found_reliable=True)
+    return _save_crops(path, "near", crops, held_out)
+
+
+def load_near(shared, log=print):
+    """The beside-a-hand cache (build_near_cache)."""
+    return _crop_cache(shared, NEAR_CACHE, build_near_cache, "crops beside a hand", log)
 
 
 def load_arms(shared, log=print):
-    """The arm-without-its-hand cache (built on first use under runs/detnet_data/), or None without shared/."""
-    if not (Path(shared) / "labelled2d").exists():
-        return None
-    return _cached(DATA_DIR / ARM_CACHE, lambda path: build_arm_cache(shared, path, log=log),
-                   f"cutting arm crops from {shared}", log)
+    """The arm-without-its-hand cache (build_arm_cache)."""
+    return _crop_cache(shared, ARM_CACHE, build_arm_cache, "arm crops", log)
 
 
 def _cached(path, build, what, log):
@@ -503,16 +571,17 @@ class BatchMaker:
     presence, right, w_hand (B,) float32."""
 
     def __init__(self, synth, real, share_real, share_neg, share_left, upright=None, real_3d=0.0, left_2d=0.0,
-                 parts=None, share_part=0.0, arms=None, share_arm=0.0):
+                 parts=None, share_part=0.0, arms=None, share_arm=0.0, nears=None, share_near=0.0):
         self.synth, self.real = synth, real
         # hard negatives, each that share of the negatives: close-ups of part of a hand
         # (build_part_cache), an arm without its hand (build_arm_cache);
         # (crops (m,128,128,3), training indices, share) each
         self.hard = [(pool[kind], np.flatnonzero(~pool[f"{kind}_held"]), share)
-                     for kind, pool, share in (("part", parts, share_part), ("arm", arms, share_arm))
+                     for kind, pool, share in (("part", parts, share_part), ("arm", arms, share_arm),
+                                               ("near", nears, share_near))
                      if pool is not None and share > 0 and (~pool[f"{kind}_held"]).any()]
         if sum(share for _, _, share in self.hard) > 1:
-            raise ValueError("--part-neg and --arm-neg are shares of the negatives: together at most 1")
+            raise ValueError("--part-neg, --arm-neg and --near-neg are shares of the negatives: together at most 1")
         self.real_3d = real_3d
         self.left_2d = left_2d
         self.share_left = share_left
@@ -895,7 +964,7 @@ def validate(net, sval, rval, refines=("softmax",)):
         m["real_presence"] = float((pres > 0.5).mean())
         if len(rval["neg"]):
             m["neg_rejected"] = float((predict(net, rval["neg"], ())[1] < 0.5).mean())
-        for kind in ("part", "arm"):
+        for kind in ("part", "arm", "near"):
             if len(rval.get(kind, ())):
                 m[f"{kind}_rejected"] = float((predict(net, rval[kind], ())[1] < 0.5).mean())
     return m
@@ -1073,7 +1142,8 @@ def main(args):
               f"{int((~real['neg_held']).sum())} negatives ({int(real['neg_held'].sum())} held out)")
     hard = {}
     for kind, load, share, what in (("part", load_parts, args.part_neg, "part-of-hand close-ups"),
-                                    ("arm", load_arms, args.arm_neg, "arm crops (edge of frame, elbow)")):
+                                    ("arm", load_arms, args.arm_neg, "arm crops (edge of frame, elbow)"),
+                                    ("near", load_near, args.near_neg, "crops beside a hand")):
         hard[kind] = load(args.shared) if real is not None and not args.pack else None
         if args.pack and kind in real:                  # the pack's own (training crops only)
             crops = real.pop(kind)
@@ -1083,7 +1153,8 @@ def main(args):
             print(f"{what}: {int((~held).sum())} ({int(held.sum())} held out)"
                   + ("" if share else f", measured only (--{kind}-neg 0)"))
     maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright, args.real_3d,
-                       args.left_2d, hard["part"], args.part_neg, hard["arm"], args.arm_neg)
+                       args.left_2d, hard["part"], args.part_neg, hard["arm"], args.arm_neg, hard["near"],
+                       args.near_neg)
     if sval is None:
         print(f"note: no held-out synthetic set at {args.val}")
     rval = real_val_set(real)
