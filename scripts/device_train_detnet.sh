@@ -5,6 +5,8 @@
 #
 # Here, first (once; about 2 minutes, needs ../shared and runs/detnet_data):
 #     handtrain detnet --write-pack runs/device/pack --pack-mb 24
+# (session 25's lead, hard negatives: --pack-mb 29 --arm-neg 0.2 --near-neg 0.3 there, 23.4 MB; the
+# job below as "ARM_NEG=0.2 NEAR_NEG=0.3 bash scripts/device_train_detnet.sh")
 # Then the device tool's run: command "bash scripts/device_train_detnet.sh", carry
 # ["runs/device/pack"], timeout_s 600 (the tool sets $OUT there; its files come back).
 # What comes back under $OUT: detnet.onnx, last.pt (the checkpoint, for --resume or
@@ -27,7 +29,10 @@ BATCH=${BATCH:-256}
 BACKBONE=${BACKBONE:-fast-deep}
 INIT=${INIT:-models/detnet.onnx}
 LR=${LR:-1e-3}
-ARM_NEG=${ARM_NEG:-0}     # share of the negatives that are arms without their hand (--arm-neg; a pack written with --arm-neg)
+# shares of the negatives that are arms without their hand and the scene beside a hand
+# (--arm-neg, --near-neg: the pack must be written with the same options to carry them)
+ARM_NEG=${ARM_NEG:-0}
+NEAR_NEG=${NEAR_NEG:-0}
 mkdir -p "$OUT"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 python3 - <<'EOF'
@@ -46,7 +51,7 @@ AMP=(); [ "$DEVICE" = cuda ] && AMP=(--amp)
 python3 -m handmocap.training.train_cli detnet --pack "$PACK" --device "$DEVICE" "${AMP[@]}" \
     --workers "$WORKERS" --batch "$BATCH" --backbone "$BACKBONE" --init-from "$INIT" --lr "$LR" \
     --iters 1000000 --minutes "$MINUTES" --val-every 2000 --ckpt-every 1000000 \
-    --share-real 0.5 --share-neg 0.12 --upright 60 --real-3d 0.5 --arm-neg "$ARM_NEG" \
+    --share-real 0.5 --share-neg 0.12 --upright 60 --real-3d 0.5 --arm-neg "$ARM_NEG" --near-neg "$NEAR_NEG" \
     --run-dir "$OUT/run" --export "$OUT/detnet.onnx" 2>&1 | tee "$OUT/train.log"
 cp "$OUT/run/last.pt" "$OUT/last.pt"
 rm -rf "$OUT/run"           # only 2 folder levels come back; detnet.onnx and last.pt are what matter

@@ -57,7 +57,7 @@ def test_handtrain_detnet_trains_from_a_pack_and_stops_on_time(tmp_path):
     hands = _hands(24, CTX, rng, held=np.arange(24) % 6 == 0,
                    source=["heldback/x" if i % 6 == 0 else "wild/a" for i in range(24)])
     negs = {"neg": np.full((6, 128, 128, 3), 90, np.uint8), "neg_arm": np.zeros(6, bool),
-            "arm": np.full((5, 128, 128, 3), 40, np.uint8)}
+            "arm": np.full((5, 128, 128, 3), 40, np.uint8), "near": np.full((3, 128, 128, 3), 140, np.uint8)}
     size = device_pack.write_pack(tmp_path / "pack", hands, negs, _synth(16, rng), _synth(8, rng))
     assert size == sum(f.stat().st_size for f in (tmp_path / "pack").iterdir())
     real, synth, val = device_pack.load_pack(tmp_path / "pack")
@@ -65,10 +65,11 @@ def test_handtrain_detnet_trains_from_a_pack_and_stops_on_time(tmp_path):
     np.testing.assert_allclose(real["uv"], hands["uv"], atol=0.1)
     assert np.array_equal(real["held"], hands["held"]) and len(val["image"]) == 8 and len(real["neg"]) == 6
     assert real["arm"].shape == (5, 128, 128, 3) and np.abs(real["arm"].astype(int) - 40).max() <= 2
+    assert real["near"].shape == (3, 128, 128, 3) and np.abs(real["near"].astype(int) - 140).max() <= 2
 
     main(["detnet", "--pack", str(tmp_path / "pack"), "--backbone", "fast", "--iters", "100000", "--minutes",
-          "0.05", "--batch", "6", "--arm-neg", "0.3", "--val-every", "100000", "--run-dir", str(tmp_path / "run"),
-          "--export", str(tmp_path / "out.onnx"), "--shared", str(tmp_path / "nowhere")])
+          "0.05", "--batch", "6", "--arm-neg", "0.3", "--near-neg", "0.2", "--val-every", "100000",
+          "--run-dir", str(tmp_path / "run"), "--export", str(tmp_path / "out.onnx"), "--shared", str(tmp_path / "nowhere")])
     ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
     assert 0 < ckpt["iteration"] < 100000 and ckpt["history"][-1]["iteration"] == ckpt["iteration"]
     assert (tmp_path / "out.onnx").is_file() and np.isfinite(ckpt["history"][-1]["syn_px_softmax"])

@@ -31,6 +31,7 @@ import numpy as np
 PACK_DIR = Path("runs/device/pack")
 HAND_KEYS = ("uv", "right", "weight", "held", "source", "xyz", "has_3d")
 SYNTH_KEYS = ("uv", "xyz_rel", "xyz", "handedness", "in_image")
+HARD_KINDS = ("arm", "near")        # hard negatives a pack can carry (train_detnet --arm-neg, --near-neg)
 LABEL_BYTES = 250           # a crop's labels (float16 uv and xyz) in the compressed .npz, about
 
 
@@ -81,10 +82,11 @@ def pick_real(real, budget_bytes, crop_bytes):
     return np.sort(np.concatenate([held, photos, *thinned(lo)]))
 
 
-def pack(out_dir, real, synth, val, mb=24.0, real_share=0.75, quality=85, arms=None, log=print):
+def pack(out_dir, real, synth, val, mb=24.0, real_share=0.75, quality=85, hard=None, log=print):
     """Write out_dir/real.npz and synth.npz within about `mb` megabytes together, from the
     real cache (train_detnet.load_real), the synthetic crops, the held-out synthetic set
-    (train_detnet.load_synth) and optionally the arm crops (train_detnet.load_arms);
+    (train_detnet.load_synth) and optionally hard negatives {kind: cache} (HARD_KINDS:
+    train_detnet.load_arms, load_near; every 2nd training crop of each goes);
     -> the pack's size, bytes."""
     budget = mb * 1e6
     log(f"encoding {len(real['image'])} real crops once to know their sizes")
@@ -93,18 +95,18 @@ def pack(out_dir, real, synth, val, mb=24.0, real_share=0.75, quality=85, arms=N
     idx = pick_real(real, real_share * budget, crop_bytes)
     neg = np.flatnonzero(~real["neg_held"])[::3]
     negs = {"neg": real["neg"][neg], "neg_arm": real["neg_arm"][neg]}
-    if arms is not None:
-        negs["arm"] = arms["arm"][np.flatnonzero(~arms["arm_held"])[::2]]
+    for kind, cache in (hard or {}).items():
+        negs[kind] = cache[kind][np.flatnonzero(~cache[f"{kind}_held"])[::2]]
     per_synth = _jpeg_bytes(synth["image"], quality) + LABEL_BYTES
     room = budget - crop_bytes[idx].sum() - len(val["image"]) * per_synth - sum(
-        len(negs[k]) * _jpeg_bytes(negs[k], quality) for k in ("neg", "arm") if k in negs and len(negs[k]))
+        len(negs[k]) * _jpeg_bytes(negs[k], quality) for k in ("neg", *HARD_KINDS) if len(negs.get(k, ())))
     n = int(np.clip(room / per_synth, 0, len(synth["image"])))
     pick = np.sort(np.random.default_rng(1).choice(len(synth["image"]), n, replace=False))
     hands = {**{k: real[k][idx] for k in HAND_KEYS}, "jpeg": [blobs[i] for i in idx]}
     size = write_pack(out_dir, hands, negs, {k: v[pick] for k, v in synth.items()}, val, quality)
     log(f"real: {int((~hands['held']).sum())} training crops of {int((~real['held']).sum())}, "
         f"{int(hands['held'].sum())} held-back for validation, {len(neg)} no-hand crops, "
-        f"{len(negs.get('arm', ()))} arm crops; synthetic: {n} of "
+        + "".join(f"{len(negs[k])} {k} crops, " for k in HARD_KINDS if k in negs) + f"synthetic: {n} of "
         f"{len(synth['image'])}, {len(val['image'])} held out; wrote {out_dir}: {size / 1e6:.1f} MB")
     return size
 
@@ -117,7 +119,7 @@ def _jpeg_bytes(images, quality, n=256):
 
 def write_pack(out_dir, hands, negs, synth, val, quality=85):
     """Write the pack: hands {image (n,CTX,CTX,3) or jpeg (n JPEG files, jpeg_blobs), HAND_KEYS},
-    negs {neg (m,128,128,3), neg_arm, optionally arm (e,128,128,3)},
+    negs {neg (m,128,128,3), neg_arm, optionally each of HARD_KINDS (e,128,128,3)},
     synth and val {image (k,128,128,3), SYNTH_KEYS} (load_synth's arrays); -> bytes written."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -127,8 +129,9 @@ def write_pack(out_dir, hands, negs, synth, val, quality=85):
         joined(hands["jpeg"]) if "jpeg" in hands else encode_jpegs(hands["image"], quality)
     arrays["neg_jpeg"], arrays["neg_offsets"] = encode_jpegs(negs["neg"], quality)
     arrays["neg_arm"] = negs["neg_arm"]
-    if "arm" in negs:
-        arrays["arm_jpeg"], arrays["arm_offsets"] = encode_jpegs(negs["arm"], quality)
+    for kind in HARD_KINDS:
+        if kind in negs:
+            arrays[f"{kind}_jpeg"], arrays[f"{kind}_offsets"] = encode_jpegs(negs[kind], quality)
     np.savez_compressed(out_dir / "real.npz", **arrays)
     arrays = {}
     for prefix, s in (("", synth), ("val_", val)):
@@ -141,7 +144,7 @@ def write_pack(out_dir, hands, negs, synth, val, quality=85):
 
 def load_pack(pack_dir):
     """-> (real, synth, synth_val): the dicts train_detnet's BatchMaker and validation take
-    (real["arm"]: the arm crops, where the pack has them)."""
+    (real[kind]: the hard negatives of each of HARD_KINDS the pack has)."""
     pack_dir = Path(pack_dir)
     for f in ("real.npz", "synth.npz"):
         if not (pack_dir / f).is_file():
@@ -151,8 +154,9 @@ def load_pack(pack_dir):
         real = {k: z[k] for k in HAND_KEYS + ("neg_arm",)}
         real["image"] = decode_jpegs(z["image_jpeg"], z["image_offsets"])
         real["neg"] = decode_jpegs(z["neg_jpeg"], z["neg_offsets"])
-        if "arm_jpeg" in z.files:
-            real["arm"] = decode_jpegs(z["arm_jpeg"], z["arm_offsets"])
+        for kind in HARD_KINDS:
+            if f"{kind}_jpeg" in z.files:
+                real[kind] = decode_jpegs(z[f"{kind}_jpeg"], z[f"{kind}_offsets"])
     real["neg_held"] = np.zeros(len(real["neg"]), bool)     # only training negatives travel
     real["uv"], real["xyz"] = real["uv"].astype(np.float32), real["xyz"].astype(np.float32)
     with np.load(pack_dir / "synth.npz") as z:

@@ -1079,8 +1079,10 @@ def main(args):
         if real is None or synth is None or val is None:
             raise SystemExit(f"--write-pack needs the real cache (the data pack at {args.shared}), synthetic shards "
                              f"({' '.join(args.data)}) and the held-out set ({args.val}): see the model card")
-        # arm crops only for a pack meant for an --arm-neg run: they take the room of ~900 rendered crops
-        pack(args.write_pack, real, synth, val, args.pack_mb, arms=load_arms(args.shared) if args.arm_neg else None)
+        # hard negatives only for a pack meant for a run that uses them: they take the room of rendered crops
+        hard = {kind: load(args.shared) for kind, load, share in (("arm", load_arms, args.arm_neg),
+                                                                   ("near", load_near, args.near_neg)) if share}
+        pack(args.write_pack, real, synth, val, args.pack_mb, hard=hard)
         return
     import torch
     from tqdm import tqdm
