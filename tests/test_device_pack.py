@@ -69,7 +69,8 @@ def test_handtrain_detnet_trains_from_a_pack_and_stops_on_time(tmp_path):
 
     main(["detnet", "--pack", str(tmp_path / "pack"), "--backbone", "fast", "--iters", "100000", "--minutes",
           "0.05", "--batch", "6", "--arm-neg", "0.3", "--near-neg", "0.2", "--val-every", "100000",
-          "--run-dir", str(tmp_path / "run"), "--export", str(tmp_path / "out.onnx"), "--shared", str(tmp_path / "nowhere")])
+          "--run-dir", str(tmp_path / "run"), "--export", str(tmp_path / "out.onnx"),
+          "--shared", str(tmp_path / "nowhere")])
     ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
     assert 0 < ckpt["iteration"] < 100000 and ckpt["history"][-1]["iteration"] == ckpt["iteration"]
     assert (tmp_path / "out.onnx").is_file() and np.isfinite(ckpt["history"][-1]["syn_px_softmax"])

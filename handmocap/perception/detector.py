@@ -511,8 +511,8 @@ class HandDetector:
         self.frames_since_find = 0
         self.lost_last_frame = False
         self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
-                      "evictions": 0, "unconfirmed_drops": 0, "handedness_turns": 0, "second_looks": 0, "side_rereads": 0,
-                      "grey_finder_runs": 0}
+                      "evictions": 0, "unconfirmed_drops": 0, "handedness_turns": 0, "second_looks": 0,
+                      "side_rereads": 0, "grey_finder_runs": 0}
 
     @classmethod
     def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, grey_finder_path=None,
