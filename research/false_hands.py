@@ -38,13 +38,12 @@ def main():
     for f, (image, labels, _, _) in enumerate(eval_people.frames_of_clip(clips[0])):
         hands = detector.process(image)
         for hand in hands:
-            centre = hand["uv"].mean(0)
-            dist = [np.linalg.norm(centre - uv.mean(0)) / real_data.hand_size(uv) for uv in labels]
-            if dist and min(dist) < 0.5:
+            _, dist = eval_people.nearest_label(hand["uv"], labels)
+            if dist < eval_people.ON_HAND:
                 continue
             false += 1
-            print(f, hand["track_id"], round(min(dist), 2) if dist else -1, round(float(np.ptp(hand["uv"], 0).max())),
-                  hand["handedness"], round(float(hand["score"]), 2))
+            print(f, hand["track_id"], round(dist, 2) if np.isfinite(dist) else -1,
+                  round(float(np.ptp(hand["uv"], 0).max())), hand["handedness"], round(float(hand["score"]), 2))
             if false % 15 == 1:
                 drawn = image.copy()
                 for uv, colour in [(uv, (0, 255, 0)) for uv in labels] + \

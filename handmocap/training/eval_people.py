@@ -25,6 +25,7 @@ import numpy as np
 from handmocap.training import real_data
 
 PCK_AT = 0.1                                   # PCK threshold, share of the hand's size
+ON_HAND = 0.5                                  # an output lies on a label within this share of its size
 CURVE = np.linspace(0.0, 0.3, 31)              # thresholds of the PCK plot
 
 
@@ -51,6 +52,14 @@ def frames_of_photos(samples):
         yield (np.ascontiguousarray(s["image"][..., ::-1]), s["uv"][None], np.ones(1, bool), [s["handedness"]])
 
 
+def nearest_label(uv, labels):
+    """(index of the label hand nearest to an output hand's joints uv (21,2), its distance
+    in that label's hand sizes, centre to centre), or (-1, inf) with no labels (k,21,2). The
+    output lies on that hand when the distance is below ON_HAND, else it is a false hand."""
+    dist = [np.linalg.norm(uv.mean(0) - label.mean(0)) / real_data.hand_size(label) for label in labels]
+    return (int(np.argmin(dist)), float(min(dist))) if dist else (-1, np.inf)
+
+
 def score_frames(detector, frames, stills=False):
     """Run `detector` over `frames` (frames_of_*): a dict of counts and per-hand arrays
     (err: mean joint error / hand size, joint_err (n,21) / hand size, right_side bool)."""
@@ -63,10 +72,8 @@ def score_frames(detector, frames, stills=False):
         out["labelled"] += len(hands)
         hit = set()
         for h in detector.process(image):
-            centre = h["uv"].mean(0)
-            dist = [np.linalg.norm(centre - uv.mean(0)) / real_data.hand_size(uv) for uv in hands]
-            k = int(np.argmin(dist)) if dist else -1
-            if k < 0 or dist[k] >= 0.5:
+            k, dist = nearest_label(h["uv"], hands)
+            if dist >= ON_HAND:
                 out["false"] += 1
                 continue
             hit.add(k)

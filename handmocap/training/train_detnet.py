@@ -296,13 +296,24 @@ def build_real_cache(shared, path, seed=0, log=print):
     return arrays
 
 
+def jittered_side(uv, rng, scale=1.3):
+    """The side (px) of a crop of the hand with keypoints uv (21,2) as the detector cuts it
+    (keypoint box x `scale`), x 0.8-1.2 at random: the hard negatives' crop size."""
+    return float(np.max(uv.max(0) - uv.min(0))) * scale * rng.uniform(0.8, 1.2)
+
+
+def grown_box(uv, share=0.3):
+    """(4,) x0, y0, x1, y1: the box of keypoints uv (k,2) grown by `share` of its size each way."""
+    return np.r_[uv.min(0) - share * np.ptp(uv, 0), uv.max(0) + share * np.ptp(uv, 0)]
+
+
 def arm_crop(uv, rng, scale=1.3, reaches=(0.7, 0.85, 1.0, 1.2)):
     """The (2,3) affine of a 128 px crop of the forearm beside a hand with keypoints uv
     (21,2): the hand's crop side (keypoint box x `scale`, x 0.8-1.2), centred beyond the
     wrist along middle MCP -> wrist, at the first of `reaches` (crop sides from the wrist;
     ELBOW_REACHES: further up the arm, by the elbow) where no keypoint is inside it; None
     for a degenerate hand. The forearm may be out of the frame (the warp repeats its border)."""
-    side = float(np.max(uv.max(0) - uv.min(0))) * scale * rng.uniform(0.8, 1.2)
+    side = jittered_side(uv, rng, scale)
     d = uv[0] - uv[9]
     if side < 16 or np.linalg.norm(d) < 1e-3:
         return None
@@ -392,7 +403,7 @@ def exit_crop(image, uv, rng, others=(), scale=1.3):
     pixels repeated as the detector repeats them: the forearm, or whatever was beside the
     hand, where a track that followed its hand out of the frame is left. None where the cut
     frame is narrower than the crop or one of `others` (other hands' keypoints) is in it."""
-    side = float(np.max(uv.max(0) - uv.min(0))) * scale * rng.uniform(0.8, 1.2)
+    side = jittered_side(uv, rng, scale)
     way = uv[9] - uv[0]
     if side < 16 or not np.all(np.isfinite(uv)) or np.linalg.norm(way) < 1e-3:
         return None
@@ -464,8 +475,7 @@ def build_arm_cache(shared, path, seed=0, log=print):
             elbow = arm_crop(uv, rng, reaches=ELBOW_REACHES)
             if elbow is not None:
                 box = arm_box(elbow)
-                grown = [np.r_[o.min(0) - 0.3 * np.ptp(o, 0), o.max(0) + 0.3 * np.ptp(o, 0)] for o in others]
-                if _boxes_overlap(box, grown) or _inside_share(box, w, h) < 0.6:
+                if _boxes_overlap(box, [grown_box(o) for o in others]) or _inside_share(box, w, h) < 0.6:
                     elbow = None
             for c in (crop, None if elbow is None else real_data.warp(image, elbow, 128, replicate=True)):
                 if c is not None:
@@ -481,16 +491,14 @@ def near_crop(image, uv, rng, others=(), scale=1.3):
     hand's crop side x 0.8-1.2, centred 0.9-1.6 sides from the hand's box centre in a random
     direction, where a track that lost its hand drifts (hair, a face, clothes). None where it
     overlaps this hand's or one of `others`' boxes grown by 30%, or is under 80% inside the frame."""
-    lo, hi = uv.min(0), uv.max(0)
-    side = float(np.max(hi - lo)) * scale * rng.uniform(0.8, 1.2)
+    side = jittered_side(uv, rng, scale)
     if side < 16 or not np.all(np.isfinite(uv)):
         return None
     way = rng.uniform(0, 2 * np.pi)
-    cx, cy = (lo + hi) / 2 + rng.uniform(0.9, 1.6) * side * np.array([np.cos(way), np.sin(way)])
+    cx, cy = (uv.min(0) + uv.max(0)) / 2 + rng.uniform(0.9, 1.6) * side * np.array([np.cos(way), np.sin(way)])
     box = (cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2)
-    grown = [np.r_[o.min(0) - 0.3 * np.ptp(o, 0), o.max(0) + 0.3 * np.ptp(o, 0)] for o in (uv, *others)]
     h, w = image.shape[:2]
-    if _boxes_overlap(box, grown) or _inside_share(box, w, h) < 0.8:
+    if _boxes_overlap(box, [grown_box(o) for o in (uv, *others)]) or _inside_share(box, w, h) < 0.8:
         return None
     return real_data.warp(image, real_data.crop_affine(cx, cy, side, 128, angle_deg=rng.uniform(-30, 30)), 128,
                           replicate=True)
@@ -528,6 +536,13 @@ def load_near(shared, log=print):
 def load_arms(shared, log=print):
     """The arm-without-its-hand cache (build_arm_cache)."""
     return _crop_cache(shared, ARM_CACHE, build_arm_cache, "arm crops", log)
+
+
+# the hard negatives, each taught as that share (--<kind>-neg) of the no-hand crops:
+# kind -> (its cache's loader, what it shows)
+HARD_NEGATIVES = {"part": (load_parts, "part-of-hand close-ups"),
+                  "arm": (load_arms, "arm crops (edge of frame, elbow)"),
+                  "near": (load_near, "crops beside a hand")}
 
 
 def _cached(path, build, what, log):
@@ -964,7 +979,7 @@ def validate(net, sval, rval, refines=("softmax",)):
         m["real_presence"] = float((pres > 0.5).mean())
         if len(rval["neg"]):
             m["neg_rejected"] = float((predict(net, rval["neg"], ())[1] < 0.5).mean())
-        for kind in ("part", "arm", "near"):
+        for kind in HARD_NEGATIVES:
             if len(rval.get(kind, ())):
                 m[f"{kind}_rejected"] = float((predict(net, rval[kind], ())[1] < 0.5).mean())
     return m
@@ -1073,15 +1088,14 @@ def identity_init_new_blocks(net, state):
 
 def main(args):
     if args.write_pack:                 # the data only: no network
-        from handmocap.training.device_pack import pack
+        from handmocap.training.device_pack import HARD_KINDS, pack
         real, synth = load_real(args.shared), load_synth(synth_dirs(args.data), args.max_synth)
         val = load_synth([args.val], 256)
         if real is None or synth is None or val is None:
             raise SystemExit(f"--write-pack needs the real cache (the data pack at {args.shared}), synthetic shards "
                              f"({' '.join(args.data)}) and the held-out set ({args.val}): see the model card")
         # hard negatives only for a pack meant for a run that uses them: they take the room of rendered crops
-        hard = {kind: load(args.shared) for kind, load, share in (("arm", load_arms, args.arm_neg),
-                                                                   ("near", load_near, args.near_neg)) if share}
+        hard = {kind: HARD_NEGATIVES[kind][0](args.shared) for kind in HARD_KINDS if getattr(args, f"{kind}_neg")}
         pack(args.write_pack, real, synth, val, args.pack_mb, hard=hard)
         return
     import torch
@@ -1143,9 +1157,8 @@ def main(args):
         print(f"real: {int((~real['held']).sum())} training hand crops, {int(real['held'].sum())} held out; "
               f"{int((~real['neg_held']).sum())} negatives ({int(real['neg_held'].sum())} held out)")
     hard = {}
-    for kind, load, share, what in (("part", load_parts, args.part_neg, "part-of-hand close-ups"),
-                                    ("arm", load_arms, args.arm_neg, "arm crops (edge of frame, elbow)"),
-                                    ("near", load_near, args.near_neg, "crops beside a hand")):
+    for kind, (load, what) in HARD_NEGATIVES.items():
+        share = getattr(args, f"{kind}_neg")
         hard[kind] = load(args.shared) if real is not None and not args.pack else None
         if args.pack and kind in real:                  # the pack's own (training crops only)
             crops = real.pop(kind)
