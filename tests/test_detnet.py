@@ -482,8 +482,7 @@ def test_part_negatives_show_part_of_a_hand_too_close_to_be_a_whole_one():
     parts = {"part": np.full((8, 128, 128, 3), 77, np.uint8), "part_held": np.array([False] * 6 + [True] * 2)}
     arms = {"arm": np.full((4, 128, 128, 3), 33, np.uint8), "arm_held": np.array([False] * 3 + [True])}
     nears = {"near": np.full((4, 128, 128, 3), 55, np.uint8), "near_held": np.zeros(4, bool)}
-    maker = BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts, share_part=0.4, arms=arms, share_arm=0.2,
-                       nears=nears, share_near=0.1)
+    maker = BatchMaker(synth, None, 0.0, 1.0, 0.3, hard={"part": (parts, 0.4), "arm": (arms, 0.2), "near": (nears, 0.1)})
     if maker.procedural is None:
         pytest.skip("the synthetic engine's procedural backgrounds are needed for the other negatives")
     batch = maker.make(1000, np.random.default_rng(1))
@@ -493,8 +492,8 @@ def test_part_negatives_show_part_of_a_hand_too_close_to_be_a_whole_one():
     assert 0.06 < np.all(batch["image"] == 55, axis=(1, 2, 3)).mean() < 0.14      # beside a hand (--near-neg)
     assert not batch["presence"].any() and np.all(batch["uv"] == -1000.0)
     with pytest.raises(ValueError, match="at most 1"):
-        BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts, share_part=0.7, arms=arms, share_arm=0.4)
-    off = BatchMaker(synth, None, 0.0, 1.0, 0.3, parts=parts).make(200, np.random.default_rng(1))
+        BatchMaker(synth, None, 0.0, 1.0, 0.3, hard={"part": (parts, 0.7), "arm": (arms, 0.4)})
+    off = BatchMaker(synth, None, 0.0, 1.0, 0.3, hard={"part": (parts, 0.0)}).make(200, np.random.default_rng(1))
     assert not np.all(off["image"] == 77, axis=(1, 2, 3)).any()
 
 

@@ -586,17 +586,17 @@ class BatchMaker:
     presence, right, w_hand (B,) float32."""
 
     def __init__(self, synth, real, share_real, share_neg, share_left, upright=None, real_3d=0.0, left_2d=0.0,
-                 parts=None, share_part=0.0, arms=None, share_arm=0.0, nears=None, share_near=0.0):
+                 hard=None):
+        """hard: {kind: (its cache, share)} of HARD_NEGATIVES, each taught as that share of the
+        negatives (a cache holds <kind> (m,128,128,3) and <kind>_held (m,) bool)."""
         self.synth, self.real = synth, real
-        # hard negatives, each that share of the negatives: close-ups of part of a hand
-        # (build_part_cache), an arm without its hand (build_arm_cache);
-        # (crops (m,128,128,3), training indices, share) each
+        # (crops (m,128,128,3), training indices, share) of each hard negative in use
         self.hard = [(pool[kind], np.flatnonzero(~pool[f"{kind}_held"]), share)
-                     for kind, pool, share in (("part", parts, share_part), ("arm", arms, share_arm),
-                                               ("near", nears, share_near))
+                     for kind, (pool, share) in (hard or {}).items()
                      if pool is not None and share > 0 and (~pool[f"{kind}_held"]).any()]
         if sum(share for _, _, share in self.hard) > 1:
-            raise ValueError("--part-neg, --arm-neg and --near-neg are shares of the negatives: together at most 1")
+            raise ValueError(f"{', '.join(f'--{kind}-neg' for kind in HARD_NEGATIVES)} are shares of the negatives: "
+                             "together at most 1")
         self.real_3d = real_3d
         self.left_2d = left_2d
         self.share_left = share_left
@@ -1168,8 +1168,7 @@ def main(args):
             print(f"{what}: {int((~held).sum())} ({int(held.sum())} held out)"
                   + ("" if share else f", measured only (--{kind}-neg 0)"))
     maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright, args.real_3d,
-                       args.left_2d, hard["part"], args.part_neg, hard["arm"], args.arm_neg, hard["near"],
-                       args.near_neg)
+                       args.left_2d, {kind: (hard[kind], getattr(args, f"{kind}_neg")) for kind in HARD_NEGATIVES})
     if sval is None:
         print(f"note: no held-out synthetic set at {args.val}")
     rval = real_val_set(real)
