@@ -9,7 +9,7 @@ import pytest
 
 from conftest import ROOT, graph_env
 from handmocap.perception.hand_finder import FoundHand
-from handmocap.perception.detector import CENTRE, CropTransform, HandDetector, Track, crop_for_joints
+from handmocap.perception.detector import CENTRE, HANDEDNESS_MEMORY, CropTransform, HandDetector, Track, crop_for_joints
 from handmocap.perception.rotations import mirror_points
 from handmocap.perception.skeleton import normalize_joints
 
@@ -319,9 +319,10 @@ def test_handedness_memory_sets_how_long_contrary_readings_take_to_turn_a_track(
             if not t.is_right:
                 return n
     assert [readings_to_turn(m) for m in (10, 20, 60)] == [7, 14, 38]
-    det = HandDetector(FakeDetNet(), FakeFinder(), handedness_memory=60)
+    det = HandDetector(FakeDetNet(), FakeFinder(), handedness_memory=10)
     det.process(draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160)))
-    assert det.handedness_memory == 60 and det.tracks[0].memory == 60
+    assert det.handedness_memory == 10 and det.tracks[0].memory == 10
+    assert HandDetector(FakeDetNet(), FakeFinder()).handedness_memory == Track(0, None).memory == HANDEDNESS_MEMORY
 
 
 def test_a_given_handedness_holds_against_the_head_and_the_finder_and_skips_the_vote():

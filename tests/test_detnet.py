@@ -649,3 +649,33 @@ def test_handtrain_detnet_batches_are_the_same_made_ahead_by_workers_and_amp_tra
     if not torch.cuda.is_available():
         with pytest.raises(SystemExit, match="sees no CUDA device here"):
             main(["detnet", "--device", "cuda", "--run-dir", str(tmp_path / "cuda")])
+
+
+def test_averaged_checkpoints_hold_the_mean_weights_and_refuse_other_networks(tmp_path):
+    """average_detnet: every float tensor (BN statistics too) is the mean of the runs'; a
+    checkpoint of another backbone is refused with the reason."""
+    torch = _torch()
+    from handmocap.training.average_detnet import average_checkpoints
+    from handmocap.training.detnet import DetNet
+    paths, nets = [], []
+    for seed in range(3):
+        torch.manual_seed(seed)
+        net = DetNet("fast")
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.2, 0.2)
+        nets.append(net)
+        paths.append(tmp_path / f"run{seed}.pt")
+        torch.save({"model": net.state_dict(), "backbone": "fast", "fine": False, "refine": "softmax"}, paths[-1])
+    avg, refine = average_checkpoints(paths)
+    assert refine == "softmax"
+    for k, v in avg.state_dict().items():
+        if v.is_floating_point():
+            want = sum(n.state_dict()[k] for n in nets) / 3
+            assert torch.allclose(v, want, atol=1e-6), k
+    assert not torch.equal(avg.state_dict()["chirality.0.weight"], nets[0].state_dict()["chirality.0.weight"])
+    torch.save({"model": DetNet("fast-deep").state_dict(), "backbone": "fast-deep", "fine": False}, tmp_path / "deep.pt")
+    with pytest.raises(ValueError, match="different networks"):
+        average_checkpoints([paths[0], tmp_path / "deep.pt"])
+    with pytest.raises(FileNotFoundError, match="no such checkpoint"):
+        average_checkpoints([paths[0], tmp_path / "missing.pt"])

@@ -310,6 +310,11 @@ def logit(p):
     return np.log(p / (1 - p))
 
 
+# readings a track's running handedness is over (DetectorSettings.handedness_memory; chosen
+# on training-side clips, docs/experiment_log.md, "Session 27")
+HANDEDNESS_MEMORY = 60
+
+
 @dataclass
 class Track:
     """One tracked hand: its next crop and what was last seen of it."""
@@ -323,7 +328,7 @@ class Track:
     confidence: float = 0.0           # running mean heatmap peak: how much DetNet believes it is a hand
     birth_confidence: float | None = None   # its own birth threshold (None: the detector's)
     fixed_side: bool = False          # the side was given (HandDetector `handedness`): readings are ignored
-    memory: int = 20                  # handedness readings the running mean is over (`handedness_memory`)
+    memory: int = HANDEDNESS_MEMORY   # handedness readings the running mean is over (`handedness_memory`)
     unconfirmed: int = 0              # finder runs in a row on which no found box was this track's hand
 
     @property
@@ -373,7 +378,7 @@ class DetectorSettings:
     tracked_test_time_crops: int | None = 0   # the same for every tracked hand on every frame
     second_look: float | None = 0.1     # a hand whose box changed size by more is read again on more crops
     second_look_crops: int = 2          # ... on this many variants of its crop (TEST_TIME_VARIANTS)
-    handedness_memory: int = 20         # readings in a track's running side
+    handedness_memory: int = HANDEDNESS_MEMORY   # readings in a track's running side
     handedness: str | None = None       # "left" / "right": every hand is that side; None: per track
     settle_side: bool = True            # a track whose side turns is read again, mirrored for it
     unconfirmed_evict: int | None = None    # finder runs without its box after which any found hand may replace a track
@@ -457,7 +462,9 @@ class HandDetector:
         # The head alone is biased on views unlike its training data; asked about a crop and
         # its mirror image, its two answers share the bias and averaging them cancels it
         self.mirror_vote_every = s.mirror_vote_every
-        # a track's handedness is the running mean logit of about its last this many readings
+        # a track's handedness is the running mean logit of about its last this many readings:
+        # a hand keeps its side, so long enough to outlast the head's bad stretches on a view,
+        # short enough that a track started on the wrong side turns (60 since session 27)
         self.handedness_memory = s.handedness_memory
         # "left" or "right": every hand is that side (one known hand, e.g. the hand that drives a
         # robot hand): no wrong-side reading, and no mirror vote to pay for; None: each track's

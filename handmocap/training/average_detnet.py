@@ -1,0 +1,76 @@
+"""One DetNet from the mean of the weights of several fine-tunes of the same network.
+
+    python -m handmocap.training.average_detnet --out runs/detnet/avg/final.onnx \\
+        runs/detnet/a/last.pt runs/detnet/b/last.pt runs/detnet/c/last.pt
+
+Why: fine-tunes that start from one network (`handtrain detnet --init-from`) with other
+seeds or loss settings stay in one basin of the loss, and the mean of their weights (a
+"model soup", Wortsman et al., ICML 2022) is usually at least as good as the best of them
+on data none of them saw, at no extra training. Each 4,000-iteration CPU run moves the
+held-back figures by about their noise; the mean of several cancels part of it
+(docs/experiment_log.md, "Session 27").
+
+Every floating-point tensor of the state dict is averaged, BatchNorm running statistics
+included (the fine-tunes' statistics differ little; averaged, they match the averaged
+weights well enough that the held-out metrics come out as good, see the log). Integer
+tensors (BatchNorm's batch counters) are the first checkpoint's. The read-out (`refine`)
+is the first checkpoint's. Checkpoints of other backbones, or with and without the fine
+heatmaps, are refused: their weights do not correspond.
+"""
+import argparse
+from pathlib import Path
+
+
+def average_states(states):
+    """The mean of state dicts [{name: tensor}] of one architecture (floating tensors; the
+    others are the first's). A ValueError naming the first key or shape that differs."""
+    first = states[0]
+    for i, s in enumerate(states[1:], 1):
+        if s.keys() != first.keys():
+            diff = sorted(set(s) ^ set(first))
+            raise ValueError(f"checkpoint {i} has other tensors than checkpoint 0 (e.g. {diff[0]})")
+        for k, v in s.items():
+            if v.shape != first[k].shape:
+                raise ValueError(f"checkpoint {i}: {k} is {tuple(v.shape)}, checkpoint 0's {tuple(first[k].shape)}")
+    return {k: (sum(s[k].double() for s in states) / len(states)).to(v.dtype) if v.is_floating_point() else v
+            for k, v in first.items()}
+
+
+def average_checkpoints(paths):
+    """(DetNet with the mean weights, refine) of `handtrain detnet` checkpoints (last.pt)."""
+    import torch
+
+    from handmocap.training.detnet import DetNet
+    if len(paths) < 2:
+        raise ValueError(f"averaging needs at least two checkpoints, got {len(paths)}")
+    ckpts = []
+    for p in paths:
+        if not Path(p).is_file():
+            raise FileNotFoundError(f"{p}: no such checkpoint (a `handtrain detnet` run's last.pt)")
+        ckpts.append(torch.load(p, weights_only=False, map_location="cpu"))
+    arch = {(c.get("backbone"), bool(c.get("fine"))) for c in ckpts}
+    if len(arch) > 1:
+        raise ValueError(f"the checkpoints are of different networks (backbone, fine heatmaps): {sorted(arch)}")
+    backbone, fine = arch.pop()
+    net = DetNet(backbone, fine=fine)
+    net.load_state_dict(average_states([c["model"] for c in ckpts]))
+    return net.eval(), ckpts[0].get("refine", "softmax")
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("checkpoints", nargs="+", type=Path, help="`handtrain detnet` checkpoints (RUN_DIR/last.pt)")
+    p.add_argument("--out", type=Path, required=True, help="the averaged network's ONNX file")
+    args = p.parse_args(argv)
+    from handmocap.training.detnet import export_onnx
+    try:
+        net, refine = average_checkpoints(args.checkpoints)
+    except (ValueError, FileNotFoundError) as e:
+        raise SystemExit(f"average_detnet: {e}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    export_onnx(net, args.out, refine)
+    print(f"wrote {args.out}: the mean of {len(args.checkpoints)} checkpoints (refine {refine})")
+
+
+if __name__ == "__main__":
+    main()
