@@ -215,3 +215,19 @@ def test_the_iknet_option_names_the_file_that_runs_by_default(capsys):
         eval_cli.main(["predict", "--help"])
     help_text = " ".join(capsys.readouterr().out.split())
     assert f"int8 (default, models/{DEFAULT_MODEL.name})" in help_text
+
+
+def test_score_tells_what_the_hands_read_as_the_wrong_side_cost():
+    """Two hands read as their labelled side 2 px off, one read as the wrong side 10 px off:
+    the wrong side's mean error, the others', and the ratio in the summary line."""
+    gt_uv = np.random.default_rng(1).uniform(50, 250, (3, 21, 2))
+    pred = eval_cli.empty_prediction(3)
+    for i, (side, off) in enumerate((("right", 2.0), ("right", 2.0), ("left", 10.0))):
+        eval_cli.put_hands(pred, i, [{"xyz": np.zeros((21, 3)), "xyz_rel": np.zeros((21, 3)),
+                                      "uv": gt_uv[i] + [off, 0.0], "handedness": side, "score": 0.9}])
+    s = eval_cli.score(pred, {"uv": gt_uv, "handedness": np.array(["right"] * 3)})
+    assert s["handedness_acc"] == pytest.approx(2 / 3) and s["wrong_side_hands"] == 1
+    assert s["right_side_px"] == pytest.approx(2.0) and s["wrong_side_px"] == pytest.approx(10.0)
+    assert "the 1 read as the wrong side 10.0 px, 5.00x the others' 2.0" in eval_cli.summary_line("x", s)
+    every = eval_cli.score(pred, {"uv": gt_uv, "handedness": np.array(["right", "right", "left"])})
+    assert every["wrong_side_hands"] == 0 and "wrong_side_px" not in every

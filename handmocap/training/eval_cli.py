@@ -170,7 +170,17 @@ def score(pred, gt):
         gt_side = np.broadcast_to(np.asarray(gt["handedness"]), found.shape)
         known = found & has_gt & (gt_side != "")
         if known.any():
-            out["handedness_acc"] = float(np.mean(np.asarray(handedness)[known] == gt_side[known]))
+            same = np.asarray(handedness) == gt_side
+            out["handedness_acc"] = float(np.mean(same[known]))
+            # what a wrong side costs the 2D (issue 27: the wrong-side hands' mean error
+            # against the others'; mean over each hand's joints, then over hands)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                err = np.nanmean(np.linalg.norm(uv - gt_uv, axis=-1), axis=-1)      # (N,) px
+            right, wrong = known & same & np.isfinite(err), known & ~same & np.isfinite(err)
+            out["wrong_side_hands"] = int(wrong.sum())
+            if right.any() and wrong.any():
+                out["right_side_px"], out["wrong_side_px"] = float(err[right].mean()), float(err[wrong].mean())
     gt_xyz = gt.get("xyz")
     if gt_xyz is not None and np.isfinite(gt_xyz).any():
         has = np.all(np.isfinite(gt_xyz), axis=(1, 2))
@@ -189,6 +199,9 @@ def summary_line(name, s):
             f"2D AUC 0-30px {d2['auc']:.3f}")
     if "handedness_acc" in s:
         text += f", handedness {s['handedness_acc']:.1%}"
+    if "wrong_side_px" in s:
+        text += (f" (the {s['wrong_side_hands']} read as the wrong side {s['wrong_side_px']:.1f} px, "
+                 f"{s['wrong_side_px'] / s['right_side_px']:.2f}x the others' {s['right_side_px']:.1f})")
     for key, label in (("3d_detnet", "DetNet"), ("3d_pipeline", "DetNet+IKNet+FK")):
         if key in s:
             text += f"; {label} 3D AUC 20-50mm {s[key]['auc']:.3f} (mean {s[key]['mean_mm']:.1f} mm)"
