@@ -173,10 +173,10 @@ def score(pred, gt):
             same = np.asarray(handedness) == gt_side
             out["handedness_acc"] = float(np.mean(same[known]))
             # what a wrong side costs the 2D (issue 27: the wrong-side hands' mean error
-            # against the others'; mean over each hand's joints, then over hands)
+            # against the others'; mean over each hand's labelled joints, then over hands)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                err = np.nanmean(np.linalg.norm(uv - gt_uv, axis=-1), axis=-1)      # (N,) px
+                err = np.nanmean(metrics.joint_errors(uv, gt_uv, valid), axis=-1)      # (N,) px
             right, wrong = known & same & np.isfinite(err), known & ~same & np.isfinite(err)
             out["wrong_side_hands"] = int(wrong.sum())
             if right.any() and wrong.any():
