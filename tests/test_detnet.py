@@ -353,6 +353,53 @@ def test_real_3d_labels_turn_and_mirror_with_their_crops():
         assert np.allclose(np.linalg.norm(batch["xyz"][trained][:, 0], axis=-1), 1, atol=1e-5)
 
 
+def test_real_scale_and_shift_set_how_real_crops_sit_on_their_hands():
+    """--real-scale LO HI, --real-shift S: a real crop's side is the keypoint box x 1.3 x
+    uniform(LO, HI) and its centre moves by up to S of the side: the hand's keypoint box in
+    the 128 px crop spans 128 / (1.3 x scale) px and lies off centre by at most S x 128."""
+    from handmocap.training.train_detnet import CTX, CTX_SCALE, BatchMaker
+    rng = np.random.default_rng(5)
+    n = 16
+    box = (CTX - 1) / CTX_SCALE                               # the keypoint box the context crop was cut for
+    uv = np.tile(np.linspace(-0.5, 0.5, 21)[None, :, None], (n, 1, 2)) * box + (CTX - 1) / 2
+    real = {"image": np.zeros((n, CTX, CTX, 3), np.uint8), "uv": uv.astype(np.float32), "right": np.ones(n, bool),
+            "weight": np.ones(n, np.float32), "held": np.zeros(n, bool),
+            "neg": np.zeros((0, 128, 128, 3), np.uint8), "neg_held": np.zeros(0, bool)}
+    for scale, shift in (((1.0, 1.0), 0.0), ((1.4, 1.4), 0.0), ((0.95, 1.4), 0.15)):
+        b = BatchMaker(None, real, 1.0, 0.0, 0.0, upright=None, real_scale=scale, real_shift=shift)._real(200, rng)
+        spans = np.ptp(np.linalg.norm(b["uv"] - b["uv"][:, 10:11], axis=-1), axis=1) * 2 / np.sqrt(2)
+        assert spans.min() >= 128 / (1.3 * scale[1]) - 0.5 and spans.max() <= 128 / (1.3 * scale[0]) + 0.5
+        off = np.linalg.norm(b["uv"][:, 10] - 63.5, axis=1)   # the box's centre (the middle joint) in the crop
+        assert off.max() <= np.sqrt(2) * shift * 128 + 0.5      # both axes at most S x 128 (then turned)
+        if shift:
+            assert off.max() > 0.5 * shift * 128
+
+
+def test_wild_share_sets_the_share_of_real_crops_from_the_wild_clips():
+    """--wild-share P: that share of the real crops comes from the video/wild clips'
+    crops (never a held-out one); without it the cache's own mix; a cache without sources,
+    or without wild crops, gets a clear error."""
+    from handmocap.training.train_detnet import CTX, BatchMaker
+    rng = np.random.default_rng(6)
+    n = 40
+    source = np.array(["wild/a"] * 10 + ["scenes"] * 28 + ["wild/b"] * 2)
+    held = np.zeros(n, bool)
+    held[-2:] = True                                   # wild/b is held out
+    real = {"image": np.arange(n, dtype=np.uint8)[:, None, None, None].repeat(CTX, 1).repeat(CTX, 2).repeat(3, 3),
+            "uv": np.tile(np.linspace(60, 110, 21)[None, :, None], (n, 1, 2)).astype(np.float32),
+            "right": np.ones(n, bool), "weight": np.ones(n, np.float32), "held": held, "source": source,
+            "neg": np.zeros((0, 128, 128, 3), np.uint8), "neg_held": np.zeros(0, bool)}
+    for share, expect in ((None, 10 / 38), (0.6, 0.6)):
+        batch = BatchMaker(None, real, 1.0, 0.0, 0.0, upright=0.0, wild_share=share)._real(2000, rng)
+        drawn = batch["image"][:, 64, 64, 0]              # each crop's source index, from its pixels
+        assert not np.isin(drawn, [38, 39]).any()
+        assert abs(np.mean(drawn < 10) - expect) < 0.04
+    with pytest.raises(ValueError, match="sources"):
+        BatchMaker(None, {k: v for k, v in real.items() if k != "source"}, 1.0, 0.0, 0.0, wild_share=0.5)
+    with pytest.raises(ValueError, match="two non-empty pools"):
+        BatchMaker(None, {**real, "source": np.array(["scenes"] * n)}, 1.0, 0.0, 0.0, wild_share=0.5)
+
+
 def test_left_2d_trains_the_heatmaps_of_crops_shown_as_left_hands_but_never_their_3d():
     """--left-2d W: a crop shown as a left hand (mirrored the wrong way for the keypoint
     heads) trains the 2D heads with weight W (x the label's score for real crops), its 2D

@@ -36,8 +36,8 @@ hand crops is presented as a LEFT hand (a right hand mirrored, a left one left a
 those train presence and handedness only, every other hand crop is presented as a right
 hand and trains all heads. So the keypoint heads see right hands only, and the detector
 asks for handedness on the unmirrored crop.
-Augmentation (NOTES.md): centre jitter 0.1, scale 0.9-1.1 (real crops; synthetic crops
-come jittered), rotation +-90 deg applied to 2D and 3D, colour jitter, light blur; with
+Augmentation (NOTES.md): centre jitter 0.1, scale 0.9-1.1 (real crops, --real-shift and
+--real-scale; synthetic crops come jittered), rotation +-90 deg applied to 2D and 3D, colour jitter, light blur; with
 --degrade P a share P of the hand crops also gets a patch of another crop over it, a lower
 resolution or sensor noise (`degrade`).
 Losses: heatmap 100 (per-cell MSE, sigma = 1 cell Gaussians), location 10, delta 1
@@ -104,6 +104,15 @@ def add_arguments(p):
                    help="turn each hand crop upright (wrist below the middle finger's base, from its 2D labels) "
                         "and then by +-DEG, as the detector's quarter-turned crops show hands (default: no "
                         "turning, +-90 deg about the crop as rendered or filmed)"),
+    p.add_argument("--real-scale", type=float, nargs=2, default=(0.9, 1.1), metavar=("LO", "HI"),
+                   help="a real hand crop's side is its keypoint box x 1.3 x uniform(LO, HI) (default 0.9 1.1, "
+                        "the paper's; the detector's tracked crops are the box x 1.5, x 0.92-1.27 in 90%% of "
+                        "frames on the training people's clips)")
+    p.add_argument("--real-shift", type=float, default=0.1, metavar="S",
+                   help="a real hand crop's centre moves by up to S of its side on each axis (default %(default)s)")
+    p.add_argument("--wild-share", type=float, default=None, metavar="P",
+                   help="share of the real hand crops drawn from the video/wild clips of the training people "
+                        "(default: as many as the real cache holds, about 0.28 in cache v5)")
     p.add_argument("--hand-weight", type=float, default=LOSS_WEIGHTS["hand"], metavar="W",
                    help="weight of the handedness loss (default %(default)s); higher asks the backbone itself "
                         "for features that tell a right hand from a left one")
@@ -586,9 +595,12 @@ class BatchMaker:
     presence, right, w_hand (B,) float32."""
 
     def __init__(self, synth, real, share_real, share_neg, share_left, upright=None, real_3d=0.0, left_2d=0.0,
-                 hard=None):
+                 hard=None, real_scale=(0.9, 1.1), real_shift=0.1, wild_share=None):
         """hard: {kind: (its cache, share)} of HARD_NEGATIVES, each taught as that share of the
-        negatives (a cache holds <kind> (m,128,128,3) and <kind>_held (m,) bool)."""
+        negatives (a cache holds <kind> (m,128,128,3) and <kind>_held (m,) bool). real_scale
+        (lo, hi): a real crop's side is the keypoint box x 1.3 x uniform(lo, hi); real_shift:
+        its centre moves by up to this share of its side on each axis. wild_share: the share
+        of the real crops drawn from the video/wild clips (None: as many as the cache holds)."""
         self.synth, self.real = synth, real
         # (crops (m,128,128,3), training indices, share) of each hard negative in use
         self.hard = [(pool[kind], np.flatnonzero(~pool[f"{kind}_held"]), share)
@@ -601,9 +613,21 @@ class BatchMaker:
         self.left_2d = left_2d
         self.share_left = share_left
         self.upright = upright
+        self.real_scale, self.real_shift = tuple(real_scale), real_shift
         self.real_train = np.flatnonzero(~real["held"]) if real is not None else np.zeros(0, int)
         self.neg_train = np.flatnonzero(~real["neg_held"]) if real is not None else np.zeros(0, int)
         self.share_real = share_real if len(self.real_train) else 0.0
+        # the real training crops in two pools, the video/wild clips' and the others', when
+        # wild_share says how to mix them (None: one pool)
+        self.real_pools, self.wild_share = None, wild_share
+        if wild_share is not None and len(self.real_train):
+            if "source" not in real:
+                raise ValueError("--wild-share needs the real crops' sources, which this data (a device pack?) lacks")
+            wild = np.char.startswith(real["source"][self.real_train].astype(str), "wild/")
+            if not wild.any() or wild.all():
+                raise ValueError(f"--wild-share: the real training crops hold {int(wild.sum())} of the video/wild "
+                                 f"clips' and {int((~wild).sum())} others; it mixes two non-empty pools")
+            self.real_pools = (self.real_train[wild], self.real_train[~wild])
         self.procedural = None
         try:
             from handmocap.training.synth.backgrounds import BackgroundSource
@@ -658,14 +682,19 @@ class BatchMaker:
 
     def _real(self, n, rng):
         r = self.real
-        idx = self.real_train[rng.integers(0, len(self.real_train), n)]
+        if self.real_pools is None:
+            idx = self.real_train[rng.integers(0, len(self.real_train), n)]
+        else:
+            wild, other = self.real_pools
+            from_wild = rng.random(n) < self.wild_share
+            idx = np.where(from_wild, wild[rng.integers(0, len(wild), n)], other[rng.integers(0, len(other), n)])
         show_left, mirror = self._present(n, r["right"][idx].astype(bool), rng)
         images, uv = np.empty((n, 128, 128, 3), np.uint8), np.empty((n, 21, 2), np.float32)
         side0 = (CTX - 1) / CTX_SCALE * 1.3           # the detector's crop side in context px
         angles = np.empty(n)
         for i in range(n):
-            side = side0 * rng.uniform(0.9, 1.1)
-            cx, cy = (CTX - 1) / 2 + rng.uniform(-0.1, 0.1, 2) * side
+            side = side0 * rng.uniform(*self.real_scale)
+            cx, cy = (CTX - 1) / 2 + rng.uniform(-self.real_shift, self.real_shift, 2) * side
             angles[i] = self._angles(r["uv"][idx[i]][None], rng)[0]
             M = real_data.crop_affine(cx, cy, side, 128, angles[i], mirror[i])
             images[i] = real_data.warp(r["image"][idx[i]], M)
@@ -1168,7 +1197,8 @@ def main(args):
             print(f"{what}: {int((~held).sum())} ({int(held.sum())} held out)"
                   + ("" if share else f", measured only (--{kind}-neg 0)"))
     maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright, args.real_3d,
-                       args.left_2d, {kind: (hard[kind], getattr(args, f"{kind}_neg")) for kind in HARD_NEGATIVES})
+                       args.left_2d, {kind: (hard[kind], getattr(args, f"{kind}_neg")) for kind in HARD_NEGATIVES},
+                       args.real_scale, args.real_shift, args.wild_share)
     if sval is None:
         print(f"note: no held-out synthetic set at {args.val}")
     rval = real_val_set(real)
