@@ -17,8 +17,9 @@ finder = det.finder
 c = {"labels": 0, "found": 0, "finder_on": 0, "finder_on_missed": 0, "missed": 0, "frames_2mp": 0, "ours_when_2mp": 0}
 for f, (img, hands, rel, sides) in enumerate(eval_people.frames_of_clip(video)):
     out = det.process(img)
-    boxes = finder.find(img, 0.3, 4)
-    hit = {eval_people.nearest_label(h["uv"], hands)[0] for h in out if eval_people.nearest_label(h["uv"], hands)[1] < 0.5}
+    boxes = finder.find(img, det.finder_threshold, 4)
+    near = [eval_people.nearest_label(h["uv"], hands) for h in out]
+    hit = {k for k, d in near if d < eval_people.ON_HAND}
     if len(hands) == 2:
         c["frames_2mp"] += 1; c["ours_when_2mp"] += len(out)
     for k, lab in enumerate(hands):
@@ -31,6 +32,6 @@ for f, (img, hands, rel, sides) in enumerate(eval_people.frames_of_clip(video)):
             c["missed"] += 1; c["finder_on_missed"] += on
     if f % 20 == 0:
         print(f, len(hands), "ours", len(out), "finder", [round(float(b.score), 2) for b in boxes],
-              "hit", sorted(hit), "stats", {k: v for k, v in det.stats.items() if k in ("finder_runs", "births", "refused")})
+              "hit", sorted(hit), "finder runs", det.stats["finder_runs"], "unborn", det.stats["unborn"])
 print(c)
 print({k: v for k, v in det.stats.items()})

@@ -15,7 +15,7 @@ tr = collections.defaultdict(lambda: {"n": 0, "right": 0, "lab": collections.Cou
 for f, (img, hands, rel, sides) in enumerate(eval_people.frames_of_clip(video)):
     for h in det.process(img):
         k, d = eval_people.nearest_label(h["uv"], hands)
-        if d >= 0.5: continue
+        if d >= eval_people.ON_HAND: continue
         t = tr[h["track_id"]]; t["n"] += 1; t["right"] += h["handedness"] == sides[k]; t["lab"][sides[k]] += 1
         t["x"].append(h["uv"][:, 0].mean() / img.shape[1]); t["conf"].append(float(np.mean(h["confidence"])))
 for tid, t in tr.items():

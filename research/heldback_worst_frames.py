@@ -8,6 +8,7 @@ import cv2, numpy as np
 from handmocap.training import real_data, eval_people
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.perception.detector import HandDetector
+from handmocap.perception.skeleton import BONES
 
 name = sys.argv[1]
 video = [v for v in real_data.wild_clips(SHARED_DATA, held_back=True) if v.stem == name][0]
@@ -17,12 +18,11 @@ for f, (img, hands, rel, sides) in enumerate(eval_people.frames_of_clip(video)):
     out = det.process(img)
     for h in out:
         k, d = eval_people.nearest_label(h["uv"], hands)
-        if d < 0.5 and rel[k]:
+        if d < eval_people.ON_HAND and rel[k]:
             e = np.linalg.norm(h["uv"] - hands[k], axis=-1).mean() / real_data.hand_size(hands[k])
             rows.append((e, f, h["uv"].copy(), hands[k].copy(), h["handedness"], sides[k], img.copy()))
 rows.sort(key=lambda r: -r[0])
 errs = np.array([r[0] for r in rows]); print(name, len(rows), "median", np.median(errs))
-BONES = [(0,1),(1,2),(2,3),(3,4),(0,5),(5,6),(6,7),(7,8),(0,9),(9,10),(10,11),(11,12),(0,13),(13,14),(14,15),(15,16),(0,17),(17,18),(18,19),(19,20)]
 tiles = []
 pick = rows[::max(1, len(rows) // 12)][:12]
 for e, f, uv, gt, side, gside, img in pick:

@@ -17,7 +17,7 @@ for video in real_data.wild_clips(SHARED_DATA, held_back=held):
     for f, (img, hands, rel, sides) in enumerate(eval_people.frames_of_clip(video)):
         for h in det.process(img):
             k, d = eval_people.nearest_label(h["uv"], hands)
-            if d >= 0.5 or not rel[k]:
+            if d >= eval_people.ON_HAND or not rel[k]:
                 continue
             lab = hands[k]; b = np.asarray(h["bbox"], float)
             side_l = np.ptp(lab, 0).max() * CROP_SCALE

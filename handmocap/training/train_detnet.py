@@ -37,7 +37,8 @@ those train presence and handedness only, every other hand crop is presented as 
 hand and trains all heads. So the keypoint heads see right hands only, and the detector
 asks for handedness on the unmirrored crop.
 Augmentation (NOTES.md): centre jitter 0.1, scale 0.9-1.1 (real crops, --real-shift and
---real-scale; synthetic crops come jittered), rotation +-90 deg applied to 2D and 3D, colour jitter, light blur; with
+--real-scale; synthetic crops come jittered), rotation +-90 deg applied to 2D and 3D,
+colour jitter, light blur; with
 --degrade P a share P of the hand crops also gets a patch of another crop over it, a lower
 resolution or sensor noise (`degrade`).
 Losses: heatmap 100 (per-cell MSE, sigma = 1 cell Gaussians), location 10, delta 1
@@ -73,6 +74,7 @@ REAL_CACHE = "real_v5.npz"          # v2: + arm-only negatives; v3: frame edges 
                                     # v5: + video/wild, 11K Hands, images/scenes; pseudo-labels filtered
                                     # (real_data.reliable_hands); the held-back people, validation only
 HELD_BACK_SOURCE = "heldback/"      # source prefix of the held-back people's crops (never trained on)
+WILD_SOURCE = "wild/"              # source prefix of the training people's video/wild crops (--wild-share)
 PART_CACHE = "parts_v1.npz"         # close-ups of part of a hand (build_part_cache), negatives for --part-neg
 ARM_CACHE = "arms_v1.npz"           # an arm without its hand (build_arm_cache), negatives for --arm-neg
 NEAR_CACHE = "near_v1.npz"          # the scene just beside a hand (build_near_cache), negatives for --near-neg
@@ -288,7 +290,7 @@ def build_real_cache(shared, path, seed=0, log=print):
             return np.full(n, not held_back), np.full(n, held_back)
         for video in real_data.wild_clips(shared, held_back):
             add_video(video, whole, stride=3 if held_back else 2,
-                      source=f"{HELD_BACK_SOURCE}{video.stem}" if held_back else "wild/" + video.stem,
+                      source=f"{HELD_BACK_SOURCE}{video.stem}" if held_back else WILD_SOURCE + video.stem,
                       negatives=not held_back)
         for s in real_data.load_11khands(shared, held_back):
             add_hand(s["image"], s["uv"], s["handedness"] == "right", 1.0, held_back,
@@ -623,7 +625,7 @@ class BatchMaker:
         if wild_share is not None and len(self.real_train):
             if "source" not in real:
                 raise ValueError("--wild-share needs the real crops' sources, which this data (a device pack?) lacks")
-            wild = np.char.startswith(real["source"][self.real_train].astype(str), "wild/")
+            wild = np.char.startswith(real["source"][self.real_train].astype(str), WILD_SOURCE)
             if not wild.any() or wild.all():
                 raise ValueError(f"--wild-share: the real training crops hold {int(wild.sum())} of the video/wild "
                                  f"clips' and {int((~wild).sum())} others; it mixes two non-empty pools")
