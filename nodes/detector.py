@@ -40,7 +40,10 @@ the last frame is read again on 4 variants of its crop and the median kept; 0 or
 redetect_every (frames between finder runs, which also check the tracks), reseed_iou (a track
 whose joints overlap the hand the finder sees in its crop less than this restarts from the
 finder's box; 0 = never), reseed_margin (... only where DetNet's mean heatmap peak on that
-box's crop is at least the track's running peak minus this; null = always), crop_scale (crop side / joint-box side), every_frame.
+box's crop is at least the track's running peak minus this; null = always), crop_scale (crop side / joint-box side),
+smooth_min_cutoff (Hz: the published 2D joints' One Euro filter cut-off for a still hand, on the images'
+stamps; 0 or null = unfiltered), smooth_beta (how fast the cut-off rises with speed, per hand size a
+second), every_frame.
 """
 from __future__ import annotations
 
@@ -57,10 +60,10 @@ from handmocap.runtime.node import Message, Node, check_bool_param, check_file_p
 TUNABLE = ("max_hands", "finder_threshold", "presence_threshold", "min_confidence", "birth_confidence",
            "unborn_retry", "evict_margin", "opposite_hands", "upright_step", "finder_handedness", "mirror_vote_every",
            "redetect_every", "reseed_iou", "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops",
-           "second_look", "handedness_memory", "handedness")
+           "second_look", "handedness_memory", "handedness", "smooth_min_cutoff", "smooth_beta")
 # the settings that null turns off (HandDetector takes None for them); null for any other is an error
 NULLABLE = {"evict_margin", "opposite_hands", "upright_step", "mirror_vote_every", "test_time_crops", "reseed_margin",
-            "tracked_test_time_crops", "second_look", "handedness"}
+            "tracked_test_time_crops", "second_look", "handedness", "smooth_min_cutoff"}
 _DEFAULTS = DetectorSettings()
 PARAMS = {"detnet": None, "finder": None, "grey_finder": None, "grey_detnet": None, "threads": 1,
           **{k: getattr(_DEFAULTS, k) for k in TUNABLE}, "every_frame": False}
@@ -146,7 +149,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
         except ValueError as e:
             node.log.warning("skipped an image: %s", e)
             return
-        hands = detector.process(frame)
+        hands = detector.process(frame, msg.stamp_ns / 1e9)
         node.publish("/hand/keypoints", {"width": int(frame.shape[1]), "height": int(frame.shape[0]), "hands": hands},
                      stamp_ns=msg.stamp_ns, frame_id=msg.data["header"]["frame_id"])
     return node, on_image

@@ -49,7 +49,7 @@ def detect(shared: Path, model):
             if not ok:
                 break
             K = camera_info.default_K(bgr.shape[1], bgr.shape[0]) if K is None else K
-            hands = detector.process(bgr)
+            hands = detector.process(bgr, len(frames) / fps)
             frames.append((hands, shapes.update(hands, len(frames) / fps)))
         cap.release()
         out[rel] = (fps, K, frames)

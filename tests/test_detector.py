@@ -215,6 +215,9 @@ def test_crop_for_joints_is_the_square_around_the_joint_box_times_the_scale():
 
 
 def detector(**kw):
+    """A HandDetector on the fakes; its published joints unfiltered unless asked (these tests
+    check the tracking itself to within DOT_TOL; the filter's own tests set it)."""
+    kw.setdefault("smooth_min_cutoff", None)
     return HandDetector(FakeDetNet(), FakeFinder(), **kw)
 
 
@@ -923,3 +926,44 @@ def test_one_settings_dataclass_for_the_detector_the_node_and_handeval():
     with pytest.raises(TypeError, match="no setting max_hand"):
         HandDetector(None, max_hand=1)
     assert {f.name for f in dataclasses.fields(DetectorSettings)} >= set(node.TUNABLE)
+
+
+class ShakyDetNet(FakeDetNet):
+    """FakeDetNet whose 2D read-out (`uv`, not the heatmap peaks the track follows) shakes by
+    seeded Gaussian noise of `px` crop px: DetNet's frame-to-frame jitter."""
+
+    def __init__(self, px, seed=0):
+        super().__init__()
+        self.px, self.rng = px, np.random.default_rng(seed)
+
+    def __call__(self, crops_rgb):
+        out = super().__call__(crops_rgb)
+        out["uv_peak"] = out["uv"].copy()
+        out["uv"] = out["uv"] + self.rng.normal(0.0, self.px, out["uv"].shape).astype(np.float32)
+        return out
+
+
+def test_the_published_joints_of_a_still_hand_shake_less_and_a_moving_hand_is_followed():
+    """smooth_min_cutoff / smooth_beta: a One Euro filter per track on the published 2D joints,
+    on the times process() is given: a still hand's shake drops; a hand moving 8 px a frame at
+    30 fps is followed within a few px; off (None), the read-out is published as it is."""
+    still = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160))
+    shake = {}
+    for smooth in (None, 2.0):
+        det = HandDetector(ShakyDetNet(2.0), FakeFinder(), smooth_min_cutoff=smooth, redetect_every=1000)
+        uv = np.array([det.process(still, i / 30)[0]["uv"] for i in range(60)])
+        shake[smooth] = np.linalg.norm(uv[12:] - 2 * uv[11:-1] + uv[10:-2], axis=-1).mean()
+    assert shake[2.0] < 0.5 * shake[None]
+    det = HandDetector(ShakyDetNet(0.0), FakeFinder(), redetect_every=1000)       # the default filter
+    for i in range(40):
+        truth = np.round(canonical_hand((150 + 8 * i, 300), 150))
+        hands = det.process(draw(np.zeros((H, W, 3), np.uint8), truth), i / 30)
+    assert np.abs(hands[0]["uv"] - truth).max() < 4.0
+    # the same frames 1/3 s apart: the filter runs on the times given, and lags less
+    slow = HandDetector(ShakyDetNet(0.0), FakeFinder(), redetect_every=1000)
+    for i in range(40):
+        truth = np.round(canonical_hand((150 + 8 * i, 300), 150))
+        slow_hands = slow.process(draw(np.zeros((H, W, 3), np.uint8), truth), i / 3)
+    assert np.abs(slow_hands[0]["uv"] - truth).max() < np.abs(hands[0]["uv"] - truth).max()
+    with pytest.raises(ValueError, match="smooth"):
+        HandDetector(FakeDetNet(), FakeFinder(), smooth_min_cutoff=-1.0)

@@ -126,7 +126,22 @@ def test_jittered_frames_move_each_pixel_by_at_most_one_level_the_same_way_per_s
         d = m.astype(int) - p
         assert np.abs(d).max() == 1 and 0.5 < (d != 0).mean() < 0.8       # 2 in 3 move (less at 0 and 255)
         assert np.array_equal(m, a) and not np.array_equal(m, o)
-    runs = [{"found": f, "false_per_frame": 0.1, "median_err": 0.1, "mean_err": 0.2, "pck": 0.5, "side": 0.8}
+    runs = [{"found": f, "false_per_frame": 0.1, "median_err": 0.1, "mean_err": 0.2, "pck": 0.5, "side": 0.8,
+             "shake": 0.02}
             for f in (0.80, 0.84, 0.82)]
     rows = eval_people.jitter_rows(runs)
     assert rows[-2].startswith("| **mean** | 82.000 |") and rows[-1].startswith("| **spread (max - min)** | 4.000 |")
+
+
+def test_shake_is_zero_for_steady_motion_and_grows_with_jitter_for_ours_and_the_labels():
+    """`handeval people`'s shake column: the median joint's second difference over three
+    frames / hand size, for our tracks and for MediaPipe's hands linked frame to frame."""
+    steady = [hand(100 + 5 * f, 100) for f in range(3)]
+    assert eval_people.shake(steady) == pytest.approx(0.0, abs=1e-6)
+    shaken = [steady[0], steady[1] + 4.0, steady[2]]            # the middle frame 4 px off: 8 px / 100 px
+    assert eval_people.shake(shaken) == pytest.approx(8 * np.sqrt(2) / 100, rel=1e-3)
+    # labels: a hand continued over three frames is scored; one with no hand near it before is not
+    prev = [np.stack([steady[0]]), np.stack([steady[1] + 4.0])]
+    now = np.stack([steady[2], hand(400, 300)])
+    assert eval_people.label_shakes(prev, now) == pytest.approx([8 * np.sqrt(2) / 100], rel=1e-3)
+    assert eval_people.label_shakes([np.zeros((0, 21, 2)), prev[1]], now) == []

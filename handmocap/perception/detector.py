@@ -48,9 +48,13 @@ Per frame (`HandDetector.process`):
    this runs.
 6. Two tracks on one hand (joint-box IoU >= 0.5, or the smaller box 70% inside the other):
    the lower-scoring one is dropped.
+7. The 2D joints published (`uv`) go through a One Euro filter per track (`smooth_min_cutoff`,
+   `smooth_beta`; one_euro.py), on the time `process` is given: a still hand's joints shake
+   about half as much, and a moving hand's follow it. The track itself follows the
+   unfiltered heatmap peaks, and a re-seeded track's filter starts again.
 
 >>> det = HandDetector.load()
->>> hands = det.process(frame_bgr)      # HandKeypoints hands (track_id, handedness, score,
+>>> hands = det.process(frame_bgr, t)   # HandKeypoints hands (track_id, handedness, score,
 ...                                      # bbox, uv (21,2) frame px, confidence, xyz_rel)
 """
 from __future__ import annotations
@@ -64,6 +68,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from handmocap.perception.one_euro import OneEuroFilter
 from handmocap.perception.hand_finder import GREY_PATH, HandFinder, box_iou, is_grey, sigmoid, square
 from handmocap.perception.onnx_models import open_session, stale_quantization
 from handmocap.perception.rotations import mirror_points
@@ -82,7 +87,7 @@ CENTRE = "centre"           # the fallback that tries the centre square of the f
 # HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
 # so no birth threshold; a close-up the finder misses is tried on the centre square; each
 # hand read on its crop and 4 variants of it (chosen on training-side stills, docs/models_history.md)
-PHOTO_SETTINGS = {"birth_confidence": 0.0, "fallback_path": CENTRE, "test_time_crops": 4}
+PHOTO_SETTINGS = {"birth_confidence": 0.0, "fallback_path": CENTRE, "test_time_crops": 4, "smooth_min_cutoff": None}
 # HandDetector.load's keywords for video where accuracy is worth ~2.3x the time (offline
 # processing, a fast CPU): every tracked hand read on its crop and 4 variants on every frame
 # (chosen on training-side clips at three turns, docs/models_history.md; 20 ms a frame against 9
@@ -330,6 +335,8 @@ class Track:
     fixed_side: bool = False          # the side was given (HandDetector `handedness`): readings are ignored
     memory: int = HANDEDNESS_MEMORY   # handedness readings the running mean is over (`handedness_memory`)
     unconfirmed: int = 0              # finder runs in a row on which no found box was this track's hand
+    smoother: OneEuroFilter | None = None   # its published 2D joints' filter, in units of `unit`
+    unit: float = 1.0                 # px: the hand's size when the filter started
 
     @property
     def is_right(self) -> bool:
@@ -383,6 +390,8 @@ class DetectorSettings:
     settle_side: bool = True            # a track whose side turns is read again, mirrored for it
     unconfirmed_evict: int | None = None    # finder runs without its box after which any found hand may replace a track
     unconfirmed_drop: int | None = None     # finder runs without its box after which a track ends (None: never)
+    smooth_min_cutoff: float | None = 2.0   # Hz: the published 2D joints' One Euro cut-off at rest (0 or None: off)
+    smooth_beta: float = 16.0           # its rise per hand size a second of speed
 
 
 class HandDetector:
@@ -513,6 +522,18 @@ class HandDetector:
         # lasted 60-100 frames and kept the real hand from a slot); the finder, which sees the
         # whole frame, does not see a hand there
         self.unconfirmed_evict, self.unconfirmed_drop = s.unconfirmed_evict, s.unconfirmed_drop
+        # each track's published 2D joints go through a One Euro filter on the joints / the
+        # hand's size (so beta means the same at any distance): cut-off smooth_min_cutoff Hz
+        # at rest, rising by smooth_beta Hz per hand size a second (0 or None: unfiltered).
+        # DetNet's joints shake from frame to frame several times more than MediaPipe's
+        # (`handeval people`, the shake column); 2 Hz and 16 were chosen on the training
+        # people's clips as the setting that halves the shake and leaves the error to
+        # MediaPipe's labels no worse (research/keypoint_smoothing.py)
+        if s.smooth_min_cutoff is not None and s.smooth_min_cutoff < 0 or s.smooth_beta < 0:
+            raise ValueError(f"smooth_min_cutoff and smooth_beta must be >= 0, got {s.smooth_min_cutoff}, "
+                             f"{s.smooth_beta}")
+        self.smooth_min_cutoff, self.smooth_beta = s.smooth_min_cutoff or 0.0, s.smooth_beta
+        self.frame_time = 0.0
         self.tracks: list[Track] = []
         self.next_id = 0
         self.frames_since_find = 0
@@ -605,7 +626,7 @@ class HandDetector:
                     # the track's joints no longer match the hand the finder sees in its crop
                     # (a track sliding up the forearm): start the crop again from the finder's box
                     t.crop = crop_for_box(box, not t.is_right, self.crop_scale)
-                    t.velocity, t.uv = np.zeros(2), None
+                    t.velocity, t.uv, t.smoother = np.zeros(2), None, None
                     self.stats["reseeds"] += 1
                     reseeded.append(t)
                 continue
@@ -701,8 +722,10 @@ class HandDetector:
             out["uv_peak"] = out["uv"].copy()
         return out
 
-    def process(self, image_bgr):
-        """HandKeypoints hands of one BGR frame (H,W,3) uint8, sorted by track id."""
+    def process(self, image_bgr, t=None):
+        """HandKeypoints hands of one BGR frame (H,W,3) uint8, sorted by track id. t: its
+        capture time in seconds, for the 2D joints' filter (None: 1/30 s after the last frame)."""
+        self.frame_time = self.frame_time + 1 / 30 if t is None else float(t)
         self.stats["frames"] += 1
         self.frames_since_find += 1
         searched = self._should_find()
@@ -779,6 +802,7 @@ class HandDetector:
             if t.uv is not None:
                 t.velocity = np.median(followed - t.uv, axis=0)
             t.uv, t.age = followed, t.age + 1
+            uv = self._smoothed(t, uv)
             # a few frames of memory: one blurred frame must not let a desk object evict the hand
             t.confidence = confidence if t.age == 1 else t.confidence + 0.3 * (confidence - t.confidence)
             hands.append({"track_id": t.track_id, "handedness": "right" if t.is_right else "left",
@@ -842,6 +866,15 @@ class HandDetector:
                 self.tracks[i].crop = turns[3 * n + k]
                 for key in out:
                     out[key][i] = more[key][3 * n + k]
+
+    def _smoothed(self, track, uv):
+        """uv (21,2) frame px of `track` at self.frame_time through its One Euro filter."""
+        if not self.smooth_min_cutoff:
+            return uv
+        if track.smoother is None:
+            track.smoother = OneEuroFilter(self.smooth_min_cutoff, self.smooth_beta)
+            track.unit = max(float(np.max(np.ptp(uv, axis=0))), 1.0)
+        return track.smoother(uv / track.unit, self.frame_time) * track.unit
 
     def _size_jumped(self, track, uv_crop):
         """Whether the joints read on the track's crop (uv_crop (21,2) crop px) span a box whose

@@ -34,7 +34,7 @@ class HandTracker:
     finder, the centre square is tried instead; iknet "float32": the float32 IKNet instead
     of the default static int8 copy); detector: a ready HandDetector instead of
     detnet/finder. smooth: One Euro smoothing of rotations and
-    translation per track (off for single images). vertices: add each hand's mesh
+    translation per track, and of the 2D joints unless smooth_min_cutoff is given (off for single images). vertices: add each hand's mesh
     vertices (V,3) m camera frame. Other keywords go to HandDetector (max_hands,
     presence_threshold, min_confidence, birth_confidence, redetect_every, crop_scale,
     fallback_path, ...). For unrelated photos: reset() before each, and
@@ -47,6 +47,8 @@ class HandTracker:
                  vertices=False, fps=30.0, clamp_to_limits=True, hand_length=DEFAULT_HAND_LENGTH_M, detector=None,
                  **detector_kwargs):
         self.model = HandModel.load(model)
+        if not smooth:
+            detector_kwargs.setdefault("smooth_min_cutoff", None)    # nor the 2D joints
         self.detector = detector or HandDetector.load(detnet, finder, threads=threads, **detector_kwargs)
         self.shapes = ShapeEstimator(self.model)
         self.poses = PoseEstimator(IKSolver.load(iknet, threads=threads, model=self.model), self.model,
@@ -68,7 +70,7 @@ class HandTracker:
         K = camera_info.default_K(w, h) if K is None else camera_info.as_K(K)
         t = self.frame_index / self.fps if stamp_ns is None else stamp_ns / 1e9
         self.frame_index += 1
-        keypoints = self.detector.process(image_bgr)
+        keypoints = self.detector.process(image_bgr, t)
         self.last_keypoints = keypoints
         self.poses.set_shapes(self.shapes.update(keypoints, t))
         hands = self.poses.update(keypoints, K, t)

@@ -60,18 +60,59 @@ def nearest_label(uv, labels):
     return (int(np.argmin(dist)), float(min(dist))) if dist else (-1, np.inf)
 
 
-def score_frames(detector, frames, stills=False):
-    """Run `detector` over `frames` (frames_of_*): a dict of counts and per-hand arrays
-    (err: mean joint error / hand size, joint_err (n,21) / hand size, right_side bool)."""
+def clip_fps(video):
+    """The frame rate a clip's pseudo-labels give (30 where it is no rate: a variable-rate
+    webm's container says 1000)."""
+    fps = float(real_data.load_pseudo_labels(video)["fps"])
+    return fps if 1.0 <= fps <= 240.0 else 30.0
+
+
+def shake(track):
+    """|uv(t) - 2 uv(t-1) + uv(t-2)| of a hand's last three (21,2) joints, median over the
+    joints, / its size: how much the joints jump about from frame to frame (a hand moving
+    steadily scores 0)."""
+    a, b, c = track[-3:]
+    return float(np.median(np.linalg.norm(c - 2 * b + a, axis=-1)) / real_data.hand_size(c))
+
+
+def label_shakes(previous, hands):
+    """The shake of MediaPipe's hands of this frame (k,21,2) that continue a hand of each of
+    the two frames before (`previous`: their labels, oldest first; nearest centre within
+    ON_HAND of its size): the same measure on the reference."""
+    out = []
+    for uv in hands:
+        chain = [uv]
+        for before in previous[::-1]:
+            k, dist = nearest_label(chain[-1], before)
+            if dist >= ON_HAND:
+                break
+            chain.append(before[k])
+        if len(chain) == 3:
+            out.append(shake(chain[::-1]))
+    return out
+
+
+def score_frames(detector, frames, stills=False, fps=30.0):
+    """Run `detector` over `frames` (frames_of_*; a clip at `fps`): a dict of counts and
+    per-hand arrays (err: mean joint error / hand size, joint_err (n,21) / hand size,
+    right_side bool, shake and label_shake: see shake(), ours per track and MediaPipe's)."""
     detector.reset()
-    out = {"frames": 0, "labelled": 0, "found": 0, "false": 0, "err": [], "joint_err": [], "right_side": []}
-    for image, hands, reliable, sides in frames:
+    out = {"frames": 0, "labelled": 0, "found": 0, "false": 0, "err": [], "joint_err": [], "right_side": [],
+           "shake": [], "label_shake": []}
+    tracks, previous = {}, []
+    for f, (image, hands, reliable, sides) in enumerate(frames):
         if stills:
             detector.reset()
         out["frames"] += 1
         out["labelled"] += len(hands)
         hit = set()
-        for h in detector.process(image):
+        found = detector.process(image, f / fps)
+        if not stills:
+            out["label_shake"] += label_shakes(previous, hands)
+            previous = (previous + [hands])[-2:]
+            tracks = {h["track_id"]: (tracks.get(h["track_id"], []) + [h["uv"]])[-3:] for h in found}
+            out["shake"] += [shake(t) for t in tracks.values() if len(t) == 3]
+        for h in found:
             k, dist = nearest_label(h["uv"], hands)
             if dist >= ON_HAND:
                 out["false"] += 1
@@ -84,7 +125,7 @@ def score_frames(detector, frames, stills=False):
                 out["joint_err"].append(joint)
                 out["right_side"].append(h["handedness"] == sides[k])
         out["found"] += len(hit)
-    for k in ("err", "right_side"):
+    for k in ("err", "right_side", "shake", "label_shake"):
         out[k] = np.asarray(out[k])
     out["joint_err"] = np.asarray(out["joint_err"]).reshape(-1, 21)
     return out
@@ -101,7 +142,9 @@ def summary(s):
             "side": float(right.mean()) if n else np.nan,
             "wrong_side_ratio": float(err[~right].mean() / err[right].mean()) if (~right).any() and right.any()
             else np.nan,
-            "curve": [float((s["joint_err"] <= t).mean()) if n else 0.0 for t in CURVE]}
+            "curve": [float((s["joint_err"] <= t).mean()) if n else 0.0 for t in CURVE],
+            "shake": float(np.median(s["shake"])) if len(s.get("shake", ())) else np.nan,
+            "mediapipe_shake": float(np.median(s["label_shake"])) if len(s.get("label_shake", ())) else np.nan}
 
 
 def merge(results):
@@ -110,22 +153,24 @@ def merge(results):
             "found": sum(r["found"] for r in results), "false": sum(r["false"] for r in results),
             "err": np.concatenate([r["err"] for r in results]),
             "joint_err": np.concatenate([r["joint_err"] for r in results]),
-            "right_side": np.concatenate([r["right_side"] for r in results])}
+            "right_side": np.concatenate([r["right_side"] for r in results]),
+            **{k: np.concatenate([r.get(k, np.zeros(0)) for r in results]) for k in ("shake", "label_shake")}}
 
 
 def row(name, m):
     f = lambda x, spec=".3f": "–" if not np.isfinite(x) else format(x, spec)  # noqa: E731
     return (f"| {name} | {m['frames']} | {m['labelled']} | {100 * m['found']:.1f} | {m['false_per_frame']:.3f} | "
             f"{f(m['median_err'])} | {f(m['mean_err'])} | {f(m['pck'])} | {f(100 * m['side'], '.1f')} | "
-            f"{f(m['wrong_side_ratio'], '.2f')} |")
+            f"{f(m['wrong_side_ratio'], '.2f')} | {f(m['shake'], '.4f')} ({f(m['mediapipe_shake'], '.4f')}) |")
 
 
 HEAD = ("| held-back set | frames | MediaPipe's hands | found % | false hands / frame | error / hand size, median | "
-        "mean | PCK@0.1 | side right % | wrong-side error ratio |\n|---|---|---|---|---|---|---|---|---|---|")
+        "mean | PCK@0.1 | side right % | wrong-side error ratio | shake (MediaPipe's) |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|")
 
 
 JITTER_KEYS = (("found", "found %", 100), ("false_per_frame", "false hands / frame", 1), ("median_err", "median", 1),
-               ("mean_err", "mean", 1), ("pck", "PCK@0.1", 1), ("side", "side right %", 100))
+               ("mean_err", "mean", 1), ("pck", "PCK@0.1", 1), ("side", "side right %", 100), ("shake", "shake", 1))
 
 
 def jitter_rows(runs):
@@ -161,7 +206,7 @@ def run(shared, models=None, per_clip=True, jitter=0, log=print, training=False)
     rows, clips = [HEAD], []
     videos = real_data.wild_clips(shared, held_back=not training)
     for video in videos:
-        clips.append(score_frames(video_det, frames_of_clip(video)))
+        clips.append(score_frames(video_det, frames_of_clip(video), fps=clip_fps(video)))
         if per_clip:
             rows.append(row(video.stem, summary(clips[-1])))
         log(f"  {video.stem}: {summary(clips[-1])['found']:.1%} found")
@@ -177,7 +222,8 @@ def run(shared, models=None, per_clip=True, jitter=0, log=print, training=False)
     if jitter:
         runs = [results[name]]
         for seed in range(jitter):
-            runs.append(summary(merge([score_frames(video_det, frames_of_clip(v, seed)) for v in videos])))
+            runs.append(summary(merge([score_frames(video_det, frames_of_clip(v, seed), fps=clip_fps(v))
+                                       for v in videos])))
             log(f"  clips, frames moved (seed {seed}): {runs[-1]['found']:.1%} found")
         rows += jitter_rows(runs)
         results["clips, frames moved"] = {k: [m[k] for m in runs] for k, _, _ in JITTER_KEYS}
