@@ -8,6 +8,7 @@ people.
 
     python research/keypoint_smoothing.py record --training-clips --out runs/s29/rec_train.pkl
     python research/keypoint_smoothing.py sweep runs/s29/rec_train.pkl
+    python research/keypoint_smoothing.py demo      # the rendered demo clip's ground truth, filter on / off
 """
 import argparse
 import pickle
@@ -121,6 +122,36 @@ def sweep(args):
                   f"{m['mean_err']:.4f} | {m['pck']:.4f} | {j:.4f} |", flush=True)
 
 
+def demo(args):
+    """HandTracker over the rendered demo clip (its K and frame rate) with the 2D filter at its
+    default and off: mean 2D error px, root error mm and posed joints' error mm against the
+    clip's ground truth, and the 2D shake."""
+    import cv2
+    from handmocap.perception.skeleton import ROOT
+    from handmocap.perception.tracker import HandTracker
+    root_dir = Path(__file__).resolve().parents[1]
+    truth = np.load(root_dir / "data/demo/hand_clip.npz")
+    for name, kw in (("2D filter on (default)", {}), ("2D filter off", {"smooth_min_cutoff": None})):
+        tracker, cap = HandTracker(**kw), cv2.VideoCapture(str(root_dir / "data/demo/hand_clip.mp4"))
+        e2, eroot, ejoint, uvs, i = [], [], [], [], 0
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            hands = tracker.process(frame, truth["K"], stamp_ns=int(i * 1e9 / float(truth["fps"])))
+            if hands:
+                h = hands[0]
+                e2.append(np.linalg.norm(h["uv"] - truth["uv"][i], axis=-1).mean())
+                eroot.append(1e3 * np.linalg.norm(h["root"] - truth["xyz"][i, ROOT]))
+                ejoint.append(1e3 * np.linalg.norm(h["xyz"] - truth["xyz"][i], axis=-1).mean())
+                uvs.append(h["uv"])
+            i += 1
+        uvs = np.array(uvs)
+        jit = np.median(np.linalg.norm(uvs[2:] - 2 * uvs[1:-1] + uvs[:-2], axis=-1))
+        print(f"{name}: {len(e2)} of {i} frames; 2D {np.mean(e2):.2f} px; root mean {np.mean(eroot):.1f} mm, "
+              f"median {np.median(eroot):.1f}; posed joints {np.mean(ejoint):.1f} mm; 2D shake median {jit:.2f} px")
+
+
 if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -131,5 +162,6 @@ if __name__ == "__main__":
     s.add_argument("recording")
     s.add_argument("--min-cutoff", type=float, nargs="+", default=[0.0, 0.5, 1.0, 2.0, 4.0, 8.0])
     s.add_argument("--beta", type=float, nargs="+", default=[0.0, 0.5, 2.0, 8.0])
+    sub.add_parser("demo")
     a = p.parse_args()
-    record(a) if a.cmd == "record" else sweep(a)
+    {"record": record, "sweep": sweep, "demo": demo}[a.cmd](a)
