@@ -156,7 +156,7 @@ def test_graph_keypoints_equal_the_in_process_detector(demo):
     for m, _ in msgs["/hand/keypoints"]:
         ok, frame = cap.read()
         assert ok
-        mine = detector.process(frame)
+        mine = detector.process(frame, m["header"]["stamp_ns"] / 1e9)   # the image's stamp, as the node
         assert [h["track_id"] for h in m["hands"]] == [h["track_id"] for h in mine]
         for theirs, ours in zip(m["hands"], mine):
             np.testing.assert_allclose(theirs["uv"], ours["uv"], atol=1e-3)
