@@ -1,10 +1,10 @@
 """How much a One Euro filter on each track's published 2D joints moves the tracked figures.
 
-Records the detector's hands on every frame of the wild clips once (default settings,
-shipped models), then replays the recording through per-track One Euro filters of several
-settings and scores each as `handeval people` does (found, false hands, median error / hand
-size, PCK@0.1) -- settings are chosen on the training side, then read once on the held-back
-people.
+Records the detector's hands on every frame of the wild clips once (default settings but
+the filter off, shipped models), then replays the recording through per-track One Euro
+filters of several settings and scores each as `handeval people` does
+(eval_people.score_outputs: found, false hands, median error / hand size, PCK@0.1, shake):
+settings are chosen on the training side, then read once on the held-back people.
 
     python research/keypoint_smoothing.py record --training-clips --out runs/s29/rec_train.pkl
     python research/keypoint_smoothing.py sweep runs/s29/rec_train.pkl
@@ -24,17 +24,15 @@ from handmocap.training import eval_people, real_data  # noqa: E402
 
 def record(args):
     from handmocap.perception.detector import HandDetector
-    det = HandDetector.load()
+    det = HandDetector.load(smooth_min_cutoff=None)       # the raw read-out: the filters are replayed here
     clips = []
     for video in real_data.wild_clips(real_data.SHARED_DATA, held_back=not args.training_clips):
-        fps = float(real_data.load_pseudo_labels(video)["fps"])
-        fps = 30.0 if not 1 <= fps <= 240 else fps          # SHREYASH1504__recorded_video says 1000
         det.reset()
         frames = []
         for image, hands, reliable, sides in eval_people.frames_of_clip(video):
-            out = [(h["track_id"], h["uv"].copy(), h["handedness"]) for h in det.process(image)]
+            out = [{k: h[k] for k in ("track_id", "uv", "handedness")} for h in det.process(image)]
             frames.append((out, hands, reliable, sides))
-        clips.append({"name": video.stem, "fps": fps, "frames": frames})
+        clips.append({"name": video.stem, "fps": eval_people.clip_fps(video), "frames": frames})
         print(f"{video.stem}: {len(frames)} frames", flush=True)
     with open(args.out, "wb") as f:
         pickle.dump(clips, f)
@@ -48,78 +46,28 @@ def smoothed(clip, min_cutoff, beta):
     for f, (out, hands, reliable, sides) in enumerate(clip["frames"]):
         t = f / clip["fps"]
         new = []
-        for tid, uv, side in out:
+        for h in out:
+            tid, uv = h["track_id"], h["uv"]
             if tid not in filters or last_seen[tid] != f - 1:
                 filters[tid] = OneEuroFilter(min_cutoff, beta, 1.0)
                 unit[tid] = max(real_data.hand_size(uv), 1.0)
             last_seen[tid] = f
-            size = unit[tid]
-            new.append((tid, filters[tid](uv / size, t) * size if min_cutoff else uv, side))
+            new.append({**h, "uv": filters[tid](uv / unit[tid], t) * unit[tid] if min_cutoff else uv})
         yield new, hands, reliable, sides
-
-
-def score(frames):
-    out = {"frames": 0, "labelled": 0, "found": 0, "false": 0, "err": [], "joint_err": [], "right_side": []}
-    for hands_out, hands, reliable, sides in frames:
-        out["frames"] += 1
-        out["labelled"] += len(hands)
-        hit = set()
-        for _, uv, side in hands_out:
-            k, dist = eval_people.nearest_label(uv, hands)
-            if dist >= eval_people.ON_HAND:
-                out["false"] += 1
-                continue
-            hit.add(k)
-            if reliable[k]:
-                joint = np.linalg.norm(uv - hands[k], axis=-1) / real_data.hand_size(hands[k])
-                out["err"].append(joint.mean())
-                out["joint_err"].append(joint)
-                out["right_side"].append(side == sides[k])
-        out["found"] += len(hit)
-    for k in ("err", "right_side"):
-        out[k] = np.asarray(out[k])
-    out["joint_err"] = np.asarray(out["joint_err"]).reshape(-1, 21)
-    return out
-
-
-def jerk(clip, min_cutoff, beta):
-    """Median over tracked joints of |uv(t+1) - 2 uv(t) + uv(t-1)| / hand size: the frame-to-frame
-    shake a robot would follow."""
-    hist, acc = {}, []
-    for out, *_ in smoothed(clip, min_cutoff, beta):
-        for tid, uv, _ in out:
-            h = hist.setdefault(tid, [])
-            h.append(uv)
-            if len(h) >= 3:
-                acc.append(np.median(np.linalg.norm(h[-1] - 2 * h[-2] + h[-3], axis=-1)) / real_data.hand_size(uv))
-        for tid in [t for t in hist if t not in {o[0] for o in out}]:
-            del hist[tid]
-    return acc
-
-
-def label_jerk(clip):
-    acc = []
-    prev = []
-    for _, hands, reliable, _ in clip["frames"]:
-        prev.append(hands if len(hands) == 1 else None)
-        if len(prev) >= 3 and all(p is not None for p in prev[-3:]):
-            a, b, c = prev[-3][0], prev[-2][0], prev[-1][0]
-            acc.append(np.median(np.linalg.norm(c - 2 * b + a, axis=-1)) / real_data.hand_size(c))
-    return acc
 
 
 def sweep(args):
     with open(args.recording, "rb") as f:
         clips = pickle.load(f)
-    print(f"MediaPipe's labels, one-hand frames: jerk median {np.median(sum((label_jerk(c) for c in clips), [])):.4f}")
-    print("| min_cutoff Hz | beta | found % | false / frame | median | mean | PCK@0.1 | jerk median |")
+    print("| min_cutoff Hz | beta | found % | false / frame | median | mean | PCK@0.1 | shake (MediaPipe's) |")
     print("|---|---|---|---|---|---|---|---|")
     for mc in args.min_cutoff:
         for beta in (args.beta if mc else [0.0]):
-            m = eval_people.summary(eval_people.merge([score(smoothed(c, mc, beta)) for c in clips]))
-            j = np.median(sum((jerk(c, mc, beta) for c in clips), []))
+            m = eval_people.summary(eval_people.merge([eval_people.score_outputs(smoothed(c, mc, beta))
+                                                       for c in clips]))
             print(f"| {mc} | {beta} | {100 * m['found']:.1f} | {m['false_per_frame']:.3f} | {m['median_err']:.4f} | "
-                  f"{m['mean_err']:.4f} | {m['pck']:.4f} | {j:.4f} |", flush=True)
+                  f"{m['mean_err']:.4f} | {m['pck']:.4f} | {m['shake']:.4f} ({m['mediapipe_shake']:.4f}) |",
+                  flush=True)
 
 
 def demo(args):

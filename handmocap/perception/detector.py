@@ -529,7 +529,7 @@ class HandDetector:
         # (`handeval people`, the shake column); 2 Hz and 16 were chosen on the training
         # people's clips as the setting that halves the shake and leaves the error to
         # MediaPipe's labels no worse (research/keypoint_smoothing.py)
-        if s.smooth_min_cutoff is not None and s.smooth_min_cutoff < 0 or s.smooth_beta < 0:
+        if (s.smooth_min_cutoff or 0.0) < 0 or s.smooth_beta < 0:
             raise ValueError(f"smooth_min_cutoff and smooth_beta must be >= 0, got {s.smooth_min_cutoff}, "
                              f"{s.smooth_beta}")
         self.smooth_min_cutoff, self.smooth_beta = s.smooth_min_cutoff or 0.0, s.smooth_beta

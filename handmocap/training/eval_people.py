@@ -93,20 +93,30 @@ def label_shakes(previous, hands):
 
 
 def score_frames(detector, frames, stills=False, fps=30.0):
-    """Run `detector` over `frames` (frames_of_*; a clip at `fps`): a dict of counts and
-    per-hand arrays (err: mean joint error / hand size, joint_err (n,21) / hand size,
-    right_side bool, shake and label_shake: see shake(), ours per track and MediaPipe's)."""
-    detector.reset()
+    """Run `detector` over `frames` (frames_of_*; a clip at `fps`; stills: each frame on its
+    own) and score its hands: score_outputs."""
+    def outputs():
+        detector.reset()
+        for f, (image, hands, reliable, sides) in enumerate(frames):
+            if stills:
+                detector.reset()
+            yield detector.process(image, f / fps), hands, reliable, sides
+    return score_outputs(outputs(), stills)
+
+
+def score_outputs(frames, stills=False):
+    """Score a detector's output hands (HandKeypoints hands: track_id, uv, handedness) per
+    frame of `frames` ((output hands, MediaPipe hands (k,21,2), reliable (k,), sides [k])):
+    a dict of counts and per-hand arrays (err: mean joint error / hand size, joint_err
+    (n,21) / hand size, right_side bool, shake and label_shake: see shake(), ours per track
+    and MediaPipe's; none for stills)."""
     out = {"frames": 0, "labelled": 0, "found": 0, "false": 0, "err": [], "joint_err": [], "right_side": [],
            "shake": [], "label_shake": []}
     tracks, previous = {}, []
-    for f, (image, hands, reliable, sides) in enumerate(frames):
-        if stills:
-            detector.reset()
+    for found, hands, reliable, sides in frames:
         out["frames"] += 1
         out["labelled"] += len(hands)
         hit = set()
-        found = detector.process(image, f / fps)
         if not stills:
             out["label_shake"] += label_shakes(previous, hands)
             previous = (previous + [hands])[-2:]
