@@ -302,6 +302,28 @@ def test_degraded_batches_change_the_asked_share_of_hand_crops_and_no_negative()
     np.testing.assert_array_equal(out, degrade(image.copy(), hand, 0.3, np.random.default_rng(1)))
 
 
+def test_motion_blur_smears_the_asked_share_of_hand_crops_about_the_same_centre():
+    """handtrain detnet --motion-blur P: about P of the hand crops come out smeared, the same
+    ones for the same generator; a bright dot's centre stays where it was (the joints' labels
+    hold); negatives are untouched."""
+    from handmocap.training.train_detnet import motion_blur
+    n = 300
+    image = np.zeros((n, 128, 128, 3), np.uint8)
+    image[:, 60:63, 80:83] = 255                              # a dot centred on (81, 61)
+    hand = np.arange(n) % 4 != 0
+    out = motion_blur(image.copy(), hand, 0.4, np.random.default_rng(3))
+    changed = np.any(out != image, axis=(1, 2, 3))
+    assert not changed[~hand].any()
+    assert 0.32 < changed[hand].mean() < 0.48
+    for i in np.flatnonzero(changed)[:40]:
+        w = out[i, ..., 0].astype(float)
+        w[w < 12] = 0                                         # the JPEG's faint ringing
+        assert (w > 0).sum() > 9                              # spread over more pixels than the dot
+        ys, xs = np.mgrid[:128, :128]
+        assert abs((w * xs).sum() / w.sum() - 81) < 1.0 and abs((w * ys).sum() / w.sum() - 61) < 1.0
+    np.testing.assert_array_equal(out, motion_blur(image.copy(), hand, 0.4, np.random.default_rng(3)))
+
+
 def test_upright_batches_show_every_hand_upright_within_the_spread():
     """--upright D: each synthetic crop is turned so its hand's wrist is below its middle
     finger's base, then by at most D degrees (mirrored crops too)."""

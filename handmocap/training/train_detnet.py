@@ -40,7 +40,9 @@ Augmentation (NOTES.md): centre jitter 0.1, scale 0.9-1.1 (real crops, --real-sh
 --real-scale; synthetic crops come jittered), rotation +-90 deg applied to 2D and 3D,
 colour jitter, light blur; with
 --degrade P a share P of the hand crops also gets a patch of another crop over it, a lower
-resolution or sensor noise (`degrade`).
+resolution or sensor noise (`degrade`); with --motion-blur P a share P of the hand crops
+is smeared along a line (a hand moving during the exposure) and half of those are also
+saved as a low-quality JPEG (a phone's video compression) (`motion_blur`).
 Losses: heatmap 100 (per-cell MSE, sigma = 1 cell Gaussians), location 10, delta 1
 (squared error weighted by H_gt + 0.1, normalised by the weight sum, so every joint's
 map also learns its value away from the peak), presence and handedness BCE 1, AdamW
@@ -133,6 +135,10 @@ def add_arguments(p):
                    help="share of hand crops degraded as real cameras and scenes degrade them: a patch of "
                         "another crop in front of the hand, the crop at a lower resolution, or sensor noise "
                         "(one of the three each; default %(default)s)")
+    p.add_argument("--motion-blur", type=float, default=0.0, metavar="P",
+                   help="share of hand crops smeared along a line of 3-15 px at a random angle (a hand moving "
+                        "during the exposure), half of them also JPEG-compressed at quality 20-60 (a phone's "
+                        "video; default %(default)s)")
     p.add_argument("--part-neg", type=float, default=0.0, metavar="P",
                    help="share of the no-hand crops that are close-ups of part of a real hand (a fingertip, "
                         "knuckles: the crop of a finder box on a hand that fills a photo), taught as no hand "
@@ -766,6 +772,25 @@ def degrade(images, hand, share, rng):
     return images
 
 
+def motion_blur(images, hand, share, rng):
+    """Smear a `share` of the crops `images` (B,128,128,3) uint8 where `hand` (B,) bool, in
+    place, along a line of 3-15 px at a random angle (a hand moving while the shutter is
+    open: the wild clips' fast hands), and save half of those as a JPEG of quality 20-60 (a
+    phone's video compression). The line is centred, so the joints' labels stay where they
+    are."""
+    for i in np.flatnonzero(hand & (rng.random(len(images)) < share)):
+        length = int(rng.integers(3, 16))
+        kernel = np.zeros((length, length), np.float32)
+        kernel[length // 2] = 1.0
+        turn = cv2.getRotationMatrix2D(((length - 1) / 2, (length - 1) / 2), rng.uniform(0, 180), 1.0)
+        kernel = cv2.warpAffine(kernel, turn, (length, length))
+        images[i] = cv2.filter2D(images[i], -1, kernel / kernel.sum(), borderType=cv2.BORDER_REPLICATE)
+        if rng.random() < 0.5:
+            ok, jpg = cv2.imencode(".jpg", images[i], [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(20, 61))])
+            images[i] = cv2.imdecode(jpg, cv2.IMREAD_UNCHANGED)
+    return images
+
+
 def to_torch(batch, rng=None, grey=0.0):
     """Tensors; images (B,3,128,128) float [0,1], with colour jitter and light blur when rng,
     and that share `grey` of them in grey (three equal channels: a mono or IR camera)."""
@@ -1244,6 +1269,8 @@ def main(args):
         batch = maker.make(args.batch, rng)
         if args.degrade:
             degrade(batch["image"], batch["presence"] > 0, args.degrade, rng)
+        if args.motion_blur:
+            motion_blur(batch["image"], batch["presence"] > 0, args.motion_blur, rng)
         return to_torch(batch, rng, args.grey)
 
     def validate_and_save(done):
