@@ -52,3 +52,33 @@ def test_grey_frames_are_luma_in_three_equal_channels_and_only_the_asked_share_i
     assert 0.22 < np.mean(grey) < 0.38
     assert not any(np.ptp(augment(rng, image, boxes, np.array([True, False]), zoom=(0.9, 1.0))[0], axis=-1).max() == 0
                    for _ in range(50))
+
+
+def test_a_larger_finder_input_round_trips_its_boxes_through_targets_and_decode():
+    """handtrain finder --size S: the target maps of an S px frame, read back by the
+    runtime's decode at input_size S, give the same box (the log side is in units of S)."""
+    from handmocap.perception.hand_finder import STRIDE, decode
+    for size in (160, 256):
+        box = np.array([[90.0, 40.0, 130.0, 100.0], [np.nan] * 4])     # 40 x 60 px: side 60
+        heat, reg, mask = targets(box, np.array([True, False]), size)
+        assert heat.shape == (size // STRIDE, size // STRIDE)
+        logit = np.log(np.clip(heat, 1e-6, 1 - 1e-6) / np.clip(1 - heat, 1e-6, 1))
+        maps = np.concatenate([logit[None], reg[:3], np.where(mask > 0, 5.0, -5.0)[None]])
+        (found, score, right), = decode(maps, 0.5, input_size=size)
+        np.testing.assert_allclose(found, [80.0, 40.0, 140.0, 100.0], atol=1e-3)
+        assert score > 0.99 and right > 0.99
+
+
+def test_the_runtime_finder_letterboxes_into_its_file_s_input_side(tmp_path):
+    """A finder exported at 256 px is read at 256 px (HandFinder.size), the shipped one at 160."""
+    import pytest
+    torch = pytest.importorskip("torch", reason="exporting a finder needs the training extra (torch)")
+    from handmocap.perception.hand_finder import HandFinder
+    from handmocap.training.train_finder import build_model, export
+    torch.manual_seed(0)
+    export(build_model(), tmp_path / "finder256.onnx", 256)
+    finder = HandFinder.load(tmp_path / "finder256.onnx")
+    assert finder.size == 256
+    maps, lb = finder.raw(np.zeros((480, 640, 3), np.uint8))
+    assert maps.shape == (5, 32, 32) and abs(lb.scale_x - 0.4) < 1e-9
+    assert HandFinder.load().size == INPUT_SIZE

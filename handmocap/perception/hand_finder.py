@@ -1,10 +1,10 @@
 """Hand finder: every hand in a whole frame, with no prior (models/finder.onnx).
 
-A tiny CenterNet-style network on the frame letterboxed into INPUT_SIZE x INPUT_SIZE
-(aspect kept, grey border). On a STRIDE-px grid it predicts, per cell, channel
+A tiny CenterNet-style network on the frame letterboxed into S x S (aspect kept, grey
+border; S is the model file's input side, INPUT_SIZE for the shipped finder). On a STRIDE-px grid it predicts, per cell, channel
     0  hand-centre heatmap logit (centre of the hand's 21-joint box),
     1-2 sub-cell offset of the centre (cells, 0..1),
-    3  log(box side / INPUT_SIZE), box side = max(width, height) of the joint box,
+    3  log(box side / S), box side = max(width, height) of the joint box,
     4  handedness logit: the hand appears as a right hand.
 Read-out: 3x3 max-pool peaks above `threshold`, best first, non-maximum suppressed by
 box overlap. It runs when the detector has lost a track or every N frames, never per hand.
@@ -101,9 +101,9 @@ def sigmoid(x):
     return 1.0 / (1.0 + np.exp(-np.asarray(x, dtype=np.float64)))
 
 
-def decode(maps, threshold=0.3, max_hands=2, nms_iou=0.3):
-    """Network output (5, GRID, GRID) -> list of (box (4,) input px, score, right_prob),
-    best first."""
+def decode(maps, threshold=0.3, max_hands=2, nms_iou=0.3, input_size=INPUT_SIZE):
+    """Network output (5, S/STRIDE, S/STRIDE) of an input_size S finder -> list of (box (4,)
+    input px, score, right_prob), best first."""
     heat = sigmoid(maps[0])
     pooled = cv2.dilate(heat.astype(np.float32), np.ones((3, 3), np.uint8))
     peaks = np.argwhere((heat >= pooled - 1e-7) & (heat >= threshold))
@@ -112,7 +112,7 @@ def decode(maps, threshold=0.3, max_hands=2, nms_iou=0.3):
     for gy, gx in peaks[order]:
         cx = (gx + maps[1, gy, gx]) * STRIDE - 0.5
         cy = (gy + maps[2, gy, gx]) * STRIDE - 0.5
-        side = float(np.exp(maps[3, gy, gx]) * INPUT_SIZE)
+        side = float(np.exp(maps[3, gy, gx]) * input_size)
         box = np.array([cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2])
         if found and box_iou(box, np.array([f[0] for f in found])).max() > nms_iou:
             continue
@@ -148,11 +148,14 @@ def to_input_tensor(images_rgb):
 
 
 class HandFinder:
-    """models/finder.onnx on onnxruntime (CPU). threshold: minimum peak probability."""
+    """models/finder.onnx on onnxruntime (CPU). threshold: minimum peak probability. The
+    frame is letterboxed into the file's input side (`size`: 160 for the shipped finder)."""
 
     def __init__(self, session, threshold=0.3, max_hands=2):
         self.session = session
         self.input_name = session.get_inputs()[0].name
+        side = session.get_inputs()[0].shape[-1]
+        self.size = side if isinstance(side, int) else INPUT_SIZE
         self.threshold, self.max_hands = threshold, max_hands
 
     @classmethod
@@ -161,7 +164,7 @@ class HandFinder:
 
     def raw(self, image_bgr):
         """(5, GRID, GRID) network output for one BGR frame, and its Letterbox."""
-        boxed, lb = letterbox(image_bgr)
+        boxed, lb = letterbox(image_bgr, self.size)
         x = to_input_tensor(boxed[None, ..., ::-1])
         return self.session.run(None, {self.input_name: x})[0][0], lb
 
@@ -170,7 +173,7 @@ class HandFinder:
         maps, lb = self.raw(image_bgr)
         out = []
         for box, score, right in decode(maps, self.threshold if threshold is None else threshold,
-                                        self.max_hands if max_hands is None else max_hands):
+                                        self.max_hands if max_hands is None else max_hands, input_size=self.size):
             corners = lb.to_frame(box.reshape(2, 2)).reshape(4)
             out.append(FoundHand(corners, score, right))
         return out

@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 from handmocap.training import real_data
-from handmocap.perception.hand_finder import BORDER_VALUE, GRID, INPUT_SIZE, STRIDE, box_iou, decode, greyed, letterbox, square
+from handmocap.perception.hand_finder import BORDER_VALUE, INPUT_SIZE, STRIDE, box_iou, decode, greyed, letterbox, square
 from handmocap.training.training import warmup_cosine_lr
 
 RUN_DIR = Path("runs/finder")
@@ -57,6 +57,12 @@ def add_arguments(p):
                    help="handsynth generate --frames --size 160 output folders (default %(default)s)")
     p.add_argument("--data", type=Path, default=SHARED_DATA, help="real data pack (default %(default)s)")
     p.add_argument("--iters", type=int, default=1500)
+    p.add_argument("--size", type=int, default=INPUT_SIZE,
+                   help="input side in px, a multiple of 16: the frame is letterboxed into it (default %(default)s; "
+                        "a larger side sees small hands in more pixels at more cost)")
+    p.add_argument("--real-size", type=int, default=REAL_SIZE,
+                   help="side the real frames are cached letterboxed at, zoomed from at training "
+                        "(default %(default)s; at least --size keeps them sharp)")
     p.add_argument("--real-stride", type=int, default=2, help="every n-th frame of the real videos (default %(default)s)")
     p.add_argument("--real-zoom", type=float, nargs=2, default=(0.5, 1.0),
                    help="window side / frame side of real frames: < 1 zooms in, > 1 shrinks the hand onto a grey "
@@ -193,8 +199,8 @@ def rotate90(image, boxes, k):
     return np.ascontiguousarray(np.rot90(image, k)), boxes
 
 
-def augment(rng, image, boxes, right, zoom=(0.55, 1.0), rot90=0.0, grey=0.0):
-    """Random zoom window of a square image into INPUT_SIZE, flip, a quarter, half or
+def augment(rng, image, boxes, right, zoom=(0.55, 1.0), rot90=0.0, grey=0.0, size=INPUT_SIZE):
+    """Random zoom window of a square image into `size` px, flip, a quarter, half or
     three-quarter turn with probability `rot90` (the real videos show upright hands; a camera
     above a desk, or a hand hanging down, shows them turned), photometric jitter, and grey
     with probability `grey` (every real training frame is in colour; a mono camera is not).
@@ -202,15 +208,15 @@ def augment(rng, image, boxes, right, zoom=(0.55, 1.0), rot90=0.0, grey=0.0):
     s = image.shape[0]
     side = s * rng.uniform(*zoom)
     x0, y0 = rng.uniform(min(0, s - side), max(0, s - side), 2)
-    a = INPUT_SIZE / side
+    a = size / side
     M = np.array([[a, 0, -a * x0], [0, a, -a * y0]])
-    out = cv2.warpAffine(image, M, (INPUT_SIZE, INPUT_SIZE), flags=cv2.INTER_AREA if a < 1 else cv2.INTER_LINEAR,
+    out = cv2.warpAffine(image, M, (size, size), flags=cv2.INTER_AREA if a < 1 else cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=(BORDER_VALUE,) * 3)
     b = boxes * a - np.array([a * x0, a * y0, a * x0, a * y0])
     right = right.copy()
     if rng.random() < 0.5:
         out = out[:, ::-1]
-        b = np.stack([INPUT_SIZE - 1 - b[:, 2], b[:, 1], INPUT_SIZE - 1 - b[:, 0], b[:, 3]], 1)
+        b = np.stack([size - 1 - b[:, 2], b[:, 1], size - 1 - b[:, 0], b[:, 3]], 1)
         right = ~right
     if rng.random() < rot90:
         out, b = rotate90(out, b, int(rng.integers(1, 4)))
@@ -221,25 +227,26 @@ def augment(rng, image, boxes, right, zoom=(0.55, 1.0), rot90=0.0, grey=0.0):
     return out, b, right
 
 
-def targets(boxes, right):
-    """Target maps of one image: heat (G,G), reg (4,G,G) offset x, offset y, log side,
-    right flag, and the mask (G,G) of centre cells."""
-    heat = np.zeros((GRID, GRID), np.float32)
-    reg = np.zeros((4, GRID, GRID), np.float32)
-    mask = np.zeros((GRID, GRID), np.float32)
-    gy, gx = np.mgrid[0:GRID, 0:GRID]
+def targets(boxes, right, size=INPUT_SIZE):
+    """Target maps of one `size` px image: heat (G,G), reg (4,G,G) offset x, offset y, log
+    side / size, right flag, and the mask (G,G) of centre cells; G = size / STRIDE."""
+    grid = size // STRIDE
+    heat = np.zeros((grid, grid), np.float32)
+    reg = np.zeros((4, grid, grid), np.float32)
+    mask = np.zeros((grid, grid), np.float32)
+    gy, gx = np.mgrid[0:grid, 0:grid]
     for box, r in zip(boxes, right):
         if not np.all(np.isfinite(box)):
             continue
         cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
         side = max(box[2] - box[0], box[3] - box[1])
-        if side < MIN_SIDE_PX or not (0 <= cx < INPUT_SIZE - 0.5 and 0 <= cy < INPUT_SIZE - 0.5):
+        if side < MIN_SIDE_PX or not (0 <= cx < size - 0.5 and 0 <= cy < size - 0.5):
             continue
         fx, fy = (cx + 0.5) / STRIDE, (cy + 0.5) / STRIDE
         ix, iy = int(fx), int(fy)
         sigma = max(0.6, 0.12 * side / STRIDE)
         heat = np.maximum(heat, np.exp(-((gx - ix) ** 2 + (gy - iy) ** 2) / (2 * sigma ** 2)))
-        reg[:, iy, ix] = (fx - ix, fy - iy, np.log(side / INPUT_SIZE), float(r))
+        reg[:, iy, ix] = (fx - ix, fy - iy, np.log(side / size), float(r))
         mask[iy, ix] = 1.0
     return heat, reg, mask
 
@@ -247,8 +254,8 @@ def targets(boxes, right):
 class Batches:
     """Training batches from real frames, synthetic frames and background crops."""
 
-    def __init__(self, real, synth, negatives, real_zoom=(0.5, 1.0), rot90=0.0, grey=0.0):
-        self.real, self.synth, self.negatives = real, synth, negatives
+    def __init__(self, real, synth, negatives, real_zoom=(0.5, 1.0), rot90=0.0, grey=0.0, size=INPUT_SIZE):
+        self.real, self.synth, self.negatives, self.size = real, synth, negatives, size
         self.real_zoom = tuple(real_zoom)
         self.rot90, self.grey = rot90, grey
 
@@ -262,11 +269,12 @@ class Batches:
                 [(None, i) for i in rng.integers(max(len(self.negatives), 1), size=n_neg)]
         for source, i in picks:
             if source is None:
-                img, b, r = augment(rng, self.negatives[i], *none, zoom=(0.6, 1.0), grey=self.grey)
+                img, b, r = augment(rng, self.negatives[i], *none, zoom=(0.6, 1.0), grey=self.grey, size=self.size)
             else:
                 zoom = self.real_zoom if source is self.real else (0.8, 1.0)
-                img, b, r = augment(rng, source[0][i], source[1][i], source[2][i], zoom, self.rot90, self.grey)
-            h, g, m = targets(b, r)
+                img, b, r = augment(rng, source[0][i], source[1][i], source[2][i], zoom, self.rot90, self.grey,
+                                    self.size)
+            h, g, m = targets(b, r, self.size)
             images.append(img)
             heats.append(h)
             regs.append(g)
@@ -285,8 +293,8 @@ def build_model():
                              nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
 
     class FinderNet(nn.Module):
-        """160 px RGB -> (5, 20, 20) maps (see hand_finder): 4 stride-2 stages, a 10x10
-        context branch added back at 20x20, a 3x3 + 1x1 head. About 40 M multiply-adds."""
+        """S px RGB -> (5, S/8, S/8) maps (see hand_finder): 4 stride-2 stages, a context
+        branch at S/16 added back at S/8, a 3x3 + 1x1 head. About 40 M multiply-adds at 160 px."""
 
         def __init__(self):
             super().__init__()
@@ -344,13 +352,13 @@ def onnx_maps(path):
 
 def evaluate(maps_of, images, boxes, right, threshold=0.3):
     """Recall (IoU >= 0.3 with the square joint box: what the finder predicts), false
-    peaks per frame and handedness accuracy of found hands on letterboxed INPUT_SIZE
-    images with joint boxes (N,2,4) input px. maps_of: torch_maps or onnx_maps."""
+    peaks per frame and handedness accuracy of found hands on letterboxed images (N,S,S,3)
+    with joint boxes (N,2,4) input px. maps_of: torch_maps or onnx_maps."""
     hits = total = false = hand_ok = 0
     for s in range(0, len(images), 64):
         maps = maps_of(np.ascontiguousarray(images[s:s + 64].transpose(0, 3, 1, 2), dtype=np.float32) / 255)
         for m, b, r in zip(maps, boxes[s:s + 64], right[s:s + 64]):
-            found = decode(m, threshold)
+            found = decode(m, threshold, input_size=images.shape[1])
             valid = np.all(np.isfinite(b), 1) & (np.max(b[:, 2:] - b[:, :2], 1) >= MIN_SIDE_PX)
             b = square(b)
             total += valid.sum()
@@ -368,11 +376,11 @@ def evaluate(maps_of, images, boxes, right, threshold=0.3):
             "handedness_acc": hand_ok / max(hits, 1), "hands": int(total), "frames": len(images)}
 
 
-def export(model, path):
+def export(model, path, size=INPUT_SIZE):
     import torch
     model.eval()
     path.parent.mkdir(parents=True, exist_ok=True)
-    torch.onnx.export(model, torch.zeros(1, 3, INPUT_SIZE, INPUT_SIZE), str(path), input_names=["image"],
+    torch.onnx.export(model, torch.zeros(1, 3, size, size), str(path), input_names=["image"],
                       output_names=["maps"], dynamic_axes={"image": {0: "n"}, "maps": {0: "n"}}, opset_version=17,
                       dynamo=False)
     print(f"exported {path} ({path.stat().st_size / 1e3:.0f} kB)")
@@ -389,19 +397,19 @@ def main(args):
     ckpt = args.run_dir / "last.pt"
     if args.export_only:
         model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
-        export(model, args.export)
+        export(model, args.export, args.size)
         return
     n_shards = shard_count(args.synth[0])
     have_real = (args.data / "video").is_dir()
     val_sets = {"synth": load_synth(args.synth[0], [n_shards - 1])}
     if have_real:   # never trained on: a whole video, the tails of the training videos, 2 howiema sequences
-        val_sets["real"] = load_real_frames(args.data, VAL_VIDEOS, stride=1, size=INPUT_SIZE)
+        val_sets["real"] = load_real_frames(args.data, VAL_VIDEOS, stride=1, size=args.size)
         if args.real_part == "train":
-            val_sets["tails"] = load_real_frames(args.data, TRAIN_VIDEOS, stride=1, size=INPUT_SIZE, part="tail")
-        val_sets["howiema"] = load_howiema_frames(args.data, held_out=True, size=INPUT_SIZE)
+            val_sets["tails"] = load_real_frames(args.data, TRAIN_VIDEOS, stride=1, size=args.size, part="tail")
+        val_sets["howiema"] = load_howiema_frames(args.data, held_out=True, size=args.size)
         if args.wild:   # people never trained on (real_data.WILD_HELD_BACK), every 2nd frame
             val_sets["people"] = load_real_frames(args.data, real_data.wild_clips(args.data, held_back=True),
-                                                  stride=2, size=INPUT_SIZE)
+                                                  stride=2, size=args.size)
         # the same hands turned (a quarter turn each way and a half): upright hands only tell
         # half the story for a camera above a desk or a hand that hangs down; and upright in
         # grey (a mono or IR camera)
@@ -420,16 +428,18 @@ def main(args):
     synth = concat(load_synth(args.synth[0], range(n_shards - 1)),
                    *(load_synth(d, range(shard_count(d))) for d in args.synth[1:]))
     if have_real:
-        real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, part=args.real_part),
-                      load_howiema_frames(args.data, held_out=False),
-                      *([load_real_frames(args.data, real_data.wild_clips(args.data), stride=args.real_stride)]
+        real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, size=args.real_size,
+                                       part=args.real_part),
+                      load_howiema_frames(args.data, held_out=False, size=args.real_size),
+                      *([load_real_frames(args.data, real_data.wild_clips(args.data), stride=args.real_stride,
+                                          size=args.real_size)]
                         if args.wild else []))
     else:
         real = (np.zeros((0,)), None, None)
     negatives = background_crops(Path(__file__).resolve().parents[2])
     print(f"synthetic {len(synth[0])} (+{len(val_sets['synth'][0])} val), real {len(real[0])}, "
           f"negatives {len(negatives)}")
-    batches = Batches(real, synth, negatives, args.real_zoom, args.rot90, args.grey)
+    batches = Batches(real, synth, negatives, args.real_zoom, args.rot90, args.grey, args.size)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     start = 0
     if args.resume and ckpt.is_file():
@@ -461,7 +471,7 @@ def main(args):
                 f.write(json.dumps({"iter": it + 1, **results}) + "\n")
     print(json.dumps(results, indent=1))
     (args.run_dir / "val.json").write_text(json.dumps(results, indent=1))
-    export(model, args.export)
+    export(model, args.export, args.size)
 
 
 def turned(images, boxes, right):
