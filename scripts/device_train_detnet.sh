@@ -17,7 +17,8 @@
 #
 # The machine has python3 with torch, numpy, opencv, onnx and onnxruntime, and no registry:
 # the repository runs from the checkout (PYTHONPATH), nothing is installed. The same script
-# runs on a CPU for a check (DEVICE=cpu MINUTES=0.2 WORKERS=0 BATCH=8).
+# runs on a CPU for a check (DEVICE=cpu MINUTES=0.2 WORKERS=0 BATCH=8). EXTRA adds trainer
+# options, e.g. EXTRA="--motion-blur 0.3" (session 30's augmentation).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PACK=${PACK:-runs/device/pack}
@@ -33,6 +34,8 @@ LR=${LR:-1e-3}
 # (--arm-neg, --near-neg: the pack must be written with the same options to carry them)
 ARM_NEG=${ARM_NEG:-0}
 NEAR_NEG=${NEAR_NEG:-0}
+# more handtrain detnet options, as words (e.g. EXTRA="--motion-blur 0.3")
+read -r -a EXTRA_ARGS <<< "${EXTRA:-}"
 mkdir -p "$OUT"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 python3 - <<'EOF'
@@ -52,7 +55,7 @@ python3 -m handmocap.training.train_cli detnet --pack "$PACK" --device "$DEVICE"
     --workers "$WORKERS" --batch "$BATCH" --backbone "$BACKBONE" --init-from "$INIT" --lr "$LR" \
     --iters 1000000 --minutes "$MINUTES" --val-every 2000 --ckpt-every 1000000 \
     --share-real 0.5 --share-neg 0.12 --upright 60 --real-3d 0.5 --arm-neg "$ARM_NEG" --near-neg "$NEAR_NEG" \
-    --run-dir "$OUT/run" --export "$OUT/detnet.onnx" 2>&1 | tee "$OUT/train.log"
+    --run-dir "$OUT/run" --export "$OUT/detnet.onnx" ${EXTRA_ARGS[@]+"${EXTRA_ARGS[@]}"} 2>&1 | tee "$OUT/train.log"
 cp "$OUT/run/last.pt" "$OUT/last.pt"
 rm -rf "$OUT/run"           # only 2 folder levels come back; detnet.onnx and last.pt are what matter
 ls -l "$OUT"
