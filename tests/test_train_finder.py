@@ -82,3 +82,19 @@ def test_the_runtime_finder_letterboxes_into_its_file_s_input_side(tmp_path):
     maps, lb = finder.raw(np.zeros((480, 640, 3), np.uint8))
     assert maps.shape == (5, 32, 32) and abs(lb.scale_x - 0.4) < 1e-9
     assert HandFinder.load().size == INPUT_SIZE
+
+
+def test_export_only_exports_at_the_side_the_checkpoint_was_trained_at(tmp_path):
+    """handtrain finder --export-only: the file's input side is the checkpoint's `size`
+    (a 256 px run exported without --size must not come out as a 160 px finder)."""
+    import argparse
+    import pytest
+    torch = pytest.importorskip("torch", reason="exporting a finder needs the training extra (torch)")
+    import onnx
+    from handmocap.training.train_finder import add_arguments, build_model, main
+    torch.save({"model": build_model().state_dict(), "iter": 1, "size": 256}, tmp_path / "last.pt")
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    main(p.parse_args(["--export-only", "--run-dir", str(tmp_path), "--export", str(tmp_path / "f.onnx")]))
+    dims = onnx.load(str(tmp_path / "f.onnx")).graph.input[0].type.tensor_type.shape.dim
+    assert [d.dim_value for d in dims[2:]] == [256, 256]

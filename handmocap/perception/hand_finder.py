@@ -1,7 +1,8 @@
 """Hand finder: every hand in a whole frame, with no prior (models/finder.onnx).
 
 A tiny CenterNet-style network on the frame letterboxed into S x S (aspect kept, grey
-border; S is the model file's input side, INPUT_SIZE for the shipped finder). On a STRIDE-px grid it predicts, per cell, channel
+border; S is the model file's input side, INPUT_SIZE for the shipped finder). On a
+STRIDE-px grid it predicts, per cell, channel
     0  hand-centre heatmap logit (centre of the hand's 21-joint box),
     1-2 sub-cell offset of the centre (cells, 0..1),
     3  log(box side / S), box side = max(width, height) of the joint box,
@@ -27,7 +28,6 @@ from handmocap.perception.onnx_models import open_session
 
 INPUT_SIZE = 160
 STRIDE = 8
-GRID = INPUT_SIZE // STRIDE
 BORDER_VALUE = 114
 DEFAULT_PATH = Path(__file__).resolve().parents[2] / "models" / "finder.onnx"
 # trained with a fifth of its frames in grey: the detector runs it on grey frames (is_grey),
@@ -163,7 +163,7 @@ class HandFinder:
         return cls(open_session(path or DEFAULT_PATH, "hand finder", "handtrain finder", threads), **kwargs)
 
     def raw(self, image_bgr):
-        """(5, GRID, GRID) network output for one BGR frame, and its Letterbox."""
+        """(5, size/STRIDE, size/STRIDE) network output for one BGR frame, and its Letterbox."""
         boxed, lb = letterbox(image_bgr, self.size)
         x = to_input_tensor(boxed[None, ..., ::-1])
         return self.session.run(None, {self.input_name: x})[0][0], lb

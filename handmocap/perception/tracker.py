@@ -33,11 +33,11 @@ class HandTracker:
     """detnet, finder, iknet, model: paths (None: the bundled ones; finder "none": no
     finder, the centre square is tried instead; iknet "float32": the float32 IKNet instead
     of the default static int8 copy); detector: a ready HandDetector instead of
-    detnet/finder. smooth: One Euro smoothing of rotations and
-    translation per track, and of the 2D joints unless smooth_min_cutoff is given (off for
-    single images). vertices: add each hand's mesh vertices (V,3) m camera frame. Other keywords go to HandDetector (max_hands,
-    presence_threshold, min_confidence, birth_confidence, redetect_every, crop_scale,
-    fallback_path, ...). For unrelated photos: reset() before each, and
+    detnet/finder. smooth: One Euro smoothing of rotations and translation per track, and
+    of the 2D joints unless smooth_min_cutoff is given (off for single images). vertices:
+    add each hand's mesh vertices (V,3) m camera frame. Other keywords go to HandDetector
+    (max_hands, presence_threshold, min_confidence, birth_confidence, redetect_every,
+    crop_scale, fallback_path, ...). For unrelated photos: reset() before each, and
     `HandTracker(**detector.PHOTO_SETTINGS)`: birth_confidence 0 (the default 0.3 is for video,
     where a doubtful hand gets another chance next frame), the centre square tried where
     the finder found nothing (a close-up) and each hand read on 4 variants of its crop as

@@ -786,7 +786,7 @@ def motion_blur(images, hand, share, rng):
         kernel = cv2.warpAffine(kernel, turn, (length, length))
         images[i] = cv2.filter2D(images[i], -1, kernel / kernel.sum(), borderType=cv2.BORDER_REPLICATE)
         if rng.random() < 0.5:
-            ok, jpg = cv2.imencode(".jpg", images[i], [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(20, 61))])
+            _, jpg = cv2.imencode(".jpg", images[i], [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(20, 61))])
             images[i] = cv2.imdecode(jpg, cv2.IMREAD_UNCHANGED)
     return images
 

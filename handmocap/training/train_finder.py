@@ -396,8 +396,9 @@ def main(args):
     args.run_dir.mkdir(parents=True, exist_ok=True)
     ckpt = args.run_dir / "last.pt"
     if args.export_only:
-        model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
-        export(model, args.export, args.size)
+        state = torch.load(ckpt, weights_only=False)   # our own file
+        model.load_state_dict(state["model"])
+        export(model, args.export, state.get("size", INPUT_SIZE))   # the side it was trained at
         return
     n_shards = shard_count(args.synth[0])
     have_real = (args.data / "video").is_dir()
@@ -462,7 +463,7 @@ def main(args):
             print(f"iter {it} loss {loss.item():.3f} " + " ".join(f"{k} {v:.3f}" for k, v in parts.items())
                   + f" lr {lr:.2e} {(time.time() - t0) / (it - start + 1):.2f} s/it", flush=True)
         if (it + 1) % args.ckpt_every == 0 or it + 1 == args.iters:
-            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "iter": it + 1}, ckpt)
+            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "iter": it + 1, "size": args.size}, ckpt)
         if (it + 1) % args.val_every == 0 or it + 1 == args.iters:
             results = {name: evaluate(torch_maps(model), *v) for name, v in val_sets.items()}
             print(f"val {it + 1}: " + ", ".join(f"{k} recall {r['recall']:.3f} false {r['false_per_frame']:.2f}"
