@@ -85,7 +85,7 @@ PALM_M = 0.093               # |wrist - middle MCP| that real held-out 3D errors
 
 
 def add_arguments(p):
-    p.add_argument("--backbone", choices=("fast", "fast-deep", "paper"), default="fast")
+    p.add_argument("--backbone", choices=("fast", "fast-deep", "fast-deeper", "paper"), default="fast")
     p.add_argument("--iters", type=int, default=20000, help="total iterations (a resumed run continues to this)")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=2e-3, help="AdamW, cosine decay to lr/50 after 300 warm-up iterations")
