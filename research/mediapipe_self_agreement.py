@@ -56,11 +56,12 @@ def main():
         for kind, seed in (("decoded", None), ("moved", args.jitter_seed)):
             folder = args.work / video.stem / kind
             folder.mkdir(parents=True, exist_ok=True)
-            frames = list(eval_people.frames_of_clip(video, seed))
-            for i, (bgr, *_) in enumerate(frames):
+            labels = []             # (MediaPipe's hands, reliable, sides) per frame; the frames go to disk
+            for i, (bgr, *label) in enumerate(eval_people.frames_of_clip(video, seed)):
                 cv2.imwrite(str(folder / f"{i:05d}.png"), bgr)
+                labels.append(label)
             hands = mediapipe_hands(folder, args.work / video.stem / f"{kind}.npz")
-            s = eval_people.score_outputs(((h, uv, rel, sides) for h, (_, uv, rel, sides) in zip(hands, frames)))
+            s = eval_people.score_outputs((found, *label) for found, label in zip(hands, labels))
             totals.setdefault(kind, []).append(s)
             print(row(video.stem, kind, s), flush=True)
     for kind, runs in totals.items():

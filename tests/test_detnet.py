@@ -25,10 +25,10 @@ def test_forward_shapes(backbone, grid):
     assert float(out["heatmap"].min()) >= 0 and float(out["heatmap"].max()) <= 1
 
 
-@pytest.mark.parametrize("small_name,big_name,new_blocks", [
-    ("fast", "fast-deep", ["backbone.s8.2", "backbone.s8.3", "backbone.neck.0", "backbone.neck.1"]),
-    ("fast-deep", "fast-deeper", ["backbone.s8.4", "backbone.s8.5", "backbone.s8.6", "backbone.s8.7"])])
-def test_a_net_grown_into_a_deeper_one_computes_the_same_until_trained(small_name, big_name, new_blocks):
+@pytest.mark.parametrize("small_name,big_name,new_blocks,min_growth", [
+    ("fast", "fast-deep", ["backbone.s8.2", "backbone.s8.3", "backbone.neck.0", "backbone.neck.1"], 2.0),
+    ("fast-deep", "fast-deeper", ["backbone.s8.4", "backbone.s8.5", "backbone.s8.6", "backbone.s8.7"], 1.4)])
+def test_a_net_grown_into_a_deeper_one_computes_the_same_until_trained(small_name, big_name, new_blocks, min_growth):
     """--init-from: the blocks a smaller checkpoint lacks start as the identity."""
     torch = _torch()
     from handmocap.training.detnet import DetNet
@@ -50,7 +50,7 @@ def test_a_net_grown_into_a_deeper_one_computes_the_same_until_trained(small_nam
         a, b = small.eval()(x), big.eval()(x)
     for k in a:
         torch.testing.assert_close(a[k], b[k])
-    assert sum(p.numel() for p in big.parameters()) > 1.4 * sum(p.numel() for p in small.parameters())
+    assert sum(p.numel() for p in big.parameters()) > min_growth * sum(p.numel() for p in small.parameters())
 
 
 def test_an_exported_net_becomes_trainable_again(tmp_path):
@@ -751,3 +751,16 @@ def test_averaged_checkpoints_hold_the_mean_weights_and_refuse_other_networks(tm
         average_checkpoints([paths[0], tmp_path / "deep.pt"])
     with pytest.raises(FileNotFoundError, match="no such checkpoint"):
         average_checkpoints([paths[0], tmp_path / "missing.pt"])
+
+
+def test_the_trainer_offers_every_backbone_detnet_has():
+    """handtrain detnet --backbone lists its choices without importing torch; they must be
+    detnet.BACKBONES' names (one table, read twice)."""
+    _torch()
+    import argparse
+    from handmocap.training.detnet import BACKBONES
+    from handmocap.training.train_detnet import add_arguments
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    action = next(a for a in p._actions if a.dest == "backbone")
+    assert sorted(action.choices) == sorted(BACKBONES)
