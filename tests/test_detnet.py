@@ -718,6 +718,8 @@ def test_handtrain_detnet_batches_are_the_same_made_ahead_by_workers_and_amp_tra
     amp = run("amp", "--amp")
     assert (tmp_path / "amp.onnx").is_file() and np.isfinite(amp["history"][-1]["syn_px_softmax"])
     assert any(not torch.equal(v, inline["model"][k]) for k, v in amp["model"].items() if v.is_floating_point())
+    with pytest.raises(SystemExit, match="--hand-occluder puts real hands over the crops"):
+        run("occluded", "--hand-occluder", "0.3")             # no data pack here: no real hands to put
     if not torch.cuda.is_available():
         with pytest.raises(SystemExit, match="sees no CUDA device here"):
             main(["detnet", "--device", "cuda", "--run-dir", str(tmp_path / "cuda")])
@@ -764,3 +766,57 @@ def test_the_trainer_offers_every_backbone_detnet_has():
     add_arguments(p)
     action = next(a for a in p._actions if a.dest == "backbone")
     assert sorted(action.choices) == sorted(BACKBONES)
+
+
+def _open_hand(centre=(64.0, 64.0), size=60.0):
+    """2D joints (21,2) of an upright open right hand in MP order, its joint box about `size` px."""
+    wrist = np.array([0.0, 0.5])
+    knuckles = np.array([[-0.3, 0.15], [-0.15, -0.05], [0.0, -0.08], [0.13, -0.05], [0.25, 0.0]])
+    tips = np.array([[-0.5, -0.1], [-0.22, -0.5], [0.0, -0.5], [0.18, -0.47], [0.35, -0.35]])
+    uv = [wrist]
+    for k, t in zip(knuckles, tips):
+        uv += [k + (t - k) * f for f in (0.0, 1 / 3, 2 / 3, 1.0)]
+    uv = np.asarray(uv) * size + np.asarray(centre)
+    return uv.astype(np.float32)
+
+
+def test_hand_mask_covers_the_joints_and_bones_and_nothing_far_from_them():
+    from handmocap.perception.skeleton import BONES
+    from handmocap.training.train_detnet import hand_mask
+    uv = _open_hand()
+    mask = hand_mask(uv, forearm=False)
+    assert mask.shape == (128, 128) and mask.dtype == np.float32 and 0 <= mask.min() and mask.max() <= 1
+    for a, b in BONES:                                        # every joint and every bone's middle
+        for p in (uv[a], uv[b], (uv[a] + uv[b]) / 2):
+            assert mask[int(round(p[1])), int(round(p[0]))] > 0.5
+    assert mask[:8].max() == 0 and mask[:, :8].max() == 0 and mask[:, -8:].max() == 0  # away from the hand
+    with_arm = hand_mask(uv)                                  # the forearm runs down from the wrist
+    assert with_arm[120, 64] > 0.5 and mask[120, 64] == 0
+
+
+def test_hand_occluders_cover_part_of_the_asked_share_of_hand_crops_with_another_hand():
+    """handtrain detnet --hand-occluder P: about P of the hand crops get another hand over
+    part of their own hand (white here, on black crops): it reaches into the crop's joint
+    box, leaves most of the crop as it was, and the same generator puts the same hands in
+    the same places; negatives are untouched."""
+    from handmocap.training.train_detnet import hand_occluders
+    n = 200
+    image = np.zeros((n, 128, 128, 3), np.uint8)
+    uv = np.stack([_open_hand((64 + dx, 64 + dy), s) for dx, dy, s in
+                   np.random.default_rng(0).uniform([-8, -8, 50], [8, 8, 80], (n, 3))]).astype(np.float32)
+    real = {"image": np.full((5, 176, 176, 3), 255, np.uint8),
+            "uv": np.stack([_open_hand((88, 88), s) for s in (50, 60, 70, 80, 90)])}
+    hand = np.arange(n) % 4 != 0
+    out = hand_occluders(image.copy(), uv, hand, 0.4, np.random.default_rng(2), real, np.arange(5))
+    changed = np.any(out != 0, axis=(1, 2, 3))
+    assert not changed[~hand].any()
+    assert 0.3 < changed[hand].mean() < 0.5
+    covered = []                                              # share of the crop's joint box under the other hand
+    for i in np.flatnonzero(changed):
+        (x0, y0), (x1, y1) = np.floor(uv[i].min(0)).astype(int), np.ceil(uv[i].max(0)).astype(int)
+        covered.append((out[i, y0:y1, x0:x1, 0] > 128).mean())
+    covered = np.asarray(covered)
+    assert (covered > 0).mean() > 0.95                        # over part of the crop's own hand (a sparse
+    assert np.median(covered) < 0.4 and covered.max() < 0.8  # skeleton can miss the box's corner)
+    np.testing.assert_array_equal(out, hand_occluders(image.copy(), uv, hand, 0.4, np.random.default_rng(2), real,
+                                                      np.arange(5)))

@@ -42,7 +42,9 @@ colour jitter, light blur; with
 --degrade P a share P of the hand crops also gets a patch of another crop over it, a lower
 resolution or sensor noise (`degrade`); with --motion-blur P a share P of the hand crops
 is smeared along a line (a hand moving during the exposure) and half of those are also
-saved as a low-quality JPEG (a phone's video compression) (`motion_blur`).
+saved as a low-quality JPEG (a phone's video compression) (`motion_blur`); with
+--hand-occluder P a share P of the hand crops gets another person's real hand over part of
+it, cut out along its joints (`hand_occluders`: two hands touching or crossing).
 Losses: heatmap 100 (per-cell MSE, sigma = 1 cell Gaussians), location 10, delta 1
 (squared error weighted by H_gt + 0.1, normalised by the weight sum, so every joint's
 map also learns its value away from the peak), presence and handedness BCE 1, AdamW
@@ -64,7 +66,7 @@ import numpy as np
 from handmocap.training import real_data
 from handmocap.perception.detector import hand_angle
 from handmocap.training.pose_data import SHARED_DATA
-from handmocap.perception.skeleton import ROOT, normalize_joints
+from handmocap.perception.skeleton import BONES, ROOT, normalize_joints
 from handmocap.training.training import warmup_cosine_lr
 
 RUN_DIR = Path("runs/detnet")
@@ -139,6 +141,10 @@ def add_arguments(p):
                    help="share of hand crops smeared along a line of 3-15 px at a random angle (a hand moving "
                         "during the exposure), half of them also JPEG-compressed at quality 20-60 (a phone's "
                         "video; default %(default)s)")
+    p.add_argument("--hand-occluder", type=float, default=0.0, metavar="P",
+                   help="share of hand crops with another person's real hand put over part of them (two hands "
+                        "touching, clasped or crossing), cut out along its joints (`hand_occluders`; default "
+                        "%(default)s)")
     p.add_argument("--part-neg", type=float, default=0.0, metavar="P",
                    help="share of the no-hand crops that are close-ups of part of a real hand (a fingertip, "
                         "knuckles: the crop of a finder box on a hand that fills a photo), taught as no hand "
@@ -791,6 +797,57 @@ def motion_blur(images, hand, share, rng):
     return images
 
 
+PALM = (0, 1, 5, 9, 13, 17)      # joints whose polygon is the palm (MP order)
+
+
+def hand_mask(uv, size=128, forearm=True):
+    """Soft silhouette (size,size) float32 in [0, 1] of a hand drawn from its 2D joints uv
+    (21,2) crop px: the palm's polygon, each bone as a line 0.09 x the hand's size thick
+    (skeleton.BONES), and (forearm) the forearm as a thick line from the wrist away from
+    the middle finger's knuckle; edges feathered over about 3 px."""
+    hand = float(np.ptp(uv, axis=0).max())
+    mask = np.zeros((size, size), np.uint8)
+    pts = lambda a: np.round(a * 16).astype(np.int32)                      # noqa: E731  (4 fractional bits)
+    cv2.fillPoly(mask, [pts(uv[list(PALM)])], 255, cv2.LINE_AA, shift=4)
+    for a, b in BONES:
+        cv2.line(mask, tuple(pts(uv[a])), tuple(pts(uv[b])), 255, max(1, int(0.09 * hand)), cv2.LINE_AA, shift=4)
+    if forearm:
+        away = uv[0] - uv[9]
+        elbow = uv[0] + away / max(np.linalg.norm(away), 1e-6) * 0.8 * hand
+        cv2.line(mask, tuple(pts(uv[0])), tuple(pts(elbow)), 255, max(1, int(0.28 * hand)), cv2.LINE_AA, shift=4)
+    return cv2.GaussianBlur(mask, (0, 0), 1.2).astype(np.float32) / 255.0
+
+
+def hand_occluders(images, uv, hand, share, rng, real, pool):
+    """Put another person's real hand over a `share` of the crops `images` (B,128,128,3)
+    uint8 where `hand` (B,) bool, in place: two hands touching, clasped or crossing (the
+    wild clips' signers and hand washers), which the rendered second hands do not show
+    with real skin. The occluder is a hand of the real training crops (real["image"] the
+    context crops, real["uv"] their joints; pool: their indices), turned, mirrored and
+    sized 0.7-1.3x the crop's own hand (uv (B,21,2) crop px), centred 0.5-0.9 of the
+    hand's size from the hand's centre, cut out with hand_mask. The crop's own joints stay
+    labelled where they are, as under the rendered occluders."""
+    for i in np.flatnonzero(hand & (rng.random(len(images)) < share)):
+        j = pool[rng.integers(len(pool))]
+        own = float(np.ptp(uv[i], axis=0).max())
+        theirs = float(np.ptp(real["uv"][j], axis=0).max())
+        direction = rng.uniform(0, 2 * np.pi)
+        centre = (uv[i].min(0) + uv[i].max(0)) / 2 + rng.uniform(0.5, 0.9) * own * np.array(
+            [np.cos(direction), np.sin(direction)])
+        # the occluder's joint box centre goes to `centre`, its size to own x 0.7-1.3
+        scale = own * rng.uniform(0.7, 1.3) / max(theirs, 1.0)
+        src_centre = (real["uv"][j].min(0) + real["uv"][j].max(0)) / 2
+        M = cv2.getRotationMatrix2D(tuple(float(v) for v in src_centre), rng.uniform(0, 360), scale)
+        M[:, 2] += centre - src_centre
+        if rng.random() < 0.5:                      # mirrored about the new centre: the other side
+            M = np.array([[-1.0, 0, 2 * centre[0]], [0, 1.0, 0]]) @ np.vstack([M, [0, 0, 1]])
+        occ = cv2.warpAffine(real["image"][j], M, (128, 128), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        occ_uv = real["uv"][j] @ M[:, :2].T + M[:, 2]
+        alpha = hand_mask(occ_uv)[..., None]
+        images[i] = (images[i] * (1.0 - alpha) + occ * alpha + 0.5).astype(np.uint8)
+    return images
+
+
 def to_torch(batch, rng=None, grey=0.0):
     """Tensors; images (B,3,128,128) float [0,1], with colour jitter and light blur when rng,
     and that share `grey` of them in grey (three equal channels: a mono or IR camera)."""
@@ -1226,6 +1283,9 @@ def main(args):
     maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright, args.real_3d,
                        args.left_2d, {kind: (hard[kind], getattr(args, f"{kind}_neg")) for kind in HARD_NEGATIVES},
                        args.real_scale, args.real_shift, args.wild_share)
+    if args.hand_occluder and not len(maker.real_train):
+        raise SystemExit(f"--hand-occluder puts real hands over the crops: it needs the real training crops "
+                         f"(the data pack at {args.shared}, or a --pack that holds them), and there are none")
     if sval is None:
         print(f"note: no held-out synthetic set at {args.val}")
     rval = real_val_set(real)
@@ -1271,6 +1331,9 @@ def main(args):
             degrade(batch["image"], batch["presence"] > 0, args.degrade, rng)
         if args.motion_blur:
             motion_blur(batch["image"], batch["presence"] > 0, args.motion_blur, rng)
+        if args.hand_occluder:
+            hand_occluders(batch["image"], batch["uv"], batch["presence"] > 0, args.hand_occluder, rng, maker.real,
+                           maker.real_train)
         return to_torch(batch, rng, args.grey)
 
     def validate_and_save(done):
