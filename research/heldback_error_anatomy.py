@@ -1,0 +1,73 @@
+"""Where one held-back clip's error is: by hand size, joint and side, against labels a few
+frames off (is it lag?), and the side our track says frame by frame.
+
+    python research/heldback_error_anatomy.py CLIP [--set KEY=VALUE ...]   # e.g. Kirichovka__want
+
+The shipped detector tracks the clip once (frames as decoded); each output hand on a
+reliable MediaPipe hand (eval_people's matching) is scored as `handeval people` scores it
+(mean joint distance / hand size). Prints the median by hand size (px, the side of the
+label's joint box), by joint, for hands given the label's side and the other side, the
+median against the labels of frames f-2 .. f+2, and the label's and our side per matched
+hand in frame order (r / l).
+"""
+import argparse
+
+import numpy as np
+
+from handmocap.perception.detector import HandDetector
+from handmocap.training import eval_people, real_data
+from handmocap.training.pose_data import SHARED_DATA
+
+SIZE_BINS = (0, 40, 60, 80, 120, 10_000)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("clip")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="HandDetector settings")
+    args = p.parse_args()
+    settings = {k: (None if v == "None" else float(v)) for k, v in (a.split("=") for a in args.set)}
+    video = next(v for v in real_data.wild_clips(SHARED_DATA, held_back=True) if v.stem == args.clip)
+    det = HandDetector.load(**settings)
+    det.reset()
+    frames = list(eval_people.frames_of_clip(video))
+    fps = eval_people.clip_fps(video)
+    outs = [det.process(image, f / fps) for f, (image, *_) in enumerate(frames)]
+
+    def scored(lag=0):
+        rows = []
+        for f, out in enumerate(outs):
+            if not 0 <= f + lag < len(frames):
+                continue
+            _, hands, reliable, sides = frames[f + lag]
+            for h in out:
+                k, dist = eval_people.nearest_label(h["uv"], hands)
+                if dist < eval_people.ON_HAND and reliable[k]:
+                    size = real_data.hand_size(hands[k])
+                    rows.append((size, np.linalg.norm(h["uv"] - hands[k], axis=-1) / size,
+                                 sides[k][0], h["handedness"][0]))
+        return rows
+
+    rows = scored()
+    size = np.array([r[0] for r in rows])
+    joint = np.array([r[1] for r in rows])
+    err = joint.mean(1)
+    same = np.array([r[2] == r[3] for r in rows])
+    print(f"{args.clip}: {len(rows)} hands scored, median {np.median(err):.3f} of the hand's size "
+          f"(hand size median {np.median(size):.0f} px)")
+    for lo, hi in zip(SIZE_BINS[:-1], SIZE_BINS[1:]):
+        m = (size >= lo) & (size < hi)
+        if m.any():
+            print(f"  hands of {lo}-{hi} px: {m.sum()}, median {np.median(err[m]):.3f}")
+    for name, m in (("the label's side", same), ("the other side", ~same)):
+        if m.any():
+            print(f"  read as {name}: {m.sum()}, median {np.median(err[m]):.3f}")
+    print("  median by joint (MP order):", " ".join(f"{v:.2f}" for v in np.median(joint, 0)))
+    for lag in (-2, -1, 1, 2):
+        print(f"  against the labels {lag:+d} frames: median {np.median([r[1].mean() for r in scored(lag)]):.3f}")
+    print("  labels:", "".join(r[2] for r in rows))
+    print("  ours:  ", "".join(r[3] for r in rows))
+
+
+if __name__ == "__main__":
+    main()
