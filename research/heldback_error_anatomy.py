@@ -8,12 +8,15 @@ reliable MediaPipe hand (eval_people's matching) is scored as `handeval people` 
 (mean joint distance / hand size). Prints the median by hand size (px, the side of the
 label's joint box), by joint, for hands given the label's side and the other side, the
 median against the labels of frames f-2 .. f+2, and the label's and our side per matched
-hand in frame order (r / l).
+hand in frame order (r / l). --trace-side N: also every handedness reading the tracks took
+in the first N frames (p_right and its weight: 1 for DetNet's head, less for the finder's
+side), the evidence behind the side they published.
 """
 import argparse
 
 import numpy as np
 
+from handmocap.perception import detector as detector_module
 from handmocap.perception.detector import HandDetector
 from handmocap.training import eval_people, real_data
 from handmocap.training.pose_data import SHARED_DATA
@@ -25,14 +28,25 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("clip")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="HandDetector settings")
+    p.add_argument("--trace-side", type=int, default=0, metavar="N", help="print the side readings of the first N frames")
     args = p.parse_args()
+    readings, frame = [], [0]
+    add_handedness = detector_module.Track.add_handedness
+
+    def logged(track, p_right, weight=1.0):                 # every reading, as the track takes it
+        readings.append((frame[0], track.track_id, float(p_right), weight))
+        return add_handedness(track, p_right, weight)
+    detector_module.Track.add_handedness = logged
     settings = {k: (None if v == "None" else float(v)) for k, v in (a.split("=") for a in args.set)}
     video = next(v for v in real_data.wild_clips(SHARED_DATA, held_back=True) if v.stem == args.clip)
     det = HandDetector.load(**settings)
     det.reset()
     frames = list(eval_people.frames_of_clip(video))
     fps = eval_people.clip_fps(video)
-    outs = [det.process(image, f / fps) for f, (image, *_) in enumerate(frames)]
+    outs = []
+    for f, (image, *_) in enumerate(frames):
+        frame[0] = f
+        outs.append(det.process(image, f / fps))
 
     def scored(lag=0):
         rows = []
@@ -67,6 +81,9 @@ def main():
         print(f"  against the labels {lag:+d} frames: median {np.median([r[1].mean() for r in scored(lag)]):.3f}")
     print("  labels:", "".join(r[2] for r in rows))
     print("  ours:  ", "".join(r[3] for r in rows))
+    for f in range(min(args.trace_side, len(frames))):
+        print(f"  frame {f}: " + ", ".join(f"track {t} p_right {p:.2f} (weight {w:.2f})"
+                                          for g, t, p, w in readings if g == f))
 
 
 if __name__ == "__main__":
