@@ -2,6 +2,7 @@
 
     python research/people_learning_curve.py --keep all  --run-dir runs/detnet/lc_all  [handtrain detnet options]
     python research/people_learning_curve.py --keep half --run-dir runs/detnet/lc_half [handtrain detnet options]
+    python research/people_learning_curve.py --keep none --run-dir runs/detnet/lc_none [handtrain detnet options]
 
 Runs `handtrain detnet` with the real cache's video/wild training crops cut to the clips of
 some of their people: `all` keeps every training person's clips, `half` only those of
