@@ -8,7 +8,7 @@ Runs `handtrain detnet` with the real cache's video/wild training crops cut to t
 some of their people: `all` keeps every training person's clips, `half` only those of
 HALF_OWNERS (6 of the 13 uploaders, 1,230 of the 2,937 crops), `none` none of them. Every
 other real crop (webcams, 11K Hands, scenes, howiema 001), the negatives and the held-back
-people's crops (validation only) stay as they are. Start both runs from a network that never
+people's crops (validation only) stay as they are. Start the runs from a network that never
 saw the wild clips (session 20's, `git show 11aaa76:models/detnet.onnx`), and compare the held-back
 people's crops of the runs' exports (`python -m handmocap.training.quantize_detnet --compare`).
 """
