@@ -30,8 +30,7 @@ def main():
                 continue
             centres = (hands.min(1) + hands.max(1)) / 2
             for box in finder.find(image, threshold=0.2, max_hands=4):
-                dist = np.linalg.norm(centres - (box.box[:2] + box.box[2:]) / 2, axis=1)
-                dist /= [real_data.hand_size(h) for h in hands]
+                dist = np.linalg.norm(centres - (box.box[:2] + box.box[2:]) / 2, axis=1) / real_data.hand_size(hands)
                 k = int(np.argmin(dist))
                 if dist[k] < eval_people.ON_HAND:
                     n += 1

@@ -19,6 +19,7 @@ import numpy as np
 from handmocap.perception import detector as detector_module
 from handmocap.perception.detector import HandDetector
 from handmocap.training import eval_people, real_data
+from handmocap.training.eval_cli import detector_settings
 from handmocap.training.pose_data import SHARED_DATA
 
 SIZE_BINS = (0, 40, 60, 80, 120, 10_000)
@@ -27,7 +28,7 @@ SIZE_BINS = (0, 40, 60, 80, 120, 10_000)
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("clip")
-    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="HandDetector settings")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="HandDetector settings, as handeval's --set")
     p.add_argument("--trace-side", type=int, default=0, metavar="N", help="print the side readings of the first N frames")
     args = p.parse_args()
     readings, frame = [], [0]
@@ -37,7 +38,7 @@ def main():
         readings.append((frame[0], track.track_id, float(p_right), weight))
         return add_handedness(track, p_right, weight)
     detector_module.Track.add_handedness = logged
-    settings = {k: (None if v == "None" else float(v)) for k, v in (a.split("=") for a in args.set)}
+    settings = detector_settings(args.set)
     video = next(v for v in real_data.wild_clips(SHARED_DATA, held_back=True) if v.stem == args.clip)
     det = HandDetector.load(**settings)
     det.reset()

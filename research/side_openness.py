@@ -30,7 +30,7 @@ TIPS = (4, 8, 12, 16, 20)
 
 def openness(uv):
     """(21,2) joints -> mean fingertip distance from the wrist / the joint box's side."""
-    return float(np.linalg.norm(uv[list(TIPS)] - uv[0], axis=1).mean() / max(np.ptp(uv, axis=0).max(), 1e-6))
+    return float(np.linalg.norm(uv[list(TIPS)] - uv[0], axis=1).mean() / max(real_data.hand_size(uv), 1e-6))
 
 
 def main():

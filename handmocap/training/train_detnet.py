@@ -805,7 +805,7 @@ def hand_mask(uv, size=128, forearm=True):
     (21,2) crop px: the palm's polygon, each bone as a line 0.09 x the hand's size thick
     (skeleton.BONES), and (forearm) the forearm as a thick line from the wrist away from
     the middle finger's knuckle; edges feathered over about 3 px."""
-    hand = float(np.ptp(uv, axis=0).max())
+    hand = float(real_data.hand_size(uv))
     mask = np.zeros((size, size), np.uint8)
     pts = lambda a: np.round(a * 16).astype(np.int32)                      # noqa: E731  (4 fractional bits)
     cv2.fillPoly(mask, [pts(uv[list(PALM)])], 255, cv2.LINE_AA, shift=4)
@@ -829,14 +829,13 @@ def hand_occluders(images, uv, hand, share, rng, real, pool):
     labelled where they are, as under the rendered occluders."""
     for i in np.flatnonzero(hand & (rng.random(len(images)) < share)):
         j = pool[rng.integers(len(pool))]
-        own = float(np.ptp(uv[i], axis=0).max())
-        theirs = float(np.ptp(real["uv"][j], axis=0).max())
+        *own_centre, own = real_data.crop_box(uv[i], scale=1.0)          # the joint boxes' centres and sides
+        *src_centre, theirs = real_data.crop_box(real["uv"][j], scale=1.0)
         direction = rng.uniform(0, 2 * np.pi)
-        centre = (uv[i].min(0) + uv[i].max(0)) / 2 + rng.uniform(0.5, 0.9) * own * np.array(
-            [np.cos(direction), np.sin(direction)])
+        centre = np.array(own_centre) + rng.uniform(0.5, 0.9) * own * np.array([np.cos(direction), np.sin(direction)])
         # the occluder's joint box centre goes to `centre`, its size to own x 0.7-1.3
         scale = own * rng.uniform(0.7, 1.3) / max(theirs, 1.0)
-        src_centre = (real["uv"][j].min(0) + real["uv"][j].max(0)) / 2
+        src_centre = np.array(src_centre)
         M = cv2.getRotationMatrix2D(tuple(float(v) for v in src_centre), rng.uniform(0, 360), scale)
         M[:, 2] += centre - src_centre
         if rng.random() < 0.5:                      # mirrored about the new centre: the other side
