@@ -820,3 +820,15 @@ def test_hand_occluders_cover_part_of_the_asked_share_of_hand_crops_with_another
     assert np.median(covered) < 0.4 and covered.max() < 0.8  # skeleton can miss the box's corner)
     np.testing.assert_array_equal(out, hand_occluders(image.copy(), uv, hand, 0.4, np.random.default_rng(2), real,
                                                       np.arange(5)))
+
+
+def test_write_npz_replaces_the_file_whole(tmp_path):
+    """Caches are written through a temporary file and a rename: the file reads back, an
+    older one is replaced, and no temporary file is left beside it."""
+    from handmocap.training.train_detnet import write_npz
+    path = tmp_path / "cache" / "crops_v1.npz"
+    write_npz(path, {"a": np.zeros(3)})
+    write_npz(path, {"a": np.arange(4), "b": np.ones((2, 2), bool)})
+    with np.load(path) as data:
+        assert sorted(data.files) == ["a", "b"] and data["a"].tolist() == [0, 1, 2, 3]
+    assert [p.name for p in path.parent.iterdir()] == ["crops_v1.npz"]

@@ -210,3 +210,32 @@ def test_decimated_draw_mesh_covers_the_full_silhouette():
         iou = (masks[0] & masks[1]).sum() / (masks[0] | masks[1]).sum()
         assert iou > 0.98, f"pose {i}: silhouette IoU {iou:.3f}"
     renderer.release()
+
+
+def test_touching_hands_are_placed_palm_to_palm():
+    """scene.touching_placement: the second palm faces the first (normals opposite) and lies
+    2-3.5 cm from it, slid by at most a few cm, whatever the first hand's placement."""
+    from handmocap.perception.rotations import quat_to_matrix
+    from handmocap.training.synth.scene import PALM_CENTRE, touching_placement
+    rng = np.random.default_rng(0)
+    m = 200
+    R1, c1, p1 = quat_to_matrix(rng.normal(size=(m, 4))), rng.normal(0, 0.05, (m, 3)), rng.normal(0, 0.3, (m, 3))
+    R2, c2, p2 = touching_placement(rng, R1, c1, p1)
+    palm_normal = np.array([0.0, 0.0, -1.0])            # model frame: the palm faces -z
+    np.testing.assert_allclose(np.einsum("nij,j->ni", R1, palm_normal),
+                               -np.einsum("nij,j->ni", R2, palm_normal), atol=1e-9)
+    centre1 = np.einsum("nij,nj->ni", R1, PALM_CENTRE - c1) + p1
+    centre2 = np.einsum("nij,nj->ni", R2, PALM_CENTRE - c2) + p2
+    gap = np.einsum("ni,ni->n", centre2 - centre1, np.einsum("nij,j->ni", R1, palm_normal))
+    assert ((gap >= 0.02 - 1e-9) & (gap <= 0.035 + 1e-9)).all()     # in front of the first palm
+    assert (np.linalg.norm(centre2 - centre1, axis=1) < 0.08).all()
+
+
+def test_touching_second_hands_overlap_the_first():
+    engine = _engine(occluder=0.0, second_hand=1.0, touching=1.0)
+    out = engine.batch(np.random.default_rng(5), 8)
+    engine.release()
+    assert out["other_present"].all()
+    a, b = out["box"], out["other_box"]
+    overlap = np.clip(np.minimum(a[:, 2:], b[:, 2:]) - np.maximum(a[:, :2], b[:, :2]), 0, None).prod(1)
+    assert (overlap > 0.2 * (a[:, 2:] - a[:, :2]).prod(1)).all()

@@ -314,8 +314,7 @@ def build_real_cache(shared, path, seed=0, log=print):
     arrays = {k: np.asarray(v) for k, v in hands.items()}
     arrays["neg"], arrays["neg_held"] = np.asarray(negs, np.uint8).reshape(-1, 128, 128, 3), np.asarray(neg_held)
     arrays["neg_arm"] = np.asarray(neg_arm, bool)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, **arrays)
+    write_npz(path, arrays)
     return arrays
 
 
@@ -399,9 +398,19 @@ def build_part_cache(shared, path, seed=0, log=print):
 def _save_crops(path, kind, crops, held_out):
     """{kind: (m,128,128,3) uint8, kind_held: (m,) bool}, also written to the .npz `path`."""
     arrays = {kind: np.asarray(crops, np.uint8).reshape(-1, 128, 128, 3), f"{kind}_held": np.asarray(held_out, bool)}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, **arrays)
+    write_npz(path, arrays)
     return arrays
+
+
+def write_npz(path, arrays):
+    """np.savez to `path` through a temporary file in the same folder and a rename, so two
+    runs building the same cache at once (or one stopped half-way) never leave a torn file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(tmp, path)
 
 
 def _crop_cache(shared, name, build, what, log):

@@ -55,7 +55,7 @@ def contact_sheet(batch, count, cols=8, scale=1):
 def _config(args):
     return SynthConfig(mode="frame" if args.frames else "crop", size=args.size or (256 if args.frames else 128),
                        backgrounds="procedural" if args.procedural else "auto",
-                       occluder=args.occluder, second_hand=args.second_hand)
+                       occluder=args.occluder, second_hand=args.second_hand, touching=args.touching)
 
 
 def cmd_sheet(args):
@@ -134,6 +134,8 @@ def main(argv=None):
         p.add_argument("--occluder", type=float, default=SynthConfig.occluder, help="probability of occluders")
         p.add_argument("--second-hand", type=float, default=SynthConfig.second_hand,
                        help="probability of a second hand")
+        p.add_argument("--touching", type=float, default=SynthConfig.touching,
+                       help="share of the second hands placed palm to palm with the first (rubbing, clasped)")
 
     p = sub.add_parser("sheet", help="PNG grid of random samples with their labels")
     p.add_argument("-n", type=int, default=64)

@@ -46,6 +46,7 @@ class SynthConfig:
     crop_scale: float = 1.3
     left_fraction: float = 0.5
     second_hand: float = 0.2           # probability of a second hand in the image
+    touching: float = 0.0              # share of second hands placed palm to palm with the first
     occluder: float = 0.35             # probability of 1-2 objects in front of the hand
     backgrounds: str = "auto"          # auto (real when cached / available), procedural
     real_fraction: float = 0.85        # share of real backgrounds when there are any
@@ -136,13 +137,17 @@ class SynthEngine:
         cam_verts[:n] = v1
         cam_normals[:n] = normals[:n] @ np.swapaxes(R1, 1, 2).astype(np.float32)
         xyz1 = to_cam(joints[:n], R1, c1, p1)
-        # -- second hands next to the first
+        # -- second hands next to the first (or, `touching`, palm to palm with it)
         R2 = scene.sample_rotations(rng, m)
         c2 = 0.5 * (joints[n:].min(1) + joints[n:].max(1))
         ang = rng.uniform(0, 2 * np.pi, m)
         dist = rng.uniform(0.09, 0.2, m)
         p2 = p1[has2] + np.stack([np.cos(ang) * dist, np.sin(ang) * dist, rng.normal(0, 0.06, m)], 1)
         p2[:, 2] = np.maximum(p2[:, 2], 0.15)
+        touch = rng.random(m) < cfg.touching
+        if touch.any():
+            R2[touch], c2[touch], p2[touch] = scene.touching_placement(
+                rng, R1[has2][touch], c1[has2][touch], p1[has2][touch])
         cam_verts[n:] = to_cam(verts[n:], R2, c2, p2)
         cam_normals[n:] = normals[n:] @ np.swapaxes(R2, 1, 2).astype(np.float32)
         xyz2 = to_cam(joints[n:], R2, c2, p2)

@@ -45,6 +45,32 @@ def sample_rotations(rng, n, uniform_share=0.1, side_share=0.3):
     return R
 
 
+PALM_CENTRE = np.array([0.0, -0.05, 0.0])       # model frame, m: about the middle of the palm
+
+
+def touching_placement(rng, R1, c1, p1):
+    """Place a second hand palm to palm with the first: (R2, c2, p2) (m,3,3), (m,3), (m,3)
+    for hands whose first hand is placed by R1, c1, p1 (x_cam = R (x - c) + p).
+
+    Two hands rubbing, clasped or interlocking (hand washing, signs like LSM's "limpiar"),
+    which a second hand dropped 9-20 cm away never shows. In the first hand's model frame
+    the second one is turned half a turn about the fingers' axis (its palm faces the
+    first's; for the other side's hand the thumbs then lie on the same side, as in
+    clasped hands), turned about the palm's normal by N(0, 25 deg) (or, for a quarter,
+    U(-100, 100 deg): fingers crossing), slid along the palm by up to a few cm and set
+    2-3.5 cm from it (two palms' thickness). Where the fingers are curled they may pass
+    through the other hand; the renderer's depth test still gives each pixel one hand.
+    """
+    m = len(R1)
+    turn = np.where(rng.random(m) < 0.25, rng.uniform(-1.75, 1.75, m), rng.normal(0, np.radians(25), m))
+    Q = axis_angle_to_matrix(np.pi * np.array([0.0, 1.0, 0.0])[None].repeat(m, 0)) \
+        @ axis_angle_to_matrix(turn[:, None] * np.array([0.0, 0.0, 1.0]))
+    offset = np.stack([rng.uniform(-0.03, 0.03, m), rng.uniform(-0.05, 0.03, m), -rng.uniform(0.02, 0.035, m)], 1)
+    # x_in_first = Q (x - pc) + pc + o, so x_cam = R1 Q (x - c2) + p1 with c2 = pc - Q^T (pc + o - c1)
+    c2 = PALM_CENTRE - np.einsum("nji,nj->ni", Q, PALM_CENTRE + offset - c1)
+    return R1 @ Q, c2, p1.copy()
+
+
 def intrinsics(f, cx, cy):
     """(n,3,3) pinhole K from (n,) focal lengths and principal points, pixels."""
     K = np.zeros((len(f), 3, 3))

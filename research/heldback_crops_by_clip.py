@@ -1,0 +1,41 @@
+"""DetNet files side by side on the held-back people's held-out crops, clip by clip: the median
+2D error / joint-box side of each crop cut around its label, upright and shown as a right
+hand (train_detnet.real_val_set, a perfect finder, tracker and side), so a change aimed
+at some clips' conditions (two hands touching, a sink from above) shows where it lands.
+
+    python research/heldback_crops_by_clip.py models/detnet_int8.onnx runs/detnet/X/final_int8.onnx ...
+"""
+import argparse
+
+import numpy as np
+
+from handmocap.training.quantize_detnet import OnnxNet, heldout_sets
+from handmocap.training.train_detnet import HELD_BACK_SOURCE
+
+
+def relative_error(uv, truth):
+    """(N,) mean joint distance of uv (N,21,2) from truth (N,21,2) / the truth's joint-box side."""
+    return np.linalg.norm(uv - truth, axis=-1).mean(-1) / np.ptp(truth, axis=1).max(-1)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("detnet", nargs="+", help="exported DetNet files (ONNX)")
+    args = p.parse_args()
+    _, crops = heldout_sets(upright=True)
+    source = crops["source"].astype(str)
+    held = np.char.startswith(source, HELD_BACK_SOURCE)
+    # sources: heldback/<clip> and heldback/11k/<person>
+    clip = np.array(["11K Hands photos" if s.startswith(HELD_BACK_SOURCE + "11k/") else s[len(HELD_BACK_SOURCE):]
+                     for s in source])
+    groups = {c: held & (clip == c) for c in sorted(set(clip[held]))}
+    groups["all held-back clips"] = held & (clip != "11K Hands photos")
+    errors = [relative_error(OnnxNet(path).predict(crops["image"])[0][0], crops["uv"]) for path in args.detnet]
+    print("| held-back crops | n | " + " | ".join(args.detnet) + " |")
+    print("|---|---|" + "---|" * len(args.detnet))
+    for name, mask in groups.items():
+        print(f"| {name} | {mask.sum()} | " + " | ".join(f"{np.median(e[mask]):.4f}" for e in errors) + " |")
+
+
+if __name__ == "__main__":
+    main()
