@@ -8,14 +8,10 @@ at some clips' conditions (two hands touching, a sink from above) shows where it
 import argparse
 
 import numpy as np
+from read_fusion import relative_error          # research/ is on the path when run as a script
 
 from handmocap.training.quantize_detnet import OnnxNet, heldout_sets
 from handmocap.training.train_detnet import HELD_BACK_SOURCE
-
-
-def relative_error(uv, truth):
-    """(N,) mean joint distance of uv (N,21,2) from truth (N,21,2) / the truth's joint-box side."""
-    return np.linalg.norm(uv - truth, axis=-1).mean(-1) / np.ptp(truth, axis=1).max(-1)
 
 
 def main():

@@ -26,11 +26,12 @@ from pathlib import Path
 import numpy as np
 
 from handmocap.perception.detector import logit
+from handmocap.training.real_data import hand_size
 
 
 def relative_error(uv, truth):
     """(N,) mean joint distance of uv (N,21,2) from truth (N,21,2) / the truth's joint-box side."""
-    return np.linalg.norm(uv - truth, axis=-1).mean(-1) / np.ptp(truth, axis=1).max(-1)
+    return np.linalg.norm(uv - truth, axis=-1).mean(-1) / hand_size(truth)
 
 
 def projected(uv, xyz, weight):
@@ -63,7 +64,7 @@ def main():
     p.add_argument("--detnet", default=str(Path(__file__).resolve().parents[1] / "models" / "detnet_int8.onnx"))
     args = p.parse_args()
     from handmocap.training.quantize_detnet import OnnxNet, heldout_sets
-    from handmocap.training.train_detnet import HELD_BACK_SOURCE, shown_as_right
+    from handmocap.training.train_detnet import heldout_groups, shown_as_right
     _, crops = heldout_sets(upright=True)
     net = OnnxNet(args.detnet)
     n, size = len(crops["image"]), crops["image"].shape[2]
@@ -75,11 +76,7 @@ def main():
     reads = fused_reads(uv_r, peak_r, head_r, uv_w, peak_w, head_w)
     reads["3D projected"] = projected(uv_r, xyz_r, peak_r)
     reads["2D + 3D (0.25)"] = 0.75 * uv_r + 0.25 * reads["3D projected"]
-    source = crops["source"].astype(str)
-    how, people = np.char.startswith(source, "howiema"), np.char.startswith(source, HELD_BACK_SOURCE)
-    photos = np.char.startswith(source, HELD_BACK_SOURCE + "11k/")
-    groups = {"howiema 001": how, "training videos' tails": ~how & ~people,
-              "held-back clips": people & ~photos, "held-back photos": photos}
+    groups = heldout_groups(crops["source"])
     errors = {rule: relative_error(uv, crops["uv"]) for rule, uv in reads.items()}
     print(f"DetNet {args.detnet}; median error / joint-box side (PCK@0.1 of the crops' mean joint error)")
     print("| crops | n | " + " | ".join(reads) + " |")

@@ -78,7 +78,7 @@ def projection_disagreement(uv, xyz):
 def heldout_crop_cues(detnet_path):
     """Print the share of held-out real crops whose side each cue says right, per group."""
     from handmocap.training.quantize_detnet import OnnxNet, heldout_sets
-    from handmocap.training.train_detnet import HELD_BACK_SOURCE, shown_as_right
+    from handmocap.training.train_detnet import heldout_groups, shown_as_right
     _, crops = heldout_sets(upright=True)
     net = OnnxNet(detnet_path or str(Path(__file__).resolve().parents[1] / "models" / "detnet_int8.onnx"))
     n = len(crops["image"])
@@ -87,11 +87,7 @@ def heldout_crop_cues(detnet_path):
     (uv_w, xyz_w, peak_w), _, head_w = net.predict(flipped)           # the same, a left hand
     cues = {"head": logit(head_r) - logit(head_w), "peak": peak_r.mean(1) - peak_w.mean(1),
             "2d-3d": projection_disagreement(uv_w, xyz_w) - projection_disagreement(uv_r, xyz_r)}
-    source = crops["source"].astype(str)
-    how, people = np.char.startswith(source, "howiema"), np.char.startswith(source, HELD_BACK_SOURCE)
-    photos = np.char.startswith(source, HELD_BACK_SOURCE + "11k/")
-    groups = {"howiema 001": how, "training videos' tails": ~how & ~people,
-              "held-back clips": people & ~photos, "held-back photos": photos}
+    groups = heldout_groups(crops["source"])
     print("| crops | n | " + " | ".join(cues) + " |")
     print("|---|---|" + "---|" * len(cues))
     for name, mask in groups.items():

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from handmocap.perception.detector import logit
 from handmocap.training.detnet import BACKBONES, conv_bn
 from handmocap.training.pose_data import SHARED_DATA
-from handmocap.training.train_detnet import (BatchMaker, HELD_BACK_SOURCE, degrade, load_matching, load_real, load_synth,
+from handmocap.training.train_detnet import (BatchMaker, degrade, heldout_groups, load_matching, load_real, load_synth,
                                              motion_blur, state_from_onnx, synth_dirs, to_torch)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,15 +53,6 @@ class SideNet(nn.Module):
         return self.handedness_head(F.adaptive_avg_pool2d(feat, 4).flatten(1))[:, 0]
 
 
-def groups_of(source):
-    """{group: (N,) bool} of the held-out real crops by their source."""
-    source = source.astype(str)
-    how, people = np.char.startswith(source, "howiema"), np.char.startswith(source, HELD_BACK_SOURCE)
-    photos = np.char.startswith(source, HELD_BACK_SOURCE + "11k/")
-    return {"howiema 001": how, "training videos' tails": ~how & ~people,
-            "held-back clips": people & ~photos, "held-back photos": photos}
-
-
 @torch.no_grad()
 def side_logits(net, images, batch=256):
     """(N,) logits of net on uint8 crops (N,128,128,3)."""
@@ -72,13 +63,12 @@ def side_logits(net, images, batch=256):
     return torch.cat(out).numpy()
 
 
-def detnet_votes(crops, detnet_path):
-    """(N,) DetNet's mirror vote (head logit as a right hand minus flipped) on the held-out crops."""
+def detnet_votes(images, flipped, detnet_path):
+    """(N,) DetNet's mirror vote (head logit on the crops `images` (N,128,128,3) minus on
+    them `flipped`) on the held-out crops."""
     from handmocap.training.quantize_detnet import OnnxNet
     net = OnnxNet(str(detnet_path))
-    _, _, right = net.predict(crops["image"])
-    _, _, flipped = net.predict(np.ascontiguousarray(crops["image"][:, :, ::-1]))
-    return logit(right) - logit(flipped)
+    return logit(net.predict(images)[2]) - logit(net.predict(flipped)[2])
 
 
 def report(it, votes, detnet_vote, groups):
@@ -117,9 +107,9 @@ def main():
         raise SystemExit(f"this study needs the data pack at {SHARED_DATA}")
     maker = BatchMaker(synth, real, share_real=args.share_real, share_neg=0.0, share_left=0.5, upright=60)
     _, crops = heldout_sets(upright=True)
-    groups = groups_of(crops["source"])
-    head_vote = detnet_votes(crops, args.detnet)
+    groups = heldout_groups(crops["source"])
     flipped = np.ascontiguousarray(crops["image"][:, :, ::-1])
+    head_vote = detnet_votes(crops["image"], flipped, args.detnet)
 
     if args.init_detnet:
         state, backbone = state_from_onnx(args.init_detnet, maker.make(512, np.random.default_rng([args.seed, 2**31]))["image"])

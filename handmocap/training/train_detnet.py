@@ -987,6 +987,16 @@ def synth_val_set(path, limit=512):
             "right": (~left).astype(np.float32), "bone_m": bone_m}
 
 
+def heldout_groups(source):
+    """{group: (N,) bool} of real_val_set's crops by their `source` (N,): howiema 001, the
+    training videos' held-out tails, the held-back people's clips and their photos."""
+    source = np.asarray(source).astype(str)
+    how, people = np.char.startswith(source, "howiema"), np.char.startswith(source, HELD_BACK_SOURCE)
+    photos = np.char.startswith(source, HELD_BACK_SOURCE + "11k/")
+    return {"howiema 001": how, "training videos' tails": ~how & ~people,
+            "held-back clips": people & ~photos, "held-back photos": photos}
+
+
 def real_val_set(real):
     """Held-out real crops at the detector's crop (box x 1.3, no jitter), shown as right
     hands: every howiema L8/R8 frame, every held-back person's hand in the cache and every

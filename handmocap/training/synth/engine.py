@@ -144,7 +144,8 @@ class SynthEngine:
         dist = rng.uniform(0.09, 0.2, m)
         p2 = p1[has2] + np.stack([np.cos(ang) * dist, np.sin(ang) * dist, rng.normal(0, 0.06, m)], 1)
         p2[:, 2] = np.maximum(p2[:, 2], 0.15)
-        touch = rng.random(m) < cfg.touching
+        # drawn only when asked, so shards made without --touching keep their seeds' images
+        touch = rng.random(m) < cfg.touching if cfg.touching > 0 else np.zeros(m, bool)
         if touch.any():
             R2[touch], c2[touch], p2[touch] = scene.touching_placement(
                 rng, R1[has2][touch], c1[has2][touch], p1[has2][touch])

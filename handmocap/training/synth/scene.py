@@ -46,6 +46,7 @@ def sample_rotations(rng, n, uniform_share=0.1, side_share=0.3):
 
 
 PALM_CENTRE = np.array([0.0, -0.05, 0.0])       # model frame, m: about the middle of the palm
+HALF_TURN_Y = np.diag([-1.0, 1.0, -1.0])         # half a turn about the fingers' axis (model y)
 
 
 def touching_placement(rng, R1, c1, p1):
@@ -63,8 +64,7 @@ def touching_placement(rng, R1, c1, p1):
     """
     m = len(R1)
     turn = np.where(rng.random(m) < 0.25, rng.uniform(-1.75, 1.75, m), rng.normal(0, np.radians(25), m))
-    Q = axis_angle_to_matrix(np.pi * np.array([0.0, 1.0, 0.0])[None].repeat(m, 0)) \
-        @ axis_angle_to_matrix(turn[:, None] * np.array([0.0, 0.0, 1.0]))
+    Q = HALF_TURN_Y @ axis_angle_to_matrix(turn[:, None] * np.array([0.0, 0.0, 1.0]))
     offset = np.stack([rng.uniform(-0.03, 0.03, m), rng.uniform(-0.05, 0.03, m), -rng.uniform(0.02, 0.035, m)], 1)
     # x_in_first = Q (x - pc) + pc + o, so x_cam = R1 Q (x - c2) + p1 with c2 = pc - Q^T (pc + o - c1)
     c2 = PALM_CENTRE - np.einsum("nji,nj->ni", Q, PALM_CENTRE + offset - c1)
