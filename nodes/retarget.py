@@ -12,7 +12,10 @@ dex-retargeting, e.g. allegro_hand_right; null: no robot for that side; at least
 urdf_dir: the folder the configs' urdf_path is relative to (null: each config's own folder);
 max_ms: the time budget of one hand's optimisation (dex-retargeting's nlopt stops there with
 its best so far; null: until it converges): 4 ms keeps the added latency p95 under 5 ms per
-hand on Allegro and Inspire (benchmarks/bench_retarget.py).
+hand on Allegro and Inspire (benchmarks/bench_retarget.py);
+min_confidence: a hand whose mean joint confidence (pose.hand_certainty) is below this does
+not move its robot, which holds its last command (null: every hand moves it; what a
+threshold keeps and how far off those hands are: README, "Using /hand/pose").
 Every /hand/pose gets one /robot/joint_states message (the robots of the sides in view; of two
 hands of one side the surer one), stamped with the frame's capture time.
 """
@@ -22,12 +25,11 @@ import importlib.util
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
-
 from handmocap.runtime.node import Message, Node, check_number_param, run, spin
+from handmocap.perception.pose import hand_certainty, surest_per_side
 from handmocap.perception.retarget import RobotHand
 
-PARAMS = {"right": None, "left": None, "urdf_dir": None, "max_ms": 4.0}
+PARAMS = {"right": None, "left": None, "urdf_dir": None, "max_ms": 4.0, "min_confidence": None}
 SIDES = ("right", "left")
 
 
@@ -42,19 +44,24 @@ def check_params(params: dict) -> None:
         if value is not None and str(value).endswith((".yml", ".yaml")) and not Path(str(value)).expanduser().is_file():
             raise ValueError(f"retarget param {side}: no such file {value}")
     check_number_param("retarget", "max_ms", params.get("max_ms", PARAMS["max_ms"]), positive=True, null=True)
+    min_confidence = params.get("min_confidence")
+    check_number_param("retarget", "min_confidence", min_confidence, minimum=0, null=True)
+    if min_confidence is not None and min_confidence > 1:
+        raise ValueError(f"retarget param min_confidence: expected 0 to 1 or null, got {min_confidence}")
     urdf_dir = params.get("urdf_dir")
     if urdf_dir is not None and not Path(str(urdf_dir)).expanduser().is_dir():
         raise ValueError(f"retarget param urdf_dir: no such folder {urdf_dir}")
 
 
-def robots_message(robots: dict, names: dict, hands: list[dict]) -> dict:
+def robots_message(robots: dict, names: dict, hands: list[dict], min_confidence: float | None = None) -> dict:
     """The RobotJointStates body for one HandPose message's hands: per side with a robot, the
-    surest hand of that side retargeted. robots: side -> RobotHand; names: side -> config name."""
+    surest hand of that side (pose.surest_per_side) retargeted, unless its hand_certainty is
+    below min_confidence. robots: side -> RobotHand; names: side -> config name."""
     out = []
+    surest = surest_per_side(hands)
     for side, robot in robots.items():
-        mine = [h for h in hands if h["handedness"] == side]
-        if mine:
-            hand = max(mine, key=lambda h: h["score"])
+        hand = surest.get(side)
+        if hand is not None and (min_confidence is None or hand_certainty(hand) >= min_confidence):
             out.append({"handedness": side, "track_id": int(hand["track_id"]), "robot": names[side],
                         "name": robot.joint_names, "position": robot.retarget(hand["xyz"], side)})
     return {"robots": out}
@@ -70,8 +77,8 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     names = {side: Path(str(p[side])).stem for side in robots}
 
     def on_pose(msg: Message) -> None:
-        hands = [h for h in msg.data["hands"] if np.all(np.isfinite(h["xyz"]))]
-        node.publish("/robot/joint_states", robots_message(robots, names, hands), stamp_ns=msg.stamp_ns,
+        body = robots_message(robots, names, msg.data["hands"], p["min_confidence"])
+        node.publish("/robot/joint_states", body, stamp_ns=msg.stamp_ns,
                      frame_id=msg.data["header"]["frame_id"])
     return node, on_pose
 

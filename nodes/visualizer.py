@@ -4,7 +4,7 @@
 A thin loop over handmocap.runtime.frame_sync.FrameSync (pairs each frame with the pose and keypoints
 of its stamp; in a video, a frame the detector skipped gets the previous frame's) and handmocap.perception.overlay.Overlay (the posed hand mesh of every hand, rendered once
 per frame with the camera's K and alpha-blended; the 2D skeleton with per-finger colours;
-handedness, score and track id; a side-view inset). A frame whose pose never comes (no hand
+handedness, mean joint confidence and track id; a side-view inset). A frame whose pose never comes (no hand
 pipeline, or the detector skipped it and no earlier pose is held) is drawn without overlay; a
 pose with no hands too.
 

@@ -116,7 +116,8 @@ def test_keypoints_and_pose_fields(demo):
     _, msgs = demo
     model = HandModel.load()
     f32 = {"keypoints": {"bbox": (4,), "uv": (21, 2), "confidence": (21,), "xyz_rel": (21, 3)},
-           "pose": {"xyz": (21, 3), "root": (3,), "quat": (21, 4), "pose": (16, 3), "beta": (10,), "uv": (21, 2)}}
+           "pose": {"xyz": (21, 3), "root": (3,), "quat": (21, 4), "pose": (16, 3), "beta": (10,), "uv": (21, 2),
+                    "confidence": (21,)}}
     keypoints = {m["header"]["stamp_ns"]: m for m, _ in msgs["/hand/keypoints"]}
     for m, _ in msgs["/hand/keypoints"]:
         assert (m["width"], m["height"]) == (W, H) and m["header"]["frame_id"] == "camera"
@@ -135,6 +136,7 @@ def test_keypoints_and_pose_fields(demo):
             # the pose belongs to a hand the detector published in that frame, and keeps its 2D
             assert h["track_id"] in kp and h["handedness"] == kp[h["track_id"]]["handedness"]
             np.testing.assert_array_equal(h["uv"], kp[h["track_id"]]["uv"])
+            np.testing.assert_array_equal(h["confidence"], kp[h["track_id"]]["confidence"])
             np.testing.assert_allclose(np.linalg.norm(h["quat"], axis=-1), 1.0, atol=1e-5)
             np.testing.assert_allclose(h["root"], h["xyz"][ROOT], atol=1e-6)
             if h["translation_valid"]:

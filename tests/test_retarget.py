@@ -9,6 +9,7 @@ from conftest import DEMO_CLIP, ROOT, handlaunch
 from handmocap.runtime import codec
 from handmocap.runtime.bag import iter_messages
 from handmocap.perception.hand_model import HandModel
+from handmocap.perception.pose import surest_per_side
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("dex_retargeting") is None,
                                 reason="dex-retargeting not installed (pip install -e '.[retarget]')")
@@ -44,6 +45,9 @@ def test_a_missing_config_urdf_or_library_is_one_clear_error():
         retarget.check_params({"right": "nowhere/robot.yml"})
     with pytest.raises(ValueError, match="urdf_dir: no such folder"):
         retarget.check_params({"right": str(TOY), "urdf_dir": "/nonexistent"})
+    for bad in (-0.1, 1.5, "high"):
+        with pytest.raises(ValueError, match="min_confidence"):
+            retarget.check_params({"right": str(TOY), "min_confidence": bad})
     from handmocap.perception.retarget import RobotHand
     with pytest.raises(FileNotFoundError, match="allegro_hand_right"):
         RobotHand("no_such_robot")
@@ -68,9 +72,33 @@ def test_teleop_graph_retargets_every_pose(tmp_path):
         sides = {h["handedness"] for h in pose["hands"]}
         assert {r["handedness"] for r in robot["robots"]} == sides
         for r in robot["robots"]:
-            hand = max((h for h in pose["hands"] if h["handedness"] == r["handedness"]), key=lambda h: h["score"])
+            hand = surest_per_side(pose["hands"])[r["handedness"]]
             expected = offline[r["handedness"]].retarget(hand["xyz"], r["handedness"])
             np.testing.assert_allclose(r["position"], expected, atol=1e-6)
             assert r["name"] == offline["right"].joint_names and r["track_id"] == hand["track_id"]
             moved += 1
     assert moved >= 60
+
+
+def test_the_surer_hand_moves_the_robot_and_an_unsure_one_leaves_it():
+    """Of two right hands the one with the higher mean joint confidence is retargeted (not
+    the presence score, which is 1.0 on most hands); with min_confidence a hand below it
+    leaves its side out of the message (the robot holds its last command); a HandPose
+    recorded before `confidence` existed is ranked by its score."""
+    from handmocap.nodes import retarget
+    from handmocap.perception.retarget import RobotHand
+    hand = lambda tid, curl, peaks, side="right": {  # noqa: E731
+        "track_id": tid, "handedness": side, "score": 1.0, "xyz": posed(curl), "quat": np.tile([1.0, 0, 0, 0], (21, 1)),
+        "confidence": np.full(21, peaks, np.float32)}
+    robots, names = {"right": RobotHand(TOY)}, {"right": "toy"}
+    sure, unsure = hand(3, 1.0, 0.8), hand(7, 0.0, 0.3)
+    body = retarget.robots_message(robots, names, [unsure, sure])
+    assert [r["track_id"] for r in body["robots"]] == [3]
+    assert retarget.robots_message(robots, names, [unsure], min_confidence=0.5)["robots"] == []
+    assert [r["track_id"] for r in retarget.robots_message(robots, names, [unsure, sure], 0.5)["robots"]] == [3]
+    old = [{k: v for k, v in h.items() if k != "confidence"} for h in (unsure, sure)]
+    old[0]["score"], old[1]["score"] = 0.9, 0.6
+    assert [r["track_id"] for r in retarget.robots_message(robots, names, old)["robots"]] == [7]
+    bad = hand(9, 0.5, 0.9)
+    bad["xyz"] = np.full((21, 3), np.nan)
+    assert [r["track_id"] for r in retarget.robots_message(robots, names, [bad, unsure])["robots"]] == [7]

@@ -38,7 +38,7 @@ def source_bag(path):
             h = codec.header(i, stamp_ns=stamp)
             frame = np.full((H, W, 3), 60, np.uint8)
             cv2.circle(frame, (10 + 5 * i, 24), 8, (0, 0, 255), -1)
-            weaker = {**extra[i][1], "score": 0.5}
+            weaker = {**extra[i][1], "score": 0.5, "confidence": extra[i][1]["confidence"] * 0.5}
             msgs = {
                 "Image": {"header": h, "encoding": "bgr8", "width": W, "height": H, "data": frame},
                 "CameraInfo": {"header": h, "width": W, "height": H, "K": K, "distortion": np.zeros(5)},

@@ -20,7 +20,7 @@ import numpy as np
 
 from handmocap.runtime.camera_info import project
 from handmocap.perception.hand_model import HandModel
-from handmocap.perception.pose import hand_mesh
+from handmocap.perception.pose import hand_certainty, hand_mesh
 from handmocap.perception.skeleton import BONES
 
 # one colour per finger (BGR): thumb, index, middle, ring, little
@@ -67,9 +67,10 @@ def draw_points(img, uv, colour=(255, 255, 255), radius=2):
     return img
 
 
-def hand_label(handedness: str, score: float, track_id: int) -> str:
-    """'right 0.93 #3': handedness, presence score, track id."""
-    return f"{handedness} {score:.2f} #{track_id}"
+def hand_label(hand: dict) -> str:
+    """'right 0.73 #3' for a HandKeypoints / HandPose hand: handedness, how sure the detector
+    is of its joints (pose.hand_certainty: the mean heatmap peak), track id."""
+    return f"{hand['handedness']} {hand_certainty(hand):.2f} #{int(hand['track_id'])}"
 
 
 def draw_label(img, text, anchor, colour=(255, 255, 255), scale=0.5):
@@ -186,7 +187,7 @@ class Overlay:
             uv = uv[np.all(np.isfinite(uv), axis=1)]
             best = pose_by_track.get(hand["track_id"], hand)
             if len(uv):
-                draw_label(out, hand_label(best["handedness"], float(best["score"]), int(best["track_id"])),
+                draw_label(out, hand_label(best),
                            (uv[:, 0].min(), uv[:, 1].min() - 6))
         size = self.side_size(w, h)
         if size >= 32:

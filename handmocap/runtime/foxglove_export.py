@@ -27,6 +27,8 @@ from mcap.writer import CompressionType, Writer
 
 from handmocap.runtime import codec, foxglove_schemas as fs
 from handmocap.runtime.bag import bag_info, iter_messages
+from handmocap.perception.overlay import hand_label
+from handmocap.perception.pose import hand_certainty
 from handmocap.perception.skeleton import BONES
 
 JPEG_QUALITY = 90
@@ -104,7 +106,7 @@ def keypoints_to_annotations(msg: dict) -> dict:
                        "thickness": 5.0})
         x0, y0 = (float(v) for v in np.asarray(hand["bbox"])[:2])
         texts.append({"timestamp": t, "position": {"x": x0, "y": max(0.0, y0 - 4.0)},
-                      "text": f"{hand['handedness']} {hand['score']:.2f} #{hand['track_id']}",
+                      "text": hand_label(hand),
                       "font_size": 14.0, "text_color": color,
                       "background_color": {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.5}})
     return {"circles": [], "points": points, "texts": texts}
@@ -132,7 +134,8 @@ def pose_to_scene_update(msg: dict) -> dict:
             "timestamp": t, "frame_id": frame, "id": f"hand/{hand['track_id']}",
             "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": False,
             "metadata": [{"key": "handedness", "value": hand["handedness"]},
-                         {"key": "score", "value": f"{hand['score']:.3f}"}],
+                         {"key": "score", "value": f"{hand['score']:.3f}"},
+                         {"key": "confidence", "value": f"{hand_certainty(hand):.3f}"}],
             "spheres": spheres,
             "lines": [{"type": fs.LINE_TYPE["LINE_LIST"], "pose": identity, "thickness": 3.0,
                        "scale_invariant": True, "points": bone_pts, "color": color}],

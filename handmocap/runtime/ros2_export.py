@@ -37,6 +37,7 @@ from handmocap.runtime.bag import iter_messages
 from handmocap.runtime.frames import compressed
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.joint_limits import JointLimits
+from handmocap.perception.pose import surest_per_side
 from handmocap.perception.rotations import mirror_quat, quat_multiply, quat_conjugate, quat_rotate
 from handmocap.perception.skeleton import JOINT_NAMES, NON_TIP_JOINTS, PARENTS
 
@@ -145,17 +146,6 @@ class Ros2Messages:
     def robot_joint_state(self, robot, stamp_ns, frame_id):
         return self.T("sensor_msgs/msg/JointState", header=self.header(stamp_ns, frame_id), name=list(robot["name"]),
                       position=np.asarray(robot["position"], np.float64), velocity=np.zeros(0), effort=np.zeros(0))
-
-
-def surest_per_side(hands):
-    """{side: the highest-scored hand of that side} of a HandPose message's hands."""
-    out = {}
-    for hand in hands:
-        if np.all(np.isfinite(hand["xyz"])) and np.all(np.isfinite(hand["quat"])):
-            best = out.get(hand["handedness"])
-            if best is None or hand["score"] > best["score"]:
-                out[hand["handedness"]] = hand
-    return out
 
 
 def export_ros2(src: Path, dst: Path, topics=None) -> dict:
