@@ -3,10 +3,10 @@ project never trained on? A robot user would drop the hands (or joints) it flags
 
     python research/confidence_vs_error.py [--detnet F] [--jitter-seed S]
 
-Tracks the held-back clips (real_data.WILD_HELD_BACK) as `handeval people` does and, for
-every output hand on a reliable MediaPipe hand, keeps its mean joint confidence (the
-heatmap peaks: the message's `confidence`, mean over the 21 joints), its `score` (presence)
-and its error (eval_people: mean joint distance / hand size; per joint too). Prints:
+Tracks the held-back clips (real_data.WILD_HELD_BACK) and scores them as `handeval people`
+does (eval_people.score_frames), keeping for every output hand on a reliable MediaPipe hand
+its joint confidences (the heatmap peaks: the message's `confidence`; their mean per hand),
+its `score` (presence) and its error (mean joint distance / hand size; per joint too). Prints:
 - the hands kept by a confidence threshold: share kept, median error, PCK@0.1, side right;
 - the same by score;
 - per joint: the joints' error by quartile of their own confidence;
@@ -18,25 +18,11 @@ import argparse
 import numpy as np
 
 from handmocap.training import real_data
-from handmocap.training.eval_people import ON_HAND, PCK_AT, clip_fps, frames_of_clip, nearest_label
-
-
-def tracked_hands(detector, frames, fps):
-    """(confidence (n,21), score (n,), joint error / hand size (n,21), right side (n,) bool)
-    of the output hands that lie on a reliable MediaPipe hand, over one clip's frames."""
-    detector.reset()
-    rows = []
-    for f, (image, labels, reliable, sides) in enumerate(frames):
-        for h in detector.process(image, f / fps):
-            k, dist = nearest_label(h["uv"], labels)
-            if dist < ON_HAND and reliable[k]:
-                err = np.linalg.norm(h["uv"] - labels[k], axis=-1) / real_data.hand_size(labels[k])
-                rows.append((h["confidence"], h["score"], err, h["handedness"] == sides[k]))
-    return rows
+from handmocap.training.eval_people import PCK_AT, clip_fps, frames_of_clip, merge, score_frames
 
 
 def kept_table(name, key, thresholds, joint_err, right):
-    """Markdown rows: hands with key >= each threshold."""
+    """Markdown rows: hands with key (n,) >= each threshold; joint_err (n,21), right (n,) bool."""
     err = joint_err.mean(1)
     out = [f"| {name} ≥ | hands kept % | median | PCK@0.1 | side right % | median of the hands left out |",
            "|---|---|---|---|---|---|"]
@@ -57,22 +43,19 @@ def main():
     args = p.parse_args()
     from handmocap.perception.detector import HandDetector
     detector = HandDetector.load(**({"detnet_path": args.detnet} if args.detnet else {}))
-    rows, clip_of = [], []
     videos = real_data.wild_clips(held_back=True)
-    for c, video in enumerate(videos):
-        rows += tracked_hands(detector, frames_of_clip(video, args.jitter_seed), clip_fps(video))
-        clip_of += [c] * (len(rows) - len(clip_of))
-        print(f"  {video.stem}: {len(rows)} hands so far", flush=True)
-    clip_of = np.array(clip_of)
-    conf = np.array([r[0] for r in rows])           # (n,21)
-    score = np.array([r[1] for r in rows])          # (n,)
-    joint_err = np.array([r[2] for r in rows])      # (n,21)
-    right = np.array([r[3] for r in rows])          # (n,)
-    mean_conf = conf.mean(1)
-    print(f"\nheld-back clips: {len(rows)} scored hands; mean confidence quartiles "
+    clips = []
+    for video in videos:
+        clips.append(score_frames(detector, frames_of_clip(video, args.jitter_seed), fps=clip_fps(video)))
+        print(f"  {video.stem}: {len(clips[-1]['err'])} hands", flush=True)
+    clip_of = np.concatenate([np.full(len(s["err"]), c) for c, s in enumerate(clips)])
+    s = merge(clips)
+    conf, score, joint_err, err, right = s["confidence"], s["presence"], s["joint_err"], s["err"], s["right_side"]
+    mean_conf = conf.mean(1)                        # (n,) a hand's mean joint confidence
+    print(f"\nheld-back clips: {len(err)} scored hands; mean confidence quartiles "
           f"{np.round(np.quantile(mean_conf, [0.25, 0.5, 0.75]), 3).tolist()}; "
-          f"Spearman (mean confidence, error) {spearman(mean_conf, joint_err.mean(1)):.2f}, "
-          f"(score, error) {spearman(score, joint_err.mean(1)):.2f}\n")
+          f"Spearman (mean confidence, error) {spearman(mean_conf, err):.2f}, "
+          f"(score, error) {spearman(score, err):.2f}\n")
     print("\n".join(kept_table("mean confidence", mean_conf, [0.0, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8], joint_err, right)))
     print()
     print("\n".join(kept_table("score", score, np.quantile(score, [0, 0.25, 0.5, 0.75, 0.9]), joint_err, right)))
@@ -83,7 +66,6 @@ def main():
         print(f"| {lo:.2f}–{hi:.2f} | {m.sum()} | {np.median(joint_err[m]):.3f} | {(joint_err[m] <= PCK_AT).mean():.3f} |")
     print(f"\n| clip | hands | Spearman (mean confidence, error) | median error: confidence ≥ {args.threshold} (share) "
           f"| below |\n|---|---|---|---|---|")
-    err = joint_err.mean(1)
     for c, video in enumerate(videos):
         m = clip_of == c
         if m.sum() < 10:

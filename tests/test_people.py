@@ -81,8 +81,12 @@ def test_scoring_counts_found_false_and_wrong_sides():
         ok, bgr = cap.read()
         frames.append((bgr, truth["uv"][i][None], np.ones(1, bool), [str(truth["handedness"])]))
     det = HandDetector.load()
-    m = eval_people.summary(eval_people.score_frames(det, frames))
+    s = eval_people.score_frames(det, frames)
+    m = eval_people.summary(s)
     assert m["found"] >= 0.9 and m["false_per_frame"] == 0.0
+    # each scored hand keeps the detector's joint confidences and presence
+    assert s["confidence"].shape == (len(s["err"]), 21) and np.all((s["confidence"] >= 0) & (s["confidence"] <= 1))
+    assert s["presence"].shape == (len(s["err"]),) and np.all((s["presence"] >= 0) & (s["presence"] <= 1))
     assert m["median_err"] < 0.15 and 0.5 < m["pck"] <= 1.0
     assert m["side"] == 1.0 and np.isnan(m["wrong_side_ratio"])
     other = {"right": "left", "left": "right"}[str(truth["handedness"])]
@@ -94,10 +98,14 @@ def test_scoring_counts_found_false_and_wrong_sides():
 
 def test_merge_and_summary_arithmetic():
     a = {"frames": 2, "labelled": 3, "found": 2, "false": 1, "err": np.array([0.1, 0.3]),
-         "joint_err": np.full((2, 21), 0.05), "right_side": np.array([True, False])}
+         "joint_err": np.full((2, 21), 0.05), "right_side": np.array([True, False]),
+         "confidence": np.full((2, 21), 0.6), "presence": np.ones(2)}
     b = {"frames": 2, "labelled": 1, "found": 1, "false": 0, "err": np.array([0.1]),
-         "joint_err": np.full((1, 21), 0.2), "right_side": np.array([True])}
-    m = eval_people.summary(eval_people.merge([a, b]))
+         "joint_err": np.full((1, 21), 0.2), "right_side": np.array([True]),
+         "confidence": np.full((1, 21), 0.3), "presence": np.array([0.9])}
+    merged = eval_people.merge([a, b])
+    assert merged["confidence"].shape == (3, 21) and merged["presence"].tolist() == [1.0, 1.0, 0.9]
+    m = eval_people.summary(merged)
     assert m["found"] == 0.75 and m["false_per_frame"] == 0.25 and m["scored"] == 3
     assert m["pck"] == pytest.approx(2 / 3) and m["side"] == pytest.approx(2 / 3)
     assert m["wrong_side_ratio"] == pytest.approx(0.3 / 0.1)

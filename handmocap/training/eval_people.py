@@ -108,10 +108,11 @@ def score_outputs(frames, stills=False):
     """Score a detector's output hands (HandKeypoints hands: track_id, uv, handedness) per
     frame of `frames` ((output hands, MediaPipe hands (k,21,2), reliable (k,), sides [k])):
     a dict of counts and per-hand arrays (err: mean joint error / hand size, joint_err
-    (n,21) / hand size, right_side bool, shake and label_shake: see shake(), ours per track
-    and MediaPipe's; none for stills)."""
+    (n,21) / hand size, right_side bool, confidence (n,21) and presence (n,): the output
+    hand's joint confidences and score, NaN where it has none; shake and label_shake: see
+    shake(), ours per track and MediaPipe's; none for stills)."""
     out = {"frames": 0, "labelled": 0, "found": 0, "false": 0, "err": [], "joint_err": [], "right_side": [],
-           "shake": [], "label_shake": []}
+           "confidence": [], "presence": [], "shake": [], "label_shake": []}
     tracks, previous = {}, []
     for found, hands, reliable, sides in frames:
         out["frames"] += 1
@@ -134,10 +135,13 @@ def score_outputs(frames, stills=False):
                 out["err"].append(joint.mean())
                 out["joint_err"].append(joint)
                 out["right_side"].append(h["handedness"] == sides[k])
+                out["confidence"].append(h.get("confidence", np.full(21, np.nan)))
+                out["presence"].append(h.get("score", np.nan))
         out["found"] += len(hit)
-    for k in ("err", "right_side", "shake", "label_shake"):
+    for k in ("err", "right_side", "presence", "shake", "label_shake"):
         out[k] = np.asarray(out[k])
-    out["joint_err"] = np.asarray(out["joint_err"]).reshape(-1, 21)
+    for k in ("joint_err", "confidence"):
+        out[k] = np.asarray(out[k], dtype=float).reshape(-1, 21)
     return out
 
 
@@ -161,9 +165,8 @@ def merge(results):
     """One score_frames-like dict of several."""
     return {"frames": sum(r["frames"] for r in results), "labelled": sum(r["labelled"] for r in results),
             "found": sum(r["found"] for r in results), "false": sum(r["false"] for r in results),
-            "err": np.concatenate([r["err"] for r in results]),
-            "joint_err": np.concatenate([r["joint_err"] for r in results]),
-            "right_side": np.concatenate([r["right_side"] for r in results]),
+            **{k: np.concatenate([r[k] for r in results])
+               for k in ("err", "joint_err", "right_side", "confidence", "presence")},
             **{k: np.concatenate([r.get(k, np.zeros(0)) for r in results]) for k in ("shake", "label_shake")}}
 
 
