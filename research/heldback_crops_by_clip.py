@@ -11,7 +11,7 @@ import numpy as np
 from read_fusion import relative_error          # research/ is on the path when run as a script
 
 from handmocap.training.quantize_detnet import OnnxNet, heldout_sets
-from handmocap.training.train_detnet import HELD_BACK_SOURCE
+from handmocap.training.train_detnet import HELD_BACK_SOURCE, heldout_groups
 
 
 def main():
@@ -19,13 +19,10 @@ def main():
     p.add_argument("detnet", nargs="+", help="exported DetNet files (ONNX)")
     args = p.parse_args()
     _, crops = heldout_sets(upright=True)
-    source = crops["source"].astype(str)
-    held = np.char.startswith(source, HELD_BACK_SOURCE)
-    # sources: heldback/<clip> and heldback/11k/<person>
-    clip = np.array(["11K Hands photos" if s.startswith(HELD_BACK_SOURCE + "11k/") else s[len(HELD_BACK_SOURCE):]
-                     for s in source])
-    groups = {c: held & (clip == c) for c in sorted(set(clip[held]))}
-    groups["all held-back clips"] = held & (clip != "11K Hands photos")
+    held = heldout_groups(crops["source"])
+    clips, source = held["held-back clips"], crops["source"].astype(str)      # a clip's crops: heldback/<clip>
+    groups = {name[len(HELD_BACK_SOURCE):]: clips & (source == name) for name in sorted(set(source[clips]))}
+    groups["11K Hands photos"], groups["all held-back clips"] = held["held-back photos"], clips
     errors = [relative_error(OnnxNet(path).predict(crops["image"])[0][0], crops["uv"]) for path in args.detnet]
     print("| held-back crops | n | " + " | ".join(args.detnet) + " |")
     print("|---|---|" + "---|" * len(args.detnet))
