@@ -19,7 +19,7 @@ from handmocap.training import real_data
 from handmocap.perception.detector import hand_angle, logit
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.training.quantize_detnet import OnnxNet
-from handmocap.training.train_detnet import CTX, CTX_SCALE, load_real
+from handmocap.training.detnet_data import CTX, CTX_SCALE, load_real
 
 
 def heldout_crops(real):

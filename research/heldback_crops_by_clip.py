@@ -1,6 +1,6 @@
 """DetNet files side by side on the held-back people's held-out crops, clip by clip: the median
 2D error / joint-box side of each crop cut around its label, upright and shown as a right
-hand (train_detnet.real_val_set, a perfect finder, tracker and side), so a change aimed
+hand (detnet_eval.real_val_set, a perfect finder, tracker and side), so a change aimed
 at some clips' conditions (two hands touching, a sink from above) shows where it lands.
 
     python research/heldback_crops_by_clip.py models/detnet_int8.onnx runs/detnet/X/final_int8.onnx ...
@@ -11,7 +11,8 @@ import numpy as np
 from read_fusion import relative_error          # research/ is on the path when run as a script
 
 from handmocap.training.quantize_detnet import OnnxNet, heldout_sets
-from handmocap.training.train_detnet import HELD_BACK_SOURCE, heldout_groups
+from handmocap.training.detnet_data import HELD_BACK_SOURCE
+from handmocap.training.detnet_eval import heldout_groups
 
 
 def main():

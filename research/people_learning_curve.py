@@ -18,6 +18,7 @@ import sys
 import numpy as np
 
 from handmocap.training import train_cli, train_detnet
+from handmocap.training.detnet_data import WILD_SOURCE
 
 # uploaders of the video/wild training clips kept by --keep half (about half the crops and people)
 HALF_OWNERS = ("Criminal-9527", "rubenwo", "jthawme", "klyct", "DUN-official", "iwilare")
@@ -27,7 +28,7 @@ def kept_rows(source, held, keep):
     """(N,) bool: the real cache rows a run keeps; every row but the video/wild training crops
     of the people `keep` drops."""
     source = np.asarray(source).astype(str)
-    wild = np.char.startswith(source, train_detnet.WILD_SOURCE) & ~np.asarray(held, bool)
+    wild = np.char.startswith(source, WILD_SOURCE) & ~np.asarray(held, bool)
     if keep == "all":
         return np.ones(len(source), bool)
     if keep == "none":
@@ -51,7 +52,7 @@ def main():
         for k in ("image", "uv", "right", "weight", "held", "source", "xyz", "has_3d"):
             if k in real:
                 real[k] = real[k][rows]
-        wild = np.char.startswith(real["source"].astype(str), train_detnet.WILD_SOURCE) & ~real["held"]
+        wild = np.char.startswith(real["source"].astype(str), WILD_SOURCE) & ~real["held"]
         print(f"--keep {args.keep}: {int(wild.sum())} video/wild training crops of {len(real['held'])} rows")
         return real
 

@@ -1,6 +1,6 @@
 """Fusing DetNet's reads of a crop instead of choosing one: the crop read both ways (as a
 right hand and mirrored), and the 2D joints with the 3D joints' projection. What each
-would do to the 2D error, on DetNet's held-out real crops (train_detnet.real_val_set,
+would do to the 2D error, on DetNet's held-out real crops (detnet_eval.real_val_set,
 upright as the detector turns them).
 
     python research/read_fusion.py [--detnet F]
@@ -64,7 +64,7 @@ def main():
     p.add_argument("--detnet", default=str(Path(__file__).resolve().parents[1] / "models" / "detnet_int8.onnx"))
     args = p.parse_args()
     from handmocap.training.quantize_detnet import OnnxNet, heldout_sets
-    from handmocap.training.train_detnet import heldout_groups, shown_as_right
+    from handmocap.training.detnet_eval import heldout_groups, shown_as_right
     _, crops = heldout_sets(upright=True)
     net = OnnxNet(args.detnet)
     n, size = len(crops["image"]), crops["image"].shape[2]

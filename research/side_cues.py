@@ -20,7 +20,7 @@ These are evaluation splits: read them, never tune on them.
 
     python research/side_cues.py --heldout-crops [--detnet F]
 
-The same question on DetNet's held-out real crops (train_detnet.real_val_set, upright as the
+The same question on DetNet's held-out real crops (detnet_eval.real_val_set, upright as the
 detector turns them): howiema 001, the training videos' tails and the held-back people's
 clips and photos, each crop read as the right side and mirrored the wrong way. Cues: the
 head (as read minus mirrored, logits), the heatmap peaks (as above) and `2d-3d`: how well
@@ -78,7 +78,7 @@ def projection_disagreement(uv, xyz):
 def heldout_crop_cues(detnet_path):
     """Print the share of held-out real crops whose side each cue says right, per group."""
     from handmocap.training.quantize_detnet import OnnxNet, heldout_sets
-    from handmocap.training.train_detnet import heldout_groups, shown_as_right
+    from handmocap.training.detnet_eval import heldout_groups, shown_as_right
     _, crops = heldout_sets(upright=True)
     net = OnnxNet(detnet_path or str(Path(__file__).resolve().parents[1] / "models" / "detnet_int8.onnx"))
     n = len(crops["image"])

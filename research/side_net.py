@@ -10,12 +10,12 @@ might do better. This trains one: the `fast` backbone (0.16 M parameters, no wei
 with DetNet; or, with --init-detnet, a copy of DetNet's backbone and head that from then on
 learns the side alone) and a head that reads a coarse 4x4 map (chirality is layout: DetNet's own head
 notes a global mean stays at chance), on the crops DetNet trains on, half shown as left
-hands (train_detnet.BatchMaker: rendered crops and every training person's real crops,
+hands (detnet_batches.BatchMaker: rendered crops and every training person's real crops,
 turned upright +-60 degrees, colour jitter, motion blur and degradation), binary
 cross-entropy on the shown side.
 
 It is scored as research/side_cues.py scores DetNet's head: on the held-out real crops
-(train_detnet.real_val_set, upright), each read as it is (a right hand) and flipped (a
+(detnet_eval.real_val_set, upright), each read as it is (a right hand) and flipped (a
 left one); the vote says right when the net's logit on the crop exceeds its logit on the
 flip. Printed per group beside DetNet's head, every --val-every iterations.
 """
@@ -31,8 +31,10 @@ import torch.nn.functional as F
 from handmocap.perception.detector import logit
 from handmocap.training.detnet import BACKBONES, conv_bn
 from handmocap.training.pose_data import SHARED_DATA
-from handmocap.training.train_detnet import (BatchMaker, degrade, heldout_groups, load_matching, load_real, load_synth,
-                                             motion_blur, state_from_onnx, synth_dirs, to_torch)
+from handmocap.training.detnet_batches import BatchMaker, degrade, motion_blur, to_torch
+from handmocap.training.detnet_data import load_real, load_synth, synth_dirs
+from handmocap.training.detnet_eval import heldout_groups
+from handmocap.training.detnet_init import load_matching, state_from_onnx
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -23,7 +23,7 @@ from handmocap.perception.hand_model import HandModel
 from handmocap.training.quantize_detnet import OnnxNet, quarter_turned
 from handmocap.perception.skeleton import normalize_joints
 from handmocap.training.synth.dataset import SynthDataset
-from handmocap.training.train_detnet import shown_as_right
+from handmocap.training.detnet_eval import shown_as_right
 
 
 def pairs(detnet, shard, model, batch=128):

@@ -1,5 +1,5 @@
 """Export a DetNet file again with this code's read-out (`detnet.read_out`, `export_onnx`):
-the network recovered from the file (`train_detnet.state_from_onnx`), so its maps stay as
+the network recovered from the file (`detnet_init.state_from_onnx`), so its maps stay as
 they were and only the read-out inside the graph changes.
 
     python scripts/reexport_detnet.py models/detnet.onnx [--out models/detnet.onnx] [--refine softmax]
@@ -15,7 +15,7 @@ import numpy as np
 
 from handmocap.perception.detector import DetNetRunner
 from handmocap.training.detnet import REFINE, DetNet, export_onnx
-from handmocap.training.train_detnet import state_from_onnx
+from handmocap.training.detnet_init import state_from_onnx
 
 
 def crops(n=64, seed=0):

