@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-MP_PYTHON = Path("/tmp/mpenv/bin/python")
+from handmocap.training.eval_cli import REFERENCE_PYTHON as MP_PYTHON  # noqa: E402  (HANDMOCAP_MEDIAPIPE_PYTHON)
 REAL_CLIPS = ("video/webcam/lujunwang_hand.mp4", "video/wild/Criminal-9527__hands.mp4")   # one hand, two hands
 MAX_FRAMES = 200
 
@@ -50,7 +50,7 @@ def mediapipe_ms(video, max_hands, repeat=1):
     """MediaPipe's tracking mode on the video's first MAX_FRAMES frames (a subprocess in
     /tmp/mpenv): its JSON line (median_ms, hands_per_frame, ...) or a string saying why not."""
     if not MP_PYTHON.is_file():
-        return "not measured: /tmp/mpenv absent"
+        return f"not measured: {MP_PYTHON} absent (see scripts/mediapipe_reference.py; HANDMOCAP_MEDIAPIPE_PYTHON names another)"
     r = subprocess.run([str(MP_PYTHON), str(ROOT / "scripts" / "mediapipe_reference.py"), "--bench", str(video),
                         "--frames", str(MAX_FRAMES), "--max-hands", str(max_hands),
                         "--repeat", str(repeat)], capture_output=True, text=True)

@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT))
 from handmocap.training import eval_people, real_data  # noqa: E402
 from handmocap.training.pose_data import SHARED_DATA  # noqa: E402
 
-MP_PYTHON = Path("/tmp/mpenv/bin/python")
+from handmocap.training.eval_cli import REFERENCE_PYTHON as MP_PYTHON  # noqa: E402  (HANDMOCAP_MEDIAPIPE_PYTHON)
 
 
 def mediapipe_hands(folder, out):

