@@ -8,7 +8,8 @@ every_frame:=true every image in order (offline processing of a recording); publ
 HandKeypoints per processed image with its stamp; `hands` may be empty.
 
 Params: detnet (ONNX path, or "int8" (default, models/detnet_int8.onnx) / "float32"
-(models/detnet.onnx)), finder (ONNX path, default
+(models/detnet.onnx) / "lite0" (models/detnet_lite0_int8.onnx: pretrained features, better
+keypoints on strangers, a worse side)), finder (ONNX path, default
 models/finder.onnx; "none": try the centre square of the frame), grey_finder (the finder run on
 grey frames, a mono or IR camera's: ONNX path, default models/finder_grey.onnx with the bundled
 finder; "none": `finder` on every frame), grey_detnet (the DetNet run on grey frames: ONNX path,
@@ -51,7 +52,7 @@ from typing import Callable
 
 import numpy as np
 
-from handmocap.perception.detector import CROP, DETNET_GREY, DetectorSettings, HandDetector, detnet_path
+from handmocap.perception.detector import CROP, DETNET_GREY, DETNET_NAMES, DetectorSettings, HandDetector, detnet_path
 from handmocap.runtime.frames import frame_bgr
 from handmocap.perception.hand_finder import DEFAULT_PATH as FINDER_PATH, GREY_PATH as GREY_FINDER_PATH
 from handmocap.runtime.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
@@ -92,7 +93,7 @@ def check_params(params: dict) -> None:
     """The launcher's check of a graph's detector params before any process starts: the model
     files exist and each HandDetector setting given reads as `setting` reads it (ValueError
     naming it)."""
-    check_file_param("detector", "detnet", params.get("detnet"), ("int8", "float32"), "handtrain detnet")
+    check_file_param("detector", "detnet", params.get("detnet"), tuple(DETNET_NAMES), "handtrain detnet")
     check_file_param("detector", "finder", params.get("finder"), ("none",), "handtrain finder")
     check_file_param("detector", "grey_finder", params.get("grey_finder"), ("none",), "handtrain finder --grey 0.2")
     check_file_param("detector", "grey_detnet", params.get("grey_detnet"), ("none",), "handtrain detnet --grey 1")

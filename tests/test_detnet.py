@@ -506,8 +506,8 @@ def test_left_2d_trains_the_heatmaps_of_crops_shown_as_left_hands_but_never_thei
             assert np.array_equal(thumb_right, left)
 
 
-@pytest.mark.parametrize("path", [MODEL, MODEL.with_name("detnet_int8.onnx"), MODEL.with_name("detnet_grey_int8.onnx")],
-                         ids=lambda p: p.name)
+@pytest.mark.parametrize("path", [MODEL, MODEL.with_name("detnet_int8.onnx"), MODEL.with_name("detnet_grey_int8.onnx"),
+                                  MODEL.with_name("detnet_lite0_int8.onnx")], ids=lambda p: p.name)
 def test_committed_model_interface(path):
     ort = pytest.importorskip("onnxruntime")
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
@@ -924,3 +924,33 @@ def test_handtrain_detnet_lite0_starts_from_imagenet_keeps_its_first_blocks_and_
     again = torch.load(tmp_path / "c" / "last.pt", weights_only=False)["model"]
     w = "backbone.trunk._blocks.15._project_conv.weight"
     assert torch.allclose(again[w], state[w], atol=1e-3) and not torch.equal(again[w], imagenet[w[len("backbone.trunk."):]])
+
+
+def test_the_lite0_detnet_runs_by_name_and_its_weights_rebuild_it():
+    """`detnet: lite0` names the bundled pretrained-feature DetNet; the float16 weights
+    committed beside it load into a lite0 DetNet that reads crops as the int8 file does."""
+    torch = _torch()
+    ort = pytest.importorskip("onnxruntime")
+    from handmocap.perception.detector import DETNET_LITE0, detnet_path
+    from handmocap.training.detnet import DetNet, DetNetExport
+    assert detnet_path("lite0") == DETNET_LITE0 and DETNET_LITE0.is_file()
+    ckpt = torch.load(MODEL.with_name("detnet_lite0.pt"), map_location="cpu", weights_only=False)
+    assert ckpt["backbone"] == "lite0"
+    net = DetNet("lite0")
+    net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in ckpt["model"].items()})
+    import cv2
+    from handmocap.perception.detector import crop_for_joints
+    demo = Path(__file__).resolve().parent.parent / "data" / "demo"
+    labels, video = np.load(demo / "hand_clip.npz"), cv2.VideoCapture(str(demo / "hand_clip.mp4"))
+    crops = []
+    for i in range(4):                          # the demo hand cut as the detector cuts it
+        ok, frame = video.read()
+        assert ok
+        crops.append(crop_for_joints(labels["uv"][i], mirrored=labels["handedness"] == 1).cut(frame)[..., ::-1])
+    crops = np.stack(crops)
+    x = np.ascontiguousarray(crops.transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
+    with torch.no_grad():
+        ref = DetNetExport(net.eval(), ckpt["refine"])(torch.from_numpy(x))
+    got = ort.InferenceSession(str(DETNET_LITE0), providers=["CPUExecutionProvider"]).run(["uv", "presence"], {"image": x})
+    assert np.median(np.abs(ref[0].numpy() - got[0])) < 2.0          # int8 against float16 weights: px
+    assert np.abs(ref[3].numpy() - got[1]).max() < 0.1

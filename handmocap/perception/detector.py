@@ -80,7 +80,10 @@ MIN_CROP_SIDE = 24.0        # px in the frame
 DETNET_FLOAT32 = Path(__file__).resolve().parents[2] / "models" / "detnet.onnx"   # `handtrain detnet` writes it
 DETNET_INT8 = DETNET_FLOAT32.with_name("detnet_int8.onnx")     # `python -m handmocap.training.quantize_detnet` makes it
 DETNET_PATH = DETNET_INT8                                       # what runs by default
-DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32}  # short names for the detnet param
+# lite0: DetNet on EfficientNet-Lite0 from ImageNet weights (session 35), int8: better keypoints on
+# strangers, a worse side (models/README.md); for a known hand (`handedness`) it is the better read
+DETNET_LITE0 = DETNET_FLOAT32.with_name("detnet_lite0_int8.onnx")
+DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32, "lite0": DETNET_LITE0}  # short names: detnet param
 # DetNet fine-tuned on grey crops (`handtrain detnet --grey 1`), its int8 copy: run on grey frames
 DETNET_GREY = DETNET_FLOAT32.with_name("detnet_grey_int8.onnx")
 CENTRE = "centre"           # the fallback that tries the centre square of the frame
@@ -107,7 +110,7 @@ def _variant_count(name, value):
 
 
 def detnet_path(path=None) -> Path:
-    """DetNet file: None -> DETNET_PATH (int8); "int8" / "float32" -> the bundled files; else a path."""
+    """DetNet file: None -> DETNET_PATH (int8); "int8" / "float32" / "lite0" -> the bundled files; else a path."""
     return DETNET_PATH if path is None else DETNET_NAMES.get(str(path), Path(path))
 
 

@@ -19,6 +19,9 @@ def open_session(path: Path, what: str, made_by: str, threads: int = 1):
     opts.inter_op_num_threads = 1
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # errors only: when onnxruntime folds lite0's "SAME" Pad nodes into its convolutions it
+    # warns once per constant left unused (about 60 lines a load), which says nothing to a user
+    opts.log_severity_level = 3
     try:
         return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
     except Exception as e:   # onnxruntime's own exception types (InvalidProtobuf, Fail, ...) are no OSError
