@@ -70,7 +70,8 @@ def matched(videos, max_hands_list, args, settings):
     for video in videos:
         frames = [f for _, f in zip(range(MAX_FRAMES), read_video(str(video)))]
         for max_hands in max_hands_list:
-            tracker = HandTracker(detnet=args.detnet, finder=args.finder, iknet=args.iknet, threads=args.threads,
+            tracker = HandTracker(detnet=args.detnet, side_detnet=args.side_detnet, finder=args.finder, iknet=args.iknet,
+                                  threads=args.threads,
                                   max_hands=max_hands, **settings)
             hands = [len(tracker.process(f)) for f in frames]         # warm-up; the hands are tracked from here on
             ours, theirs, failed = [], [], None
@@ -192,6 +193,7 @@ def main():
     p.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads per network")
     p.add_argument("--detnet", help="DetNet: int8 (default, models/detnet_int8.onnx), float32 "
                                      "(models/detnet.onnx) or an ONNX path")
+    p.add_argument("--side-detnet", help="the DetNet whose handedness head gives the side (default: --detnet's own)")
     p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx)")
     p.add_argument("--iknet", help="IKNet: int8 (default, models/iknet_int8.onnx), float32 or an ONNX path")
     p.add_argument("--max-hands", type=int, nargs="+", default=[1, 2],
@@ -214,7 +216,8 @@ def main():
                "video": str(videos[0]), "max_hands": max_hands, "iknet": str(model_path(args.iknet)),
                "settings": settings}
 
-    tracker = HandTracker(detnet=args.detnet, finder=args.finder, iknet=args.iknet, threads=args.threads,
+    tracker = HandTracker(detnet=args.detnet, side_detnet=args.side_detnet, finder=args.finder, iknet=args.iknet,
+                                  threads=args.threads,
                           max_hands=max_hands, **settings)
     for f in frames:                   # warm-up pass, and the hand is tracked from here on
         tracker.process(f)
@@ -223,7 +226,8 @@ def main():
     results["tracker"]["hands_per_frame"] = float(np.mean([len(tracker.process(f)) for f in frames]))
     results["tracker_stages_cpu_ms_per_frame"] = stage_cpu_ms(tracker, frames)
 
-    det = HandDetector.load(args.detnet, args.finder, threads=args.threads, max_hands=max_hands, **settings)
+    det = HandDetector.load(args.detnet, args.finder, threads=args.threads, max_hands=max_hands,
+                            side_detnet_path=args.side_detnet, **settings)
     for f in frames:
         det.process(f)
     results["detector"] = stats(timed(det.process, frames, passes))

@@ -9,7 +9,8 @@ HandKeypoints per processed image with its stamp; `hands` may be empty.
 
 Params: detnet (ONNX path, or "int8" (default, models/detnet_int8.onnx) / "float32"
 (models/detnet.onnx) / "lite0" (models/detnet_lite0_int8.onnx: pretrained features, better
-keypoints on strangers, a worse side)), finder (ONNX path, default
+keypoints on strangers, a worse side)), side_detnet (the DetNet whose handedness head gives the
+side, the same names; default: detnet's own), finder (ONNX path, default
 models/finder.onnx; "none": try the centre square of the frame), grey_finder (the finder run on
 grey frames, a mono or IR camera's: ONNX path, default models/finder_grey.onnx with the bundled
 finder; "none": `finder` on every frame), grey_detnet (the DetNet run on grey frames: ONNX path,
@@ -66,7 +67,7 @@ TUNABLE = ("max_hands", "finder_threshold", "presence_threshold", "min_confidenc
 NULLABLE = {"evict_margin", "opposite_hands", "upright_step", "mirror_vote_every", "test_time_crops", "reseed_margin",
             "tracked_test_time_crops", "second_look", "handedness", "smooth_min_cutoff"}
 _DEFAULTS = DetectorSettings()
-PARAMS = {"detnet": None, "finder": None, "grey_finder": None, "grey_detnet": None, "threads": 1,
+PARAMS = {"detnet": None, "side_detnet": None, "finder": None, "grey_finder": None, "grey_detnet": None, "threads": 1,
           **{k: getattr(_DEFAULTS, k) for k in TUNABLE}, "every_frame": False}
 
 
@@ -94,6 +95,7 @@ def check_params(params: dict) -> None:
     files exist and each HandDetector setting given reads as `setting` reads it (ValueError
     naming it)."""
     check_file_param("detector", "detnet", params.get("detnet"), tuple(DETNET_NAMES), "handtrain detnet")
+    check_file_param("detector", "side_detnet", params.get("side_detnet"), (*DETNET_NAMES, "none"), "handtrain detnet")
     check_file_param("detector", "finder", params.get("finder"), ("none",), "handtrain finder")
     check_file_param("detector", "grey_finder", params.get("grey_finder"), ("none",), "handtrain finder --grey 0.2")
     check_file_param("detector", "grey_detnet", params.get("grey_detnet"), ("none",), "handtrain detnet --grey 1")
@@ -139,6 +141,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     node.advertise("/hand/keypoints", "HandKeypoints")
     detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]),
                                  grey_finder_path=p["grey_finder"], grey_detnet_path=p["grey_detnet"],
+                                 side_detnet_path=p["side_detnet"],
                                  **{k: setting(k, p[k]) for k in TUNABLE})
     warm_up(detector, p)
     node.at_close(lambda: node.log.info("%d frames, %d finder runs, %d crops", detector.stats["frames"],

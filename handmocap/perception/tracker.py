@@ -32,7 +32,8 @@ from handmocap.perception.skeleton import DEFAULT_HAND_LENGTH_M, ROOT
 class HandTracker:
     """detnet, finder, iknet, model: paths (None: the bundled ones; finder "none": no
     finder, the centre square is tried instead; iknet "float32": the float32 IKNet instead
-    of the default static int8 copy); detector: a ready HandDetector instead of
+    of the default static int8 copy); side_detnet: the DetNet whose handedness head gives
+    the side (None: detnet's own); detector: a ready HandDetector instead of
     detnet/finder. smooth: One Euro smoothing of rotations and translation per track, and
     of the 2D joints unless smooth_min_cutoff is given (off for single images). vertices:
     add each hand's mesh vertices (V,3) m camera frame. Other keywords go to HandDetector
@@ -45,11 +46,12 @@ class HandTracker:
 
     def __init__(self, detnet=None, finder=None, iknet=None, model=None, threads=1, smooth=True,
                  vertices=False, fps=30.0, clamp_to_limits=True, hand_length=DEFAULT_HAND_LENGTH_M, detector=None,
-                 **detector_kwargs):
+                 side_detnet=None, **detector_kwargs):
         self.model = HandModel.load(model)
         if not smooth:
             detector_kwargs.setdefault("smooth_min_cutoff", None)    # nor the 2D joints
-        self.detector = detector or HandDetector.load(detnet, finder, threads=threads, **detector_kwargs)
+        self.detector = detector or HandDetector.load(detnet, finder, threads=threads, side_detnet_path=side_detnet,
+                                                      **detector_kwargs)
         self.shapes = ShapeEstimator(self.model)
         self.poses = PoseEstimator(IKSolver.load(iknet, threads=threads, model=self.model), self.model,
                                    {"smooth": smooth, "clamp_to_limits": clamp_to_limits, "hand_length": hand_length})

@@ -499,8 +499,8 @@ def run_people(data, models=None, png=None, json_path=None, jitter=0, training=F
 def detector_keywords(models):
     """HandTracker keywords (model_paths) as HandDetector.load's: detnet -> detnet_path,
     finder -> finder_path (iknet is not the detector's)."""
-    out = {k: v for k, v in (models or {}).items() if k not in ("detnet", "finder", "iknet")}
-    for k in ("detnet", "finder"):
+    out = {k: v for k, v in (models or {}).items() if k not in ("detnet", "finder", "iknet", "side_detnet")}
+    for k in ("detnet", "finder", "side_detnet"):
         if (models or {}).get(k):
             out[f"{k}_path"] = models[k]
     return out
@@ -516,7 +516,7 @@ def cmd_predict(args):
 
 def model_paths(args):
     """HandTracker keywords from the command line: model paths and --set detector settings."""
-    return {**{k: getattr(args, k) for k in ("detnet", "finder", "iknet") if getattr(args, k, None)},
+    return {**{k: getattr(args, k) for k in ("detnet", "finder", "iknet", "side_detnet") if getattr(args, k, None)},
             **detector_settings(getattr(args, "set", None) or [])}
 
 
@@ -538,7 +538,9 @@ def detector_settings(pairs):
 
 def add_model_arguments(p):
     p.add_argument("--detnet", help="DetNet: int8 (default, models/detnet_int8.onnx), float32 "
-                                     "(models/detnet.onnx) or an ONNX path")
+                                     "(models/detnet.onnx), lite0 (models/detnet_lite0_int8.onnx) or an ONNX path")
+    p.add_argument("--side-detnet", help="the DetNet whose handedness head gives the side (int8, float32, lite0 or "
+                                         "a path; default: --detnet's own)")
     p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx; 'none': centre square)")
     p.add_argument("--iknet", help="IKNet: int8 (default, models/iknet_int8.onnx), float32 (models/iknet.onnx) "
                                    "or an ONNX path")
