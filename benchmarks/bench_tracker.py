@@ -71,8 +71,7 @@ def matched(videos, max_hands_list, args, settings):
         frames = [f for _, f in zip(range(MAX_FRAMES), read_video(str(video)))]
         for max_hands in max_hands_list:
             tracker = HandTracker(detnet=args.detnet, side_detnet=args.side_detnet, finder=args.finder, iknet=args.iknet,
-                                  threads=args.threads,
-                                  max_hands=max_hands, **settings)
+                                  threads=args.threads, max_hands=max_hands, **settings)
             hands = [len(tracker.process(f)) for f in frames]         # warm-up; the hands are tracked from here on
             ours, theirs, failed = [], [], None
             for _ in range(args.rounds):
@@ -217,8 +216,7 @@ def main():
                "settings": settings}
 
     tracker = HandTracker(detnet=args.detnet, side_detnet=args.side_detnet, finder=args.finder, iknet=args.iknet,
-                                  threads=args.threads,
-                          max_hands=max_hands, **settings)
+                          threads=args.threads, max_hands=max_hands, **settings)
     for f in frames:                   # warm-up pass, and the hand is tracked from here on
         tracker.process(f)
     passes = max(args.repeat, 3)       # the parts below: at least 3 passes each

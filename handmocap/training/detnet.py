@@ -22,6 +22,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from handmocap.perception.skeleton import NUM_JOINTS, PARENTS
+from handmocap.training.efficientnet_lite import TAP_CHANNELS, LiteTrunk, normalize
 
 CROP = 128
 
@@ -143,7 +144,6 @@ class LiteFPN(nn.Module):
 
     def __init__(self, channels=96):
         super().__init__()
-        from handmocap.training.efficientnet_lite import TAP_CHANNELS, LiteTrunk
         self.trunk = LiteTrunk()
         self.lateral = nn.ModuleList([conv_bn(TAP_CHANNELS[s], channels, 1, relu=False) for s in (8, 16, 32)])
         self.smooth = nn.ModuleList([nn.Sequential(conv_bn(channels, channels, 3, groups=channels),
@@ -245,11 +245,7 @@ class DetNet(nn.Module):
 
     def forward(self, image):
         """image (N,3,128,128) RGB [0,1] -> dict of maps (see module docstring)."""
-        if self.backbone_name in PRETRAINED:
-            from handmocap.training.efficientnet_lite import normalize
-            x = normalize(image)
-        else:
-            x = image * 2.0 - 1.0
+        x = normalize(image) if self.backbone_name in PRETRAINED else image * 2.0 - 1.0
         if self.fine is not None:
             feat, feat32 = self.backbone.features(x)
         else:

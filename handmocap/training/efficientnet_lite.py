@@ -76,7 +76,7 @@ class MBConv(nn.Module):
 
 class LiteTrunk(nn.Module):
     """EfficientNet-Lite0 without its classifier, up to block 15 (stride 32, 320 channels):
-    (N,3,H,W) -> the stride 8, 16 and 32 maps (TAPS). 3.4 M parameters."""
+    (N,3,H,W) -> the stride 8, 16 and 32 maps (TAPS). 2.96 M parameters."""
 
     def __init__(self):
         super().__init__()
@@ -110,7 +110,3 @@ class LiteTrunk(nn.Module):
         state = {k: v for k, v in state.items() if not k.startswith(("_conv_head", "_bn1", "_fc"))}
         self.load_state_dict(state)
         return self
-
-    def stage_of(self, name):
-        """A parameter name's depth in the trunk: 0 for the stem, i + 1 for block i."""
-        return 0 if not name.startswith("_blocks.") else int(name.split(".")[1]) + 1

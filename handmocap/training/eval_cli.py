@@ -496,10 +496,14 @@ def run_people(data, models=None, png=None, json_path=None, jitter=0, training=F
     return table, results
 
 
+# the model files a command line names (add_model_arguments), as HandTracker's keywords
+MODEL_ARGS = ("detnet", "finder", "iknet", "side_detnet")
+
+
 def detector_keywords(models):
     """HandTracker keywords (model_paths) as HandDetector.load's: detnet -> detnet_path,
     finder -> finder_path (iknet is not the detector's)."""
-    out = {k: v for k, v in (models or {}).items() if k not in ("detnet", "finder", "iknet", "side_detnet")}
+    out = {k: v for k, v in (models or {}).items() if k not in MODEL_ARGS}
     for k in ("detnet", "finder", "side_detnet"):
         if (models or {}).get(k):
             out[f"{k}_path"] = models[k]
@@ -516,7 +520,7 @@ def cmd_predict(args):
 
 def model_paths(args):
     """HandTracker keywords from the command line: model paths and --set detector settings."""
-    return {**{k: getattr(args, k) for k in ("detnet", "finder", "iknet", "side_detnet") if getattr(args, k, None)},
+    return {**{k: getattr(args, k) for k in MODEL_ARGS if getattr(args, k, None)},
             **detector_settings(getattr(args, "set", None) or [])}
 
 

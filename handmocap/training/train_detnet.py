@@ -187,11 +187,13 @@ def main(args):
             v.requires_grad_(False)
     trained = {k: v for k, v in trained.items() if v.requires_grad}
     pretrained = {k for k in trained if args.backbone in PRETRAINED and k.startswith("backbone.trunk.")}
-    # lr_scale: each group's share of the schedule's learning rate (the pretrained blocks learn slower)
-    groups = [{"params": [v for k, v in trained.items() if k not in pretrained], "lr_scale": 1.0}]
-    if pretrained:
-        groups.append({"params": [v for k, v in trained.items() if k in pretrained], "lr_scale": args.backbone_lr})
-    opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=args.weight_decay)
+    # (parameters, share of the schedule's learning rate): the pretrained blocks learn slower. The
+    # shares stay out of the optimizer's groups, which a resumed checkpoint's replace.
+    groups = [(params, scale) for params, scale in
+              (([v for k, v in trained.items() if k not in pretrained], 1.0),
+               ([v for k, v in trained.items() if k in pretrained], args.backbone_lr)) if params]
+    opt = torch.optim.AdamW([{"params": params} for params, _ in groups], lr=args.lr, weight_decay=args.weight_decay)
+    lr_scales = [scale for _, scale in groups]
     ckpt_path = run_dir / "last.pt"
     start, history, refine = 0, [], "softmax"
     if args.resume or args.export_only:
@@ -258,8 +260,9 @@ def main(args):
             rval[kind] = pool[kind][pool[f"{kind}_held"]]
     if args.backbone in PRETRAINED and not args.resume and not args.init_from:
         net.backbone.trunk.load_imagenet()
-        print(f"{args.backbone}: trunk from the ImageNet weights of {IMAGENET_PACKAGE}; stem and blocks "
-              f"0-{args.freeze_blocks - 1} frozen, the rest at {args.backbone_lr} x lr")
+        print(f"{args.backbone}: trunk from the ImageNet weights of {IMAGENET_PACKAGE}; "
+              + (f"stem and blocks 0-{args.freeze_blocks - 1} frozen, " if args.freeze_blocks > 0 else "")
+              + f"the pretrained blocks at {args.backbone_lr} x lr")
     if args.init_from and not args.resume:
         if args.init_from.suffix == ".onnx":        # an exported model: BN statistics from a batch of training crops
             try:
@@ -342,11 +345,11 @@ def main(args):
                 dirs, synth = new_dirs, load_synth(new_dirs, args.max_synth)
                 maker.synth = synth
                 bar.write(f"synthetic: now {len(synth['image'])} crops from {len(dirs)} directories")
-        for group in opt.param_groups:
+        for group, scale in zip(opt.param_groups, lr_scales):
             # with --minutes, the cosine runs on whichever of iterations and time is further along
             # (the warm-up stays 300 iterations)
             at = it if budget_s is None or it < 300 else max(it, int(300 + (args.iters - 300) * elapsed / budget_s))
-            group["lr"] = group["lr_scale"] * warmup_cosine_lr(at, args.lr, args.iters, warmup=300, floor=0.02)
+            group["lr"] = scale * warmup_cosine_lr(at, args.lr, args.iters, warmup=300, floor=0.02)
         b = {k: v.to(device, non_blocking=True) for k, v in (next(batches) if batches else batch_at(it)).items()}
         train_mode()                    # validation and export leave every module in training mode
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.amp):   # --amp: bf16 mixed precision
