@@ -128,6 +128,11 @@ class BatchMaker:
         mirror = np.where(show_left, appears_right, ~appears_right)
         return show_left, mirror
 
+    def _side_weight(self, show_left):
+        """(n,) handedness-loss weights that give the crops shown as left and as right equal
+        shares of the loss, whatever --share-left is."""
+        return np.where(show_left, 0.5 / max(self.share_left, 1e-6), 0.5 / max(1 - self.share_left, 1e-6))
+
     def _synth(self, n, rng):
         s = self.synth
         idx = rng.integers(0, len(s["image"]), n)
@@ -146,7 +151,7 @@ class BatchMaker:
         w2d = np.where(show_left, self.left_2d, 1.0).astype(np.float32)
         return {"image": images, "uv": uv, "xyz": xyz, "w2d": w2d, "w3d": keypoints,
                 "presence": np.ones(n, np.float32), "right": (~show_left).astype(np.float32),
-                "w_hand": np.ones(n, np.float32)}
+                "w_hand": self._side_weight(show_left).astype(np.float32)}
 
     def _real(self, n, rng):
         r = self.real
@@ -175,7 +180,8 @@ class BatchMaker:
             xyz = rotate_mirror_3d(r["xyz"][idx], angles, mirror).astype(np.float32)
             w3d = (keypoints * self.real_3d * r["has_3d"][idx]).astype(np.float32)
         return {"image": images, "uv": uv, "xyz": xyz, "w2d": w2d, "w3d": w3d,
-                "presence": np.ones(n, np.float32), "right": (~show_left).astype(np.float32), "w_hand": weight}
+                "presence": np.ones(n, np.float32), "right": (~show_left).astype(np.float32),
+                "w_hand": (weight * self._side_weight(show_left)).astype(np.float32)}
 
     def _negatives(self, n, rng):
         counts = rng.multinomial(n, [share for _, _, share in self.hard] + [1 - sum(s for _, _, s in self.hard)])

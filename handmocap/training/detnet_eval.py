@@ -112,6 +112,12 @@ def predict(net, images, refines=("softmax",), batch=128):
             np.concatenate(pres), np.concatenate(right))
 
 
+def logit(p):
+    """log(p / (1 - p)), p clipped away from 0 and 1."""
+    p = np.clip(p, 1e-6, 1 - 1e-6)
+    return np.log(p / (1 - p))
+
+
 def pck_auc(err_mm, lo=20.0, hi=50.0, steps=15):
     """Paper's 3D PCK over thresholds linspace(20,50) mm -> AUC (trapezoid, normalised)."""
     th = np.linspace(lo, hi, steps)
@@ -137,7 +143,7 @@ def validate(net, sval, rval, refines=("softmax",)):
         right = predict(net, sval["raw"], ())[2]
         m["syn_handedness_acc"] = float(((right > 0.5) == (sval["right"] > 0.5)).mean())
     if rval is not None:
-        reads, pres, _ = predict(net, rval["image"], refines[:1])
+        reads, pres, right = predict(net, rval["image"], refines[:1])
         err = np.linalg.norm(reads[refines[0]][0] - rval["uv"], axis=-1).mean(-1)
         source = rval["source"].astype(str)
         how = np.char.startswith(source, "howiema")
@@ -157,7 +163,13 @@ def validate(net, sval, rval, refines=("softmax",)):
         # handedness call costs the 2D
         flipped, uv_flipped, _ = shown_as_right(rval["image"], rval["uv"], np.zeros((len(err), 21, 3)),
                                                 np.ones(len(err), bool))
-        err_wrong = np.linalg.norm(predict(net, flipped, refines[:1])[0][refines[0]][0] - uv_flipped, axis=-1).mean(-1)
+        reads_wrong, _, right_wrong = predict(net, flipped, refines[:1])
+        err_wrong = np.linalg.norm(reads_wrong[refines[0]][0] - uv_flipped, axis=-1).mean(-1)
+        clips = people & ~photos
+        if clips.any():     # the side of held-back clips' hands, shown as right (image) and as left (flipped)
+            m["people_side_acc"] = float(np.mean([(right[clips] > 0.5).mean(), (right_wrong[clips] < 0.5).mean()]))
+            # the detector's mirror vote: the two readings of one hand averaged in logit space
+            m["people_side_acc_pair"] = float((logit(right[clips]) > logit(right_wrong[clips])).mean())
         if how.any():
             m["howiema001_heldout_px_wrong_side"] = float(err_wrong[how].mean())
         if (~how & ~people).any():

@@ -44,7 +44,7 @@ def detnet_losses(out, b, stride):
         fine = {"fine_heat": (l_fine * w2d).sum() / w2d.sum().clamp_min(1e-6),
                 "fine_coord": soft_argmax_loss(out["fine_logits"], b["uv"], b["presence"] * w2d, stride / 2)}
     l_presence = F.binary_cross_entropy_with_logits(out["presence"], b["presence"])
-    wh = b["w_hand"] * torch.where(b["right"] > 0.5, 1.0, 1.0 / 0.6)        # ~balance the left share
+    wh = b["w_hand"]                # balanced between the sides by the batch maker
     l_hand = (F.binary_cross_entropy_with_logits(out["handedness"], b["right"], reduction="none") * wh).sum() \
         / wh.sum().clamp_min(1e-6)
     return {"heat": l_heat, "coord": l_coord, "loc": l_loc, "delta": l_delta, "presence": l_presence,
