@@ -91,6 +91,7 @@ def test_metadata_lists_every_topic_with_type_and_count(exported):
     assert listed == {"/camera/image/compressed": ("sensor_msgs/msg/CompressedImage", N),
                       "/camera/camera_info": ("sensor_msgs/msg/CameraInfo", N),
                       "/tf": ("tf2_msgs/msg/TFMessage", N),
+                      "/hand_markers": ("visualization_msgs/msg/MarkerArray", N),
                       "/robot_right/joint_states": ("sensor_msgs/msg/JointState", N), **per_side}
     assert meta["message_count"] == sum(n for _, n in listed.values())
     assert [p.name for p in folder.iterdir()] and not (folder.parent / "out.partial").exists()
@@ -149,6 +150,13 @@ def test_every_message_reads_back_with_rosbags_and_matches_the_source(exported):
             assert len(js.name) == 45 and js.name[3 * 4] == f"hand_{side}/index_pip_flexion"
             np.testing.assert_allclose(js.position, limits.angles(hand["pose"].astype(np.float64)).reshape(-1),
                                        atol=1e-6)
+        markers = {m.ns: m for m in got["/hand_markers"][i][2].markers}
+        assert set(markers) == {f"hand_{s}/{k}" for s in hands for k in ("bones", "joints")}
+        for side, hand in hands.items():
+            bones = np.array([[p.x, p.y, p.z] for p in markers[f"hand_{side}/bones"].points]).reshape(-1, 2, 3)
+            np.testing.assert_allclose(bones[:, 1], hand["xyz"][1:], atol=1e-6)       # each bone ends at its joint
+            np.testing.assert_allclose(bones[:, 0], hand["xyz"][PARENTS[1:]], atol=1e-6)
+            assert markers[f"hand_{side}/bones"].header.frame_id == "camera_optical_frame"
         robot = got["/robot_right/joint_states"][i][2]
         assert list(robot.name) == ["a", "b"]
         np.testing.assert_allclose(robot.position, [0.1 * i, -0.2])
