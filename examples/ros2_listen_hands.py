@@ -15,6 +15,7 @@ import time
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 import rclpy                                                           # noqa: E402
 from geometry_msgs.msg import PoseArray, PoseStamped                   # noqa: E402
+from rclpy.executors import ExternalShutdownException                  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy                    # noqa: E402
 from sensor_msgs.msg import JointState                                 # noqa: E402
 from visualization_msgs.msg import MarkerArray                         # noqa: E402
@@ -65,17 +66,23 @@ def main():
                       flush=True)
         return callback
 
+    subscriptions = {}
     for side in ("right", "left"):
         for suffix, kind in (("joint_states", JointState), ("keypoints", PoseArray), ("wrist_pose", PoseStamped)):
             topic = f"{prefix}/hand_{side}/{suffix}"
-            node.create_subscription(kind, topic, on_message(topic), reliable)
-    node.create_subscription(MarkerArray, f"{prefix}/hand_markers", on_message(f"{prefix}/hand_markers"), reliable)
+            subscriptions[topic] = node.create_subscription(kind, topic, on_message(topic), reliable)
+    topic = f"{prefix}/hand_markers"
+    subscriptions[topic] = node.create_subscription(MarkerArray, topic, on_message(topic), reliable)
     print("listening", flush=True, file=sys.stderr)
     end = time.monotonic() + args.seconds if args.seconds else None
     try:
         while rclpy.ok() and (end is None or time.monotonic() < end):
             rclpy.spin_once(node, timeout_sec=0.1)
-    except KeyboardInterrupt:
+            for topic in [t for t, sub in subscriptions.items() if sub.get_publisher_count()]:
+                # DDS discovery: a publisher is found between ~0.1 and ~2 s after it starts
+                print("matched", topic, flush=True, file=sys.stderr)
+                del subscriptions[topic]
+    except (KeyboardInterrupt, ExternalShutdownException):          # Ctrl-C, or SIGTERM through rclpy
         pass
     finally:
         if out:

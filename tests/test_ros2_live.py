@@ -33,10 +33,15 @@ def ros_env(run_dir, domain):
 
 
 def start_listener(path, env):
-    """examples/ros2_listen_hands.py writing every message's values to `path` (JSON lines)."""
+    """examples/ros2_listen_hands.py writing every message's values to `path` (JSON lines),
+    its stderr to path + ".err"; returns once it listens."""
+    err = path.with_suffix(".err")
     proc = subprocess.Popen([sys.executable, str(ROOT / "examples" / "ros2_listen_hands.py"), "--jsonl", str(path),
-                             "--seconds", "120"], env=env, stderr=subprocess.PIPE, text=True)
-    assert proc.stderr.readline().strip() == "listening"
+                             "--seconds", "120"], env=env, stderr=open(err, "w"), text=True)
+    deadline = time.monotonic() + 30
+    while "listening" not in err.read_text():
+        assert proc.poll() is None and time.monotonic() < deadline, err.read_text()
+        time.sleep(0.05)
     return proc
 
 
@@ -87,7 +92,7 @@ def check_values(got, poses, exported):
     want = {k: v for pose in poses for k, v in expected(pose).items()}
     assert want, "no hand in any pose: nothing to compare"
     hand_keys = {k for k in got if k[0] != "/hand_markers"}
-    assert hand_keys == set(want)
+    assert hand_keys == set(want), f"{len(hand_keys)} hand messages received of {len(want)}"
     for (topic, stamp), (side, hand) in want.items():
         m, e = got[(topic, stamp)], exported[(topic, stamp)]
         xyz = np.asarray(hand["xyz"], np.float64)
@@ -114,7 +119,7 @@ def test_a_replayed_clip_reaches_a_plain_rclpy_subscriber(tmp_path, run_dir):
     try:
         lf = tmp_path / "g.yaml"
         lf.write_text(chain_yaml(CLIP, tmp_path / "run.mcap", rate=1.0, replay_params=f", duration: {FRAMES / 30}",
-                                 extra_nodes="  ros2: {node: ros2, required: true}"))
+                                 extra_nodes="  ros2: {node: ros2, required: true, params: {wait_for_subscriber_s: 20}}"))
         r = subprocess.run([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=env,
                            capture_output=True, text=True, timeout=120)
         assert r.returncode == 0, r.stdout + r.stderr
@@ -135,6 +140,10 @@ def test_a_ros2_camera_feeds_the_graph_and_every_frame_comes_back(tmp_path, run_
                               "reliable:=true", "every_frame:=true", "timeout_s:=3", f"bag:={tmp_path / 'run.mcap'}"],
                              env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
+        deadline = time.monotonic() + 60        # the ros2 node found (DDS discovery: 0.1-2 s) before any frame
+        while "matched /hand_right/joint_states" not in (tmp_path / "hands.err").read_text():
+            assert graph.poll() is None and time.monotonic() < deadline, (tmp_path / "hands.err").read_text()
+            time.sleep(0.05)
         camera = subprocess.run([sys.executable, str(ROOT / "examples" / "ros2_publish_video.py"), str(CLIP),
                                  "--frames", str(FRAMES), "--stamps", str(tmp_path / "stamps.txt")],
                                 env=env, capture_output=True, text=True, timeout=120)

@@ -130,33 +130,32 @@ class Ros2Messages:
     def transforms(self, hand, stamp_ns, camera_frame):
         """TransformStamped (21): camera -> wrist, then each joint in its parent joint's frame."""
         side, xyz, q = hand["handedness"], np.asarray(hand["xyz"], np.float64), self.joint_quats(hand)
+        parent = np.maximum(PARENTS, 0)
+        inv = quat_conjugate(q[parent])                                         # (21,4); row 0 unused
+        t = np.where(PARENTS[:, None] < 0, xyz, quat_rotate(inv, xyz - xyz[parent]))       # (21,3)
+        r = np.where(PARENTS[:, None] < 0, q, quat_multiply(inv, q))                       # (21,4)
         out = []
         for j in range(len(JOINT_NAMES)):
-            parent = PARENTS[j]
-            if parent < 0:
-                t, r, parent_frame = xyz[j], q[j], camera_frame
-            else:
-                inv = quat_conjugate(q[parent])
-                t, r, parent_frame = quat_rotate(inv, xyz[j] - xyz[parent]), quat_multiply(inv, q[j]), \
-                    hand_frame(side, parent)
-            tf = self.T("geometry_msgs/msg/Transform", translation=self.vector(t), rotation=self.quaternion(r))
+            parent_frame = camera_frame if PARENTS[j] < 0 else hand_frame(side, PARENTS[j])
+            tf = self.T("geometry_msgs/msg/Transform", translation=self.vector(t[j]), rotation=self.quaternion(r[j]))
             out.append(self.T("geometry_msgs/msg/TransformStamped", header=self.header(stamp_ns, parent_frame),
                               child_frame_id=hand_frame(side, j), transform=tf))
         return out
 
     def hand_messages(self, hand, stamp_ns, camera_frame):
-        """{topic suffix: message} of one hand: wrist_pose, keypoints, joint_states."""
+        """{topic suffix: message} of one hand: joint_states (first: what a robot waits for),
+        keypoints, wrist_pose."""
         side, xyz, q = hand["handedness"], np.asarray(hand["xyz"], np.float64), self.joint_quats(hand)
         header = self.header(stamp_ns, camera_frame)
         angles = self.limits.angles(np.asarray(hand["pose"], np.float64))                    # (15,3) rad
         names = [f"hand_{side}/{joint}_{angle}" for joint in FINGER_JOINT_NAMES for angle in ANGLE_NAMES]
         return {
-            "wrist_pose": self.T("geometry_msgs/msg/PoseStamped", header=header, pose=self.pose(xyz[0], q[0])),
-            "keypoints": self.T("geometry_msgs/msg/PoseArray", header=header,
-                                poses=[self.pose(p, r) for p, r in zip(xyz, q)]),
             "joint_states": self.T("sensor_msgs/msg/JointState", header=header, name=names,
                                    position=angles.reshape(-1).astype(np.float64),
                                    velocity=np.zeros(0), effort=np.zeros(0)),
+            "keypoints": self.T("geometry_msgs/msg/PoseArray", header=header,
+                                poses=[self.pose(p, r) for p, r in zip(xyz, q)]),
+            "wrist_pose": self.T("geometry_msgs/msg/PoseStamped", header=header, pose=self.pose(xyz[0], q[0])),
         }
 
     def robot_joint_state(self, robot, stamp_ns, frame_id):
@@ -188,9 +187,9 @@ class Ros2Messages:
                     mesh_use_embedded_materials=False))
         return self.T("visualization_msgs/msg/MarkerArray", markers=out)
 
-    def convert(self, type_name: str, msg: dict) -> list[tuple[str, str, object]] | None:
+    def convert(self, type_name: str, msg: dict, tf: bool = True) -> list[tuple[str, str, object]] | None:
         """One decoded project message -> [(ROS topic, ROS type, message)] (the module's table;
-        [] for a pose without a hand); None for a type with no ROS 2 counterpart."""
+        [] for a pose without a hand; tf=False: no /tf); None for a type with no ROS 2 counterpart."""
         stamp, frame = msg["header"]["stamp_ns"], msg["header"]["frame_id"]
         if type_name == "Image":
             return [("/camera/image/compressed", "sensor_msgs/msg/CompressedImage", self.compressed_image(msg))]
@@ -205,10 +204,12 @@ class Ros2Messages:
         hands = {side: hand for side, hand in surest_per_side(msg["hands"]).items() if side in SIDES}
         out, transforms = [], []
         for side, hand in hands.items():
-            transforms += self.transforms(hand, stamp, camera)
             out += [(f"/hand_{side}/{suffix}", m.__msgtype__, m)
                     for suffix, m in self.hand_messages(hand, stamp, camera).items()]
-        if hands:
+            if tf:
+                transforms += self.transforms(hand, stamp, camera)
+        if hands and tf:
             out.append(("/tf", "tf2_msgs/msg/TFMessage", self.T("tf2_msgs/msg/TFMessage", transforms=transforms)))
+        if hands:
             out.append(("/hand_markers", "visualization_msgs/msg/MarkerArray", self.markers(hands, stamp, camera)))
         return out
