@@ -29,7 +29,9 @@ SIDES = ("right", "left")
 
 
 def ros_env(run_dir, domain):
-    return graph_env(run_dir, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env = graph_env(run_dir, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env.pop("FASTDDS_DEFAULT_PROFILES_FILE", None)          # the nodes' own loopback profile, not a user's
+    return env
 
 
 def start_listener(path, env):
@@ -48,6 +50,25 @@ def start_listener(path, env):
 def stop(proc):
     proc.terminate()
     proc.wait(timeout=20)
+
+
+def udp_sockets(pid):
+    """[(local IPv4 address, port)] of the UDP sockets process `pid` holds (/proc)."""
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            link = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:
+            continue
+        if link.startswith("socket:["):
+            inodes.add(link[8:-1])
+    out = []
+    for line in open(f"/proc/{pid}/net/udp").read().splitlines()[1:]:
+        fields = line.split()
+        if fields[9] in inodes:
+            ip_hex, port_hex = fields[1].split(":")
+            out.append((".".join(str(b) for b in bytes.fromhex(ip_hex)[::-1]), int(port_hex, 16)))
+    return out
 
 
 def received(path):
@@ -144,6 +165,11 @@ def test_a_ros2_camera_feeds_the_graph_and_every_frame_comes_back(tmp_path, run_
         while "matched /hand_right/joint_states" not in (tmp_path / "hands.err").read_text():
             assert graph.poll() is None and time.monotonic() < deadline, (tmp_path / "hands.err").read_text()
             time.sleep(0.05)
+        # safe by default: the ros2 node's DDS ports of its domain (RTPS: 7400 + 250 domain + ...)
+        # receive on the loopback interface only
+        pid = json.loads((run_dir / "ros2.json").read_text())["pid"]
+        rtps = [(ip, port) for ip, port in udp_sockets(pid) if 7400 + 250 * domain <= port < 7650 + 250 * domain]
+        assert rtps and all(ip == "127.0.0.1" for ip, _ in rtps), rtps
         camera = subprocess.run([sys.executable, str(ROOT / "examples" / "ros2_publish_video.py"), str(CLIP),
                                  "--frames", str(FRAMES), "--stamps", str(tmp_path / "stamps.txt")],
                                 env=env, capture_output=True, text=True, timeout=120)

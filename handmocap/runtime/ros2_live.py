@@ -11,7 +11,8 @@
   Image and CameraInfo bodies (`image_body`, `info_body`).
 
 Safe by default: `start_rclpy` limits DDS discovery to this host (ROS_AUTOMATIC_DISCOVERY_RANGE
-LOCALHOST) unless the node's `discovery` param says "subnet" (the ZeroMQ side's CURVE rule,
+LOCALHOST) and binds Fast DDS's receiving sockets to the loopback interface (LOOPBACK_PROFILE)
+unless the node's `discovery` param says "subnet" (the ZeroMQ side's CURVE rule,
 docs/reference.md "Security"). ROS_DOMAIN_ID is rclpy's own (the environment's).
 
 QoS (QOS): images and camera info as ROS 2 camera drivers send them (sensor data: best effort,
@@ -19,8 +20,10 @@ last 5); hands, robots and markers reliable (last RELIABLE_DEPTH), as joint stat
 """
 from __future__ import annotations
 
+import atexit
 import importlib
 import os
+import tempfile
 
 import cv2
 import numpy as np
@@ -41,12 +44,56 @@ def check_discovery(node: str, value) -> None:
         raise ValueError(f"{node} param discovery: one of {', '.join(DISCOVERY)}, got {value!r}")
 
 
+# Fast DDS participant profile for discovery "localhost": its receiving UDP sockets on the
+# loopback interface only (and shared memory). ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST alone
+# keeps discovery on this host but still binds them to 0.0.0.0 (`ss -lunp` while a node runs).
+LOOPBACK_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<dds xmlns="http://www.eprosima.com">
+  <profiles>
+    <transport_descriptors>
+      <transport_descriptor>
+        <transport_id>loopback_udp</transport_id>
+        <type>UDPv4</type>
+        <interfaceWhiteList><address>127.0.0.1</address></interfaceWhiteList>
+      </transport_descriptor>
+      <transport_descriptor>
+        <transport_id>shm</transport_id>
+        <type>SHM</type>
+      </transport_descriptor>
+    </transport_descriptors>
+    <participant profile_name="handmocap_localhost" is_default_profile="true">
+      <rtps>
+        <userTransports>
+          <transport_id>loopback_udp</transport_id>
+          <transport_id>shm</transport_id>
+        </userTransports>
+        <useBuiltinTransports>false</useBuiltinTransports>
+      </rtps>
+    </participant>
+  </profiles>
+</dds>
+"""
+
+
+def set_discovery(discovery: str) -> None:
+    """The environment Fast DDS reads at rclpy.init for `discovery` (DISCOVERY): the range, and
+    for "localhost" LOOPBACK_PROFILE, unless FASTDDS_DEFAULT_PROFILES_FILE names one already
+    (the user's own profile wins)."""
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = DISCOVERY[discovery]
+    if discovery == "localhost" and not os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE"):
+        fd, path = tempfile.mkstemp(prefix="handmocap_fastdds_", suffix=".xml")     # ours alone (0600)
+        with os.fdopen(fd, "w") as f:
+            f.write(LOOPBACK_PROFILE)
+        atexit.register(os.unlink, path)
+        os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = path
+
+
 def start_rclpy(name: str, discovery: str = "localhost"):
     """An rclpy node `name` in its own context (safe in a container's thread: rclpy installs no
     signal handler; the graph's node stops on its own), DDS discovery as `discovery` asks.
     -> (rclpy node, executor)."""
     check_discovery(name, discovery)
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = DISCOVERY[discovery]
+    set_discovery(discovery)
     try:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
