@@ -13,7 +13,8 @@ discovery takes 0.1-2 s), examples/ros2_publish_video.py playing the clip at 30 
 p50/p95/max over the frames after the first second (start-up left out), and the frames that
 got a pose of those sent (latest-only drops frames when the graph is behind, as live).
 The ros2 node's CPU per input is its own closing log line (thread time around convert and
-publish). Default clip: a stranger's webcam clip from ../shared (352x640), else the demo clip.
+publish). Last, what a posed-mesh Marker would cost a hand (why the node sends the skeleton
+only). Default clip: a stranger's webcam clip from ../shared (352x640), else the demo clip.
 """
 import argparse
 import json
@@ -68,6 +69,22 @@ def run_round(clip, frames, domain, tmp):
             "cpu": cpu.group(1) if cpu else "?"}
 
 
+def mesh_marker_ms(repeats=10):
+    """What a posed-mesh Marker (TRIANGLE_LIST of the hand model's faces) would cost the ros2
+    node a hand: built as rosbags objects and serialized as the skeleton markers are -> (ms, bytes)."""
+    from handmocap.perception.hand_model import HandModel
+    from handmocap.runtime.ros2_messages import Ros2Messages, typestore
+    model, ts = HandModel.load(), typestore()
+    build = Ros2Messages(ts)
+    corners = np.random.default_rng(0).random((model.faces.size, 3))      # one point per triangle corner
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        marker = build.markers({"right": {"xyz": np.zeros((21, 3))}}, 0, "camera_optical_frame")
+        marker.markers[0].points = [build.point(p) for p in corners]
+        raw = ts.serialize_cdr(marker, "visualization_msgs/msg/MarkerArray")
+    return (time.perf_counter() - t0) / repeats * 1e3, len(raw)
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--clip", type=Path, default=REAL if REAL.exists() else DEMO)
@@ -87,6 +104,8 @@ def main():
     for name, v in (("/hand/pose (graph bus)", pose_ms), ("hands on ROS 2", ros_ms)):
         v = np.asarray(v)
         print(f"{name:24s} {np.percentile(v, 50):8.1f} {np.percentile(v, 95):8.1f} {v.max():8.1f} {len(v):7d}")
+    ms, size = mesh_marker_ms()
+    print(f"\na posed-mesh marker (not published): {ms:.1f} ms CPU and {size / 1e3:.0f} kB a hand")
 
 
 if __name__ == "__main__":

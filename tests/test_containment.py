@@ -3,6 +3,7 @@ MalformedMessage, on every message type; the four inputs that once stopped a who
 dropped and counted with the graph running on; a handler that fails on a message loses only
 that message."""
 import json
+import time
 
 import msgpack
 import numpy as np
@@ -13,6 +14,7 @@ from conftest import handlaunch
 from graphnodes.killers import image_killers, nan_keypoints
 from handmocap.runtime import codec
 from handmocap.runtime.bag import iter_messages
+from handmocap.runtime.node import Node
 
 
 def test_the_four_killers_are_malformed_messages():
@@ -168,3 +170,85 @@ def test_a_handler_that_fails_drops_only_that_message(tmp_path, monkeypatch):
         assert node.stats["dropped"] == {"/t:handler-KeyError": 1}
     finally:
         node.close()
+
+
+# ------------------------------------------------------------------ values, not only shapes (issue 49)
+def _float_paths(obj, path=""):
+    """Paths (as codec.non_finite names them) of every float and float array of a message."""
+    if isinstance(obj, np.ndarray):
+        return [path] if obj.dtype.kind == "f" else []
+    if isinstance(obj, float):
+        return [path]
+    if isinstance(obj, dict):
+        return [p for k, v in obj.items() for p in _float_paths(v, f"{path}.{k}" if path else k)]
+    if isinstance(obj, list):
+        return [p for i, v in enumerate(obj) for p in _float_paths(v, f"{path}[{i}]")]
+    return []
+
+
+def _set(obj, path, value):
+    import re
+    keys = [int(k) if k.isdigit() else k for k in re.findall(r"[^.\[\]]+", path)]
+    for k in keys[:-1]:
+        obj = obj[k]
+    obj[keys[-1]] = value(obj[keys[-1]])
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_every_float_of_every_type_must_be_finite(bad):
+    """A NaN or inf in any float field or array of any type (a HandShape's beta, a keypoint's
+    score, which the schema's 0-1 bounds let through) is refused, naming where."""
+    import copy
+    checked = 0
+    for t in codec.message_types():
+        for path in _float_paths(sample(t)):
+            msg = copy.deepcopy(sample(t))
+            _set(msg, path, lambda v: np.where(np.ones_like(v, bool), bad, v).astype(v.dtype)
+                 if isinstance(v, np.ndarray) else bad)
+            with pytest.raises(codec.MalformedMessage) as e:
+                codec.decode(codec.encode(msg, None), t)
+            # NaN passes every bound of the schema; inf may already fail one (score <= 1)
+            assert e.value.reason == "not-finite" and path in str(e.value) or \
+                not np.isnan(bad) and e.value.reason == "schema", (t, path, e.value)
+            checked += 1
+    assert checked >= 19          # score, bbox, uv, K, beta, vertices, position, ...
+
+
+def test_a_stamp_from_the_future_is_refused():
+    msg = sample("HandPose")
+    msg["header"]["stamp_ns"] = 2**64 - 1
+    with pytest.raises(codec.MalformedMessage, match="stamp-future"):
+        codec.decode(codec.encode(msg, None), "HandPose")
+    msg["header"]["stamp_ns"] = time.time_ns() + codec.MAX_FUTURE_NS // 2       # a host's clock a little ahead
+    codec.decode(codec.encode(msg, None), "HandPose")
+
+
+def test_a_non_finite_result_is_dropped_at_the_source_and_counted(run_dir):
+    """A node about to publish a NaN drops it (counted, logged naming the input it came from)
+    and spends no seq on it, so no subscriber counts a loss."""
+    pub = Node("src", argv=[])
+    pub.advertise("/pose", "HandPose")
+    bad = sample("HandPose")
+    bad["hands"][0]["beta"] = np.full(10, np.nan, np.float32)
+    pub.publish("/pose", {"hands": bad["hands"]})
+    assert pub.stats["dropped"]["/pose:not-finite-out"] == 1 and pub.seq["/pose"] == 0
+    pub.close()
+
+
+def test_a_restart_a_stray_seq_or_a_second_frame_id_is_no_loss(run_dir, caplog):
+    """Keep-all loss counting (Node._count_lost) on the drill's sequences: a stray seq 0 in a
+    stream at 3,320, a publisher that restarts, and one topic carrying two frame_ids (a
+    publisher numbers a topic's messages whatever their frame) lose nothing; a real gap of
+    9 is 9 lost, and the warning names the jump."""
+    node = Node("loss_test", argv=[])
+    seen = lambda topic, seqs, frames=("camera",): [node._count_lost(topic, {"seq": s, "frame_id": frames[i % len(frames)]})
+                                                   for i, s in enumerate(seqs)]
+    seen("/a", [*range(3300, 3321), 0, *range(3321, 3400)])                   # a forged seq 0 in the middle
+    seen("/b", [*range(0, 50), *range(0, 50)])                                # the publisher restarted
+    seen("/c", range(0, 100), frames=("camera", "camera2"))                   # two frame ids, one seq counter
+    assert not any(node.stats["lost"].values()), dict(node.stats["lost"])
+    seen("/e", [*range(0, 10), *range(19, 30)])                               # a real gap
+    assert dict(node.stats["lost"]) == {"/e": 9}
+    assert "seq 19 after 9" in caplog.text
+    node.close()
+

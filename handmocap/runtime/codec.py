@@ -31,6 +31,9 @@ import numpy as np
 # Larger payloads are dropped unread; a 4K BGR frame is 25 MB.
 MAX_MESSAGE_BYTES = int(os.environ.get("HANDMOCAP_MAX_MESSAGE_BYTES", 64 * 1024 * 1024))
 _ARRAY_KEYS = frozenset(("dtype", "shape", "data"))
+# A header stamp further ahead of the receiving host's clock is refused: clocks of a graph's
+# hosts agree within seconds (NTP), and a stamp of 2^64 - 1 made `now - stamp` garbage downstream.
+MAX_FUTURE_NS = 60 * 1_000_000_000
 
 
 class MalformedMessage(ValueError):
@@ -388,13 +391,21 @@ def decode(payload: bytes, type_name: str, max_bytes: int = MAX_MESSAGE_BYTES) -
 
     Raises MalformedMessage, and nothing else, whatever the bytes (reason: oversized, msgpack,
     schema, array-size, array-shape, too-deep, unknown-type, or inconsistent: a message that
-    fits its schema but not itself, see CONSISTENCY).
+    fits its schema but not itself, see CONSISTENCY; not-finite: a NaN or inf anywhere;
+    stamp-future: a stamp more than MAX_FUTURE_NS ahead of this host's clock).
     """
     try:
         msg = _decode(payload, type_name, max_bytes)
+        where = non_finite(msg)
+        if where is not None:
+            raise MalformedMessage("not-finite", f"{where} has NaN or inf")
         check = CONSISTENCY.get(type_name)
         if check is not None:
             check(msg)
+        stamp = msg["header"]["stamp_ns"]
+        if stamp > time.time_ns() + MAX_FUTURE_NS:
+            raise MalformedMessage("stamp-future", f"header.stamp_ns {stamp} is {(stamp - time.time_ns()) / 1e9:.3g} s "
+                                                   f"ahead of this host's clock (limit {MAX_FUTURE_NS / 1e9:g} s)")
         return msg
     except MalformedMessage:
         raise
@@ -414,14 +425,25 @@ def _image_consistent(m: dict) -> None:
         raise MalformedMessage("inconsistent", f"jpeg image data must be a (N,) byte stream, got {data.shape}")
 
 
-def _finite(*fields):
-    """A check that every hand's `fields` (arrays) are finite (no NaN, no inf)."""
-    def check(m: dict) -> None:
-        for hand in m.get("hands", ()):
-            for f in fields:
-                if f in hand and not np.isfinite(hand[f]).all():
-                    raise MalformedMessage("not-finite", f"hand {hand.get('track_id')}: {f} has NaN or inf")
-    return check
+def non_finite(obj, path: str = "") -> str | None:
+    """Where the first NaN or inf of a decoded message is ("hands[1].beta"), or None. Every
+    float of every type must be finite: a NaN that passes a hop reaches every subscriber (a NaN
+    `score` even passes the schema's 0-1 bounds: comparisons with NaN are false)."""
+    if isinstance(obj, np.ndarray):
+        return None if obj.dtype.kind != "f" or np.isfinite(obj).all() else path
+    if isinstance(obj, float):
+        return None if math.isfinite(obj) else path
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            where = non_finite(v, f"{path}.{k}" if path else str(k))
+            if where is not None:
+                return where
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            where = non_finite(v, f"{path}[{i}]")
+            if where is not None:
+                return where
+    return None
 
 
 def _camera_info_consistent(m: dict) -> None:
@@ -431,12 +453,11 @@ def _camera_info_consistent(m: dict) -> None:
 
 
 # Checks past the schema, per type: what a schema cannot say (an image's bytes against its size,
-# numbers that must be finite). A message failing one is dropped like a malformed one.
+# K's focal lengths). A message failing one is dropped like a malformed one; so is any message
+# with a NaN or inf anywhere (`non_finite`) or a stamp from the future (MAX_FUTURE_NS).
 CONSISTENCY = {
     "Image": _image_consistent,
     "CameraInfo": _camera_info_consistent,
-    "HandKeypoints": _finite("uv", "xyz_rel", "bbox", "confidence"),
-    "HandPose": _finite("xyz", "root", "quat", "uv"),
 }
 
 

@@ -47,6 +47,7 @@ SCAN_S = 0.2          # how often subscribers look for new publishers
 POLL_MS = 100         # longest a receive blocks before the loop looks at scans, ticks and stop
 READY_TIMEOUT_S = 60  # how long a publisher waits for its graph to start
 LOST_LOG_S = 10.0     # at most one line per topic this often about messages a keep-all input lost
+STREAMS_KEPT = 4      # seq streams told apart per keep-all topic (publishers, restarts; Node._count_lost)
 PUBLISHER_WAIT_S = 10.0   # how long a closing node waits for its subscribers to take in its end of stream
 EOS_GRACE_S = 2.0     # an end of stream from the control channel waits this long for data still on its way
 
@@ -184,8 +185,9 @@ class Node:
         self._last_sent: dict[str, int] = {}   # topic -> header seq of the last publish() (its end of stream says it)
         self.stats = {"received": Counter(), "published": Counter(), "dropped": Counter(),
                       "superseded": Counter(), "lost": Counter()}
-        self._last_seq: dict[tuple, int] = {}   # (topic, frame_id) -> last header seq, keep-all inputs
+        self._last_seq: dict[str, list] = {}    # topic -> last header seq of each stream on it (keep-all inputs)
         self._seen: dict[str, tuple] = {}        # topic -> (highest seq received, monotonic time of the last)
+        self._last_input: Message | None = None  # the last message received
         self._eos_pending: dict[tuple, tuple] = {}   # (topic, sender) -> (last seq, heard at): control ends
         self._lost_logged: dict[str, tuple] = {}   # topic -> (time of its last loss line, lost then)
         self._received = self.stats["received"]
@@ -249,6 +251,12 @@ class Node:
         type_name = self.info.publishes.get(topic)
         if type_name is None:
             raise KeyError(f"{self.name}: publish on {topic!r} without advertise()")
+        where = codec.non_finite(body)
+        if where is not None:       # checked at the source: no subscriber ever gets it, no seq is spent
+            last = self._last_input
+            cause = f"from {last.topic} seq {last.data['header']['seq']} stamp {last.stamp_ns}" if last else "no input"
+            self._drop(topic, "not-finite-out", f"{where} has NaN or inf ({cause})", what="a result not published")
+            return
         seq = self.seq[topic]
         self.seq[topic] = seq + 1
         self._last_sent[topic] = seq
@@ -523,6 +531,8 @@ class Node:
             if self._mode(topic) == "all":
                 self._count_lost(topic, data["header"])
         msg = Message(topic, type_name, data, payload, time.time_ns())
+        if "header" in data:
+            self._last_input = msg          # what a non-finite result is blamed on (publish)
         if self._trace is not None:
             self._trace.append(("recv", topic, msg.stamp_ns, msg.recv_ns))
         return msg
@@ -557,23 +567,34 @@ class Node:
     def _count_lost(self, topic: str, header: dict, last: int | None = None) -> None:
         """A keep-all input's gap in the header's seq is what the bus dropped for this node
         (it fell a full queue behind, bus: Queues): counted in stats["lost"], logged at most every
-        LOST_LOG_S per topic. A seq that goes back is a restarted or another stream. `last`:
-        the seq before this one (an end of stream's last seq against the last one received)."""
+        LOST_LOG_S per topic, with the jump seen. `last`: the seq before this one (an end of
+        stream's last seq against the last one received).
+
+        A publisher numbers each topic's messages 0, 1, 2, ... whatever their frame_id, and a
+        topic may have several publishers (or one that restarted, or a stray message): a seq
+        continues the stream whose last seq is the closest below it, and a seq at or below
+        every stream's starts another one (STREAMS_KEPT kept). So a stray seq 0 or a restart is
+        no loss, and neither is the old stream going on after it."""
+        seq = header["seq"]
         if last is None:
-            key = (topic, header["frame_id"])
-            last = self._last_seq.get(key)
-            self._last_seq[key] = header["seq"]
-        if last is None or header["seq"] <= last + 1:
+            streams = self._last_seq.setdefault(topic, [])
+            below = [s for s in streams if s < seq]
+            last = max(below) if below else None
+            if last is not None:
+                streams.remove(last)
+            streams.append(seq)
+            del streams[:-STREAMS_KEPT]
+        if last is None or seq <= last + 1:
             return
         lost = self.stats["lost"]
-        lost[topic] += header["seq"] - last - 1
+        lost[topic] += seq - last - 1
         now = time.monotonic()
         logged_at, logged_count = self._lost_logged.get(topic, (-math.inf, 0))
         if now - logged_at >= LOST_LOG_S:
             self._lost_logged[topic] = (now, lost[topic])
-            self.log.warning("lost %d messages of %s (%d in all): this node is slower than its input and "
-                             "fell a full queue behind (bus: Queues); subscribe 'latest' to take the freshest only",
-                             lost[topic] - logged_count, topic, lost[topic])
+            self.log.warning("lost %d messages of %s (%d in all; the last gap: seq %d after %d): this node is slower "
+                             "than its input and fell a full queue behind (bus: Queues); subscribe 'latest' to "
+                             "take the freshest only", lost[topic] - logged_count, topic, lost[topic], seq, last)
 
     def _drop(self, topic: str, reason: str, detail: str, what: str = "a malformed message") -> None:
         self.stats["dropped"][f"{topic}:{reason}"] += 1
