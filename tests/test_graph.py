@@ -364,6 +364,22 @@ nodes:
     assert "error: sink ended while ticker, which publish its input /test/blob, still run" in r.stdout
 
 
+def test_a_required_node_that_ends_before_its_inputs_stops_the_graph(tmp_path, run_dir):
+    """The same sink, required (a recorder, say): the graph does not run on without it; it
+    stops at once, exit 1, naming the node (the ticker would publish for 30 s)."""
+    out = tmp_path / "sink.json"
+    lf = write(tmp_path, "g.yaml", f"""
+nodes:
+  ticker: {{node: graphnodes.ticker, params: {{count: 3000, size: 64, hz: 100}}}}
+  sink: {{node: graphnodes.sink, params: {{mode: all, out: {out}, max_messages: 10}}, required: true}}
+""")
+    t0 = time.monotonic()
+    r = handlaunch([lf], run_dir)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "error: required node sink ended before its inputs did; stopping the graph" in r.stdout, r.stdout
+    assert time.monotonic() - t0 < 20
+
+
 def test_a_graph_ends_when_its_nodes_have_ended_even_if_one_failed(tmp_path, run_dir):
     """A node that is not required fails: it is reported and the rest of the graph runs to its
     end; handlaunch then returns (it used to wait for ever for that node's exit code 0)."""

@@ -585,10 +585,10 @@ class Launcher:
         for publisher, topic, subscriber in feeds(files):
             self.fed_by.setdefault(subscriber, []).append((topic, publisher))
 
-    def _ended_before_its_inputs(self, c) -> None:
+    def _ended_before_its_inputs(self, c) -> bool:
         """A node that ended (exit 0) while a publisher of one of its inputs still runs did not
         end by the end of its streams (a forged or mistaken end of stream): say so, and the
-        graph's exit code says so too."""
+        graph's exit code says so too (a required one stops the graph: _supervise). -> whether it did."""
         files = bus.read_node_files(self.dir)   # alive ones: a publisher still running and not closing
         running = {n for other in self.children if other.exit_code is None for n in other.names
                    if n in files and not files[n].closing and not files[n].ended}
@@ -599,6 +599,7 @@ class Launcher:
                            f"which publish its input {still[0][0]}, still run (it did not hear the end of its "
                            f"stream from them)")
                 self.ended_early.append(name)
+        return any(name in self.ended_early for name in c.names)
 
     def _all_ready(self) -> bool:
         return not self._not_ready()
@@ -622,7 +623,10 @@ class Launcher:
                 continue
             c.exit_code = c.proc.returncode
             if c.exit_code == 0:
-                self._ended_before_its_inputs(c)
+                if self._ended_before_its_inputs(c) and c.spec.required:
+                    self.print("handlaunch", f"error: required {c.what} ended before its inputs did; stopping "
+                               f"the graph")
+                    return c.spec.name
                 continue
             how = f"killed by signal {-c.exit_code}" if c.exit_code < 0 else f"exit code {c.exit_code}"
             if c.spec.respawn:
