@@ -2,12 +2,16 @@
     python examples/subscribe_pose.py                        # the `ik` node of the graph on this host
     python examples/subscribe_pose.py tcp://10.0.0.2:5560    # an endpoint given by `bind:` in a launch file
 """
-import json, os, sys, tempfile
+import json, os, stat, sys, tempfile
 import msgpack, numpy as np, zmq
 
 # Each node says where it publishes in <run dir>/<node>.json (run dir as handmocap.runtime.bus.run_dir).
 run_dir = os.environ.get("HANDMOCAP_RUN_DIR") or os.path.join(
     tempfile.gettempdir(), f"handmocap-{os.getuid()}", os.environ.get("HANDMOCAP_GRAPH", "default"))
+for d in (run_dir, os.path.dirname(run_dir)) if not os.environ.get("HANDMOCAP_RUN_DIR") else (run_dir,):
+    st = os.lstat(d) if os.path.lexists(d) else None         # trust only a private folder of ours, as
+    if st and (stat.S_ISLNK(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077):   # handlaunch does
+        sys.exit(f"{d} is not your private folder (uid {st.st_uid}, mode {st.st_mode & 0o777:o}): not reading it")
 info = os.path.join(run_dir, "ik.json")
 if len(sys.argv) < 2 and not os.path.exists(info):
     sys.exit(f"no ik node runs in {run_dir}: start a graph (handlaunch launch/demo.yaml) or give an endpoint")

@@ -450,3 +450,14 @@ nodes:
     original = [p for t, _, p, _ in bag.iter_messages(first) if t == "/hand/keypoints"]
     assert recorded["/hand/keypoints"] == original and len(original) == 25
     assert len(recorded["/hand/shape"]) == 25
+
+
+def test_info_into_a_pipe_that_closes_early_is_no_error(tmp_path):
+    """`handbag info BAG | head -1`: the reader stopped reading; that is no error of handbag's."""
+    import subprocess
+    path = tmp_path / "b.mcap"
+    with bag.BagWriter(path) as w:
+        w.write("/camera/image", "Image", image_payload(0), 1, 1)
+    r = subprocess.run(["sh", "-c", f"'{sys.executable}' -m handmocap.runtime.bag_cli info '{path}' | head -1"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.stdout.startswith("path:") and "Broken pipe" not in r.stderr, r.stderr

@@ -90,6 +90,18 @@ nodes:
                 assert np.linalg.norm(np.array(q.strip("[] ").split(), float)) == pytest.approx(1, abs=0.01)
 
 
+def test_subscribe_pose_refuses_a_run_dir_others_could_have_made(tmp_path):
+    """As handlaunch and handtopic do: a run dir others may write (or not ours) is not read, so
+    another user's forged node file can't point the example at forged poses."""
+    shared = tmp_path / "run"
+    shared.mkdir(mode=0o777)
+    shared.chmod(0o777)
+    (shared / "ik.json").write_text(json.dumps({"endpoint": "ipc:///tmp/forged"}))
+    r = subprocess.run([sys.executable, str(EXAMPLES / "subscribe_pose.py")], env={**graph_env(shared)},
+                       capture_output=True, text=True, timeout=30)
+    assert r.returncode == 1 and "is not your private folder" in r.stderr and "mode 777" in r.stderr, r.stderr
+
+
 def test_readme_shows_the_subscriber_example_as_it_is():
     readme = (ROOT / "README.md").read_text()
     section = readme[readme.index("## Using /hand/pose (teleop)"):]

@@ -215,3 +215,8 @@ def test_a_corrupt_or_missing_model_file_is_one_clear_error(tmp_path):
         HandModel.load(cut)
     with pytest.raises(FileNotFoundError, match="not found"):
         HandModel.load(tmp_path / "missing.npz")
+    pickled = tmp_path / "pickled.npz"           # object arrays: numpy's error would suggest allow_pickle
+    np.savez(pickled, v_template=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(ValueError, match="not an .npz of arrays") as e:
+        HandModel.load(pickled)
+    assert "allow_pickle" not in str(e.value)

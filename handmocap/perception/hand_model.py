@@ -88,9 +88,10 @@ class HandModel:
                 name=path.stem,
             )
         except Exception as e:   # a cut or foreign file: zipfile, pickle, numpy and key errors alike
-            raise ValueError(f"hand model {path} is not a readable hand model file "
-                             f"({type(e).__name__}: {str(e)[:200]}); the bundled one is models/hand_model.npz, "
-                             f"made by scripts/build_hand_model.py") from None
+            # numpy's own words would suggest allow_pickle, which runs code from the file: not said
+            cause = "not an .npz of arrays" if "pickle" in str(e) else f"{type(e).__name__}: {str(e)[:200]}"
+            raise ValueError(f"hand model {path} is not a readable hand model file ({cause}); the bundled one "
+                             f"is models/hand_model.npz, made by scripts/build_hand_model.py") from None
 
     @classmethod
     def from_mano(cls, path):

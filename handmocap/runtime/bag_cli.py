@@ -243,6 +243,9 @@ def main(argv: list[str] | None = None) -> int:
         args.func(args)
     except KeyboardInterrupt:
         pass
+    except BrokenPipeError:                 # `handbag info X | head`: the reader has what it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())    # no second error at exit's flush
+        return 0
     except (CliError, NotABag, FileNotFoundError, FileExistsError, ValueError, OSError, RuntimeError) as e:
         print(f"handbag: error: {e}", file=sys.stderr)
         return 1
