@@ -10,24 +10,35 @@ unless `raw` is true or jpeg_quality null (lossless, byte for byte). Subscriptio
 keep-all. Each message is stored with its receive time as MCAP log time and its header
 stamp as publish time. The bag is finished properly (summary, footer) on SIGINT/SIGTERM and
 when every recorded input has ended; a one-line summary is logged at the end.
+
+Splits, as rosbag2's: with `split_s` (seconds of recording) or `split_mb` (MB) the bag is a
+series take_0000.mcap, take_0001.mcap, ... (names in order; `output` take.mcap names them),
+each closed whole before the next opens: a crash costs only the open split's last chunk.
+With `overwrite`, splits of an earlier recording under that name are removed when the first
+message arrives.
 """
 from __future__ import annotations
 
 from pathlib import Path
 
 from handmocap.runtime import codec
-from handmocap.runtime.bag import BagWriter, bag_info
+from handmocap.runtime.bag import BagWriter, SplitBagWriter, bag_info, split_paths
 from handmocap.runtime.frames import compressed
-from handmocap.runtime.node import Node, check_bool_param, check_jpeg_param, run
+from handmocap.runtime.node import Node, check_bool_param, check_jpeg_param, check_number_param, run
 
-PARAMS = {"output": "out.mcap", "topics": [], "overwrite": False, "raw": False, "jpeg_quality": 90}
+PARAMS = {"output": "out.mcap", "topics": [], "overwrite": False, "raw": False, "jpeg_quality": 90,
+          "split_s": None, "split_mb": None}
 IDLE_TICK_S = 0.5   # when nothing arrives this long, close the open chunk if it is old
 
 
-def output_path(output: str, overwrite: bool) -> Path:
-    """The bag path `output`; FileExistsError names the file if it exists and may not be replaced."""
+def output_path(output: str, overwrite: bool, split: bool = False) -> Path:
+    """The bag path `output`; FileExistsError names the file if it exists and may not be replaced
+    (with `split`: its first split)."""
     path = Path(output).expanduser()
-    if path.exists() and not overwrite:
+    if split and split_paths(path) and not overwrite:
+        raise FileExistsError(f"{split_paths(path)[0]} already exists (remove the splits of {path}, choose "
+                              f"another output, or set overwrite:=true)")
+    if path.exists() and not overwrite and not split:
         cut = ""
         try:
             if bag_info(path)["truncated"]:
@@ -39,11 +50,17 @@ def output_path(output: str, overwrite: bool) -> Path:
     return path
 
 
-def open_output(output: str, overwrite: bool) -> BagWriter:
-    """A BagWriter on `output` (parent folders made); FileExistsError as output_path."""
-    path = output_path(output, overwrite)
+def open_output(output: str, overwrite: bool, split_s=None, split_mb=None):
+    """A BagWriter on `output` (parent folders made), or a SplitBagWriter with `split_s` or
+    `split_mb` (an earlier recording's splits under that name removed); FileExistsError as output_path."""
+    split = split_s is not None or split_mb is not None
+    path = output_path(output, overwrite, split)
     path.parent.mkdir(parents=True, exist_ok=True)
-    return BagWriter(path)
+    if not split:
+        return BagWriter(path)
+    for old in split_paths(path):
+        old.unlink()
+    return SplitBagWriter(path, split_s, None if split_mb is None else int(split_mb * 1e6))
 
 
 def check_params(params: dict) -> None:
@@ -53,8 +70,11 @@ def check_params(params: dict) -> None:
     check_bool_param("recorder", "overwrite", overwrite)
     check_bool_param("recorder", "raw", params.get("raw", PARAMS["raw"]))
     check_jpeg_param("recorder", params.get("jpeg_quality", PARAMS["jpeg_quality"]))
+    for key in ("split_s", "split_mb"):
+        check_number_param("recorder", key, params.get(key), positive=True, null=True)
+    split = params.get("split_s") is not None or params.get("split_mb") is not None
     try:
-        output_path(str(params.get("output", PARAMS["output"])), overwrite)
+        output_path(str(params.get("output", PARAMS["output"])), overwrite, split)
     except FileExistsError as e:
         raise ValueError(f"recorder param output: {e}") from None
 
@@ -74,7 +94,8 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
     if isinstance(topics, str):
         topics = [topics]
     try:
-        path = output_path(str(p["output"]), bool(p["overwrite"]))
+        split = p["split_s"] is not None or p["split_mb"] is not None
+        path = output_path(str(p["output"]), bool(p["overwrite"]), split)
         # the bag is made (or an earlier one replaced) by the first message, not at start: a
         # graph that fails at once must leave neither an empty bag nor a replaced recording
         bag = None
@@ -87,8 +108,10 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
                 node.subscribe(topic, None, mode="lossless")   # a bag is complete: publishers wait for it
         else:
             node.subscribe(None, None, mode="lossless")
-        node.log.info("recording %s to %s%s", ", ".join(topics) or "every topic", path,
-                      " (replacing it once the first message arrives)" if path.exists() else "")
+        node.log.info("recording %s to %s%s", ", ".join(topics) or "every topic",
+                      f"splits of {path}" if split else path,
+                      " (replacing it once the first message arrives)" if path.exists() or
+                      (split and split_paths(path)) else "")
         refused: set[str] = set()   # topics seen with a second message type (a graph bug)
         for msg in node.events(timeout=IDLE_TICK_S):
             if msg is None:
@@ -96,7 +119,7 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
                     bag.tick()
                 continue
             if bag is None:
-                bag = open_output(str(path), True)
+                bag = open_output(str(path), True, p["split_s"], p["split_mb"])
             payload = msg.raw
             if msg.type == "Image" and not p["raw"] and p["jpeg_quality"] and msg.data["encoding"] != "jpeg":
                 payload = codec.encode(compressed(msg.data, int(p["jpeg_quality"])), "Image")
@@ -111,7 +134,9 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
             node.log.info("recorded nothing: %s", f"{path} left as it was" if path.exists() else f"no {path} written")
         else:
             bag.close()
-            node.log.info("%s", summary_line(bag.counts, bag.path))
+            where = bag.path if not isinstance(bag, SplitBagWriter) else \
+                f"{bag.paths[0]} ... {bag.paths[-1].name} ({len(bag.paths)} splits)"
+            node.log.info("%s", summary_line(bag.counts, where))
         node.close()
 
 

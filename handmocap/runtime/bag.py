@@ -172,6 +172,63 @@ class BagWriter:
         self.close()
 
 
+def split_path(path: Path, index: int) -> Path:
+    """The `index`-th split of bag `path`: take.mcap -> take_0000.mcap, take_0001.mcap, ...
+    (names sort in recording order)."""
+    return path.with_name(f"{path.stem}_{index:04d}{path.suffix}")
+
+
+def split_paths(path: Path) -> list[Path]:
+    """The splits of `path` on disk, in order."""
+    return sorted(path.parent.glob(f"{path.stem}_[0-9][0-9][0-9][0-9]{path.suffix}"))
+
+
+class SplitBagWriter:
+    """BagWriter's interface over a series of bags, as rosbag2 splits: a new file
+    (`split_path`) once the open one holds `split_s` seconds of log time or `split_bytes`
+    bytes (either may be None). Each split is closed whole (summary, footer) before the next
+    opens, so a crash costs at most the open one's last chunk, and every closed one reads
+    with any MCAP reader as it is."""
+
+    def __init__(self, path: str | os.PathLike, split_s: float | None = None, split_bytes: int | None = None,
+                 **writer_kw):
+        self.path = Path(path)              # the name the splits are made from
+        self.split_s, self.split_bytes, self.writer_kw = split_s, split_bytes, writer_kw
+        self.paths: list[Path] = []
+        self.counts: Counter[str] = Counter()
+        self._bag: BagWriter | None = None
+        self._first_log_ns = 0
+
+    def _open_next(self, log_time_ns: int) -> None:
+        if self._bag is not None:
+            self._bag.close()
+        self.paths.append(split_path(self.path, len(self.paths)))
+        self._bag = BagWriter(self.paths[-1], **self.writer_kw)
+        self._first_log_ns = log_time_ns
+
+    def write(self, topic: str, type_name: str, payload: bytes, log_time_ns: int, publish_time_ns: int) -> None:
+        bag = self._bag
+        if bag is None or (self.split_s is not None and log_time_ns - self._first_log_ns >= self.split_s * 1e9) or \
+                (self.split_bytes is not None and bag._file.tell() >= self.split_bytes):
+            self._open_next(log_time_ns)
+        self._bag.write(topic, type_name, payload, log_time_ns, publish_time_ns)
+        self.counts[topic] += 1
+
+    def tick(self) -> None:
+        if self._bag is not None:
+            self._bag.tick()
+
+    def close(self) -> None:
+        if self._bag is not None:
+            self._bag.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
 @dataclass
 class _Scan:
     """What a front-to-back read of a bag found out about the file."""

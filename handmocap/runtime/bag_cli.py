@@ -32,9 +32,10 @@ class CliError(Exception):
 def cmd_record(args) -> None:
     from handmocap.nodes import recorder
     argv = [f"output:={json.dumps(str(args.output))}", f"topics:={json.dumps(args.topics)}",
-            f"overwrite:={'true' if args.overwrite else 'false'}"]
+            f"overwrite:={'true' if args.overwrite else 'false'}", f"split_s:={json.dumps(args.split_s)}",
+            f"split_mb:={json.dumps(args.split_mb)}"]
     out = Path(args.output).expanduser()
-    if out.exists() and not args.overwrite:
+    if out.exists() and not args.overwrite and args.split_s is None and args.split_mb is None:
         raise CliError(f"{out} already exists (remove it, choose another -o, or pass --overwrite)")
     recorder.main(argv=argv, name=f"bagrec{os.getpid()}")
 
@@ -206,6 +207,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--output", required=True, help="bag file to write (.mcap)")
     r.add_argument("topics", nargs="*", help="topics to record (default: every topic)")
     r.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    r.add_argument("--split-s", type=float, default=None, metavar="S",
+                   help="a new file every S seconds: OUT_0000.mcap, OUT_0001.mcap, ... (each whole once closed)")
+    r.add_argument("--split-mb", type=float, default=None, metavar="MB", help="a new file every MB megabytes")
     r.set_defaults(func=cmd_record)
 
     pl = sub.add_parser("play", help="publish a bag's messages unchanged, paced by their log times")
