@@ -406,14 +406,16 @@ def test_real_3d_labels_turn_and_mirror_with_their_crops():
             "held": np.zeros(n, bool), "xyz": normalize_joints(world).astype(np.float32),
             "has_3d": np.arange(n) % 4 != 0, "neg": np.zeros((0, 128, 128, 3), np.uint8), "neg_held": np.zeros(0, bool)}
     for w in (0.0, 0.5):
-        batch = BatchMaker(None, real, 1.0, 0.0, 0.3, upright=40.0, real_3d=w)._real(256, rng)
+        maker = BatchMaker(None, real, 1.0, 0.0, 0.3, upright=40.0, real_3d=w)
+        batch = maker._real(256, rng)
         shown_right = batch["right"] > 0.5
         assert np.all(batch["w3d"][~shown_right] == 0)
         if not w:
             assert np.all(batch["w3d"] == 0)
             continue
         trained = batch["w3d"] > 0
-        assert trained.sum() > 50 and np.allclose(batch["w3d"][trained], w * batch["w_hand"][trained])
+        label_weight = batch["w_hand"] / maker._side_weight(batch["right"] < 0.5)    # w_hand: x the side's balance
+        assert trained.sum() > 50 and np.allclose(batch["w3d"][trained], w * label_weight[trained])
         assert trained.sum() < shown_right.sum()        # a quarter of the hands have no 3D label
         for i in np.flatnonzero(trained):       # 2D offsets and the 3D label's image-plane part agree in direction
             d2 = batch["uv"][i] - batch["uv"][i][9]
@@ -493,7 +495,8 @@ def test_left_2d_trains_the_heatmaps_of_crops_shown_as_left_hands_but_never_thei
             left = batch["right"] < 0.5
             assert 50 < left.sum() < 150
             assert np.all(batch["w3d"][left] == 0) and np.all(batch["w2d"][~left] > 0)
-            expected = w * (1.0 if score is None else batch["w_hand"][left])
+            label_weight = batch["w_hand"] / maker._side_weight(left)        # w_hand: x the side's balance
+            expected = w * (1.0 if score is None else label_weight[left])
             assert np.allclose(batch["w2d"][left], expected)
             # shown as left, a right hand is mirrored: its thumb tip lies right of its little tip
             thumb_right = batch["uv"][:, 4, 0] > batch["uv"][:, 20, 0]
