@@ -965,3 +965,17 @@ def test_a_side_detnet_gives_the_handedness_and_nothing_else():
     assert np.array_equal(both["uv"], alone_kp["uv"]) and np.array_equal(both["presence"], alone_kp["presence"])
     assert np.array_equal(both["handedness"], alone_side["handedness"])
     assert not np.array_equal(alone_kp["handedness"], alone_side["handedness"])
+
+
+def test_the_handedness_loss_weighs_both_sides_alike_whatever_the_left_share():
+    """Crops shown as left and as right hands carry equal total handedness weight, for any
+    --share-left (the loss once assumed 0.4 and leaned left at 0.5)."""
+    from handmocap.training.detnet_batches import BatchMaker
+    rng = np.random.default_rng(5)
+    n = 16
+    synth = {"image": np.zeros((n, 128, 128, 3), np.uint8), "uv": rng.uniform(40, 90, (n, 21, 2)).astype(np.float32),
+             "xyz_rel": rng.normal(size=(n, 21, 3)), "handedness": np.zeros(n, np.int8)}
+    for share in (0.2, 0.5, 0.7):
+        batch = BatchMaker(synth, None, 0.0, 0.0, share, upright=None)._synth(4000, rng)
+        left = batch["right"] < 0.5
+        assert batch["w_hand"][left].sum() == pytest.approx(batch["w_hand"][~left].sum(), rel=0.1)
