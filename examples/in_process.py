@@ -17,6 +17,8 @@ video = HandTracker()                        # a video or camera stream: tracks 
 # no handedness mistakes (detector node: handedness; webcam.yaml hand:=right)
 cap = cv2.VideoCapture(video_path)
 ok, frame = cap.read()
+if not ok:
+    sys.exit(f"{video_path}: no frame could be read (a missing file, or not a video OpenCV reads)")
 while ok:
     for hand in video.process(frame, K=None):    # K (3,3) px; None: a 60° horizontal field of view
         print("video", hand["track_id"], hand["handedness"], "root_m", hand["root"].round(3))
@@ -24,6 +26,9 @@ while ok:
 
 photos = HandTracker(smooth=False, **PHOTO_SETTINGS)  # unrelated photos: one chance each,
 for path in sys.argv[2:]:                             # close-ups tried on the centre square
+    photo = cv2.imread(path)
+    if photo is None:
+        sys.exit(f"{path}: not an image OpenCV reads (a missing file, or another format)")
     photos.reset()
-    for hand in photos.process(cv2.imread(path)):
+    for hand in photos.process(photo):
         print("photo", path, hand["handedness"], "uv_px", hand["uv"][0].round(1))

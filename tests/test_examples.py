@@ -128,6 +128,16 @@ def test_readme_shows_the_in_process_example_as_it_is_and_it_runs(tmp_path):
     assert [line.split()[2] for line in lines if line.startswith(f"photo {photo}")] == ["right"]
 
 
+@pytest.mark.parametrize("args, word", [(["no_such_clip.mp4"], "no_such_clip.mp4: no frame could be read"),
+                                        (["data/demo/hand_clip.mp4", "no_such_photo.jpg"],
+                                         "no_such_photo.jpg: not an image OpenCV reads")])
+def test_in_process_example_says_what_it_could_not_read(args, word):
+    """A missing video or photo is one line and a non-zero exit (it was exit 0, or a traceback)."""
+    out = subprocess.run([sys.executable, str(EXAMPLES / "in_process.py"), *args], capture_output=True, text=True,
+                         timeout=120, cwd=ROOT)
+    assert out.returncode == 1 and word in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
 # -- dex-retargeting input ---------------------------------------------------------------------
 MODEL = HandModel.load()
 K = camera_info.default_K(640, 480)

@@ -52,21 +52,24 @@ def live_nodes() -> dict[str, bus.NodeInfo]:
     return nodes
 
 
-def check_topic(topic: str) -> None:
-    """Say on stderr, once, when no node publishes `topic` now (a misspelt name would else wait
-    in silence), with the closest published names; then keep waiting: a publisher may come."""
+def check_topic(topic: str, wait: bool = False) -> bool:
+    """Whether a node publishes `topic` now; if not, say so on stderr once, with the closest
+    published names (a misspelt name would else wait in silence), and that it waits (`wait`)
+    or stops."""
     import difflib
+    then = "Waiting for it (Ctrl-C to stop)." if wait else "Pass --wait to wait for a publisher."
     try:
         table = topics_table(live_nodes())
     except NoGraph as e:
-        print(f"handtopic: {e}. Waiting for one (Ctrl-C to stop).", file=sys.stderr, flush=True)
-        return
+        print(f"handtopic: {e}. {then}", file=sys.stderr, flush=True)
+        return False
     published = [t for t, row in table.items() if row["publishers"]]
     if topic not in published:
         close = difflib.get_close_matches(topic, published, n=3, cutoff=0.5)
         print(f"handtopic: no node publishes {topic} now" + (f" (did you mean {', '.join(close)}?)" if close else "")
-              + f"; published: {', '.join(published) or 'nothing'}. Waiting for it (Ctrl-C to stop).",
-              file=sys.stderr, flush=True)
+              + f"; published: {', '.join(published) or 'nothing'}. {then}", file=sys.stderr, flush=True)
+        return False
+    return True
 
 
 def cmd_list(args) -> int:
@@ -83,6 +86,8 @@ def cmd_list(args) -> int:
 def cmd_nodes(args) -> int:
     live_nodes()   # NoGraph when nothing runs
     for n in sorted(bus.read_node_files(bus.run_dir(), alive_only=False).values(), key=lambda n: n.name):
+        if n.observer and not n.alive:      # a handtopic that was stopped: not part of the graph
+            continue
         age = (time.time_ns() - n.heartbeat_ns) / 1e9
         state = "alive" if n.alive else ("ended" if n.ended else "dead")
         pub = sum(n.stats.get("published", {}).values())
@@ -108,7 +113,8 @@ def _summarise(obj, full: bool):
 
 def cmd_echo(args) -> int:
     import yaml
-    check_topic(args.topic)
+    if not check_topic(args.topic, args.wait) and not args.wait:
+        return 1
     node = _observer(args.topic, "all")
     n = 0
     for msg in node.events(timeout=args.duration):
@@ -125,7 +131,8 @@ def cmd_echo(args) -> int:
 
 
 def _periodic(args, mode, on_message, report) -> int:
-    check_topic(args.topic)
+    if not check_topic(args.topic, args.wait) and not args.wait:
+        return 1
     node = _observer(args.topic, mode)
     end = time.monotonic() + args.duration if args.duration else None
     next_report = time.monotonic() + 1.0
@@ -144,11 +151,13 @@ def _periodic(args, mode, on_message, report) -> int:
 
 def cmd_hz(args) -> int:
     arrivals = deque(maxlen=args.window)
+    reported = [0]                  # arrivals[-1] at the last report: a stream that stopped says so
 
     def report():
-        if len(arrivals) < 2:
+        if len(arrivals) < 2 or arrivals[-1] == reported[0]:
             print("no new messages", flush=True)
             return
+        reported[0] = arrivals[-1]
         dt = np.diff(np.array(arrivals)) / 1e9
         print(f"average rate: {1 / dt.mean():.3f}\n\tmin: {dt.min():.4f}s max: {dt.max():.4f}s "
               f"std dev: {dt.std():.5f}s window: {len(arrivals)}", flush=True)
@@ -159,16 +168,22 @@ def cmd_hz(args) -> int:
 def cmd_delay(args) -> int:
     """End-to-end latency: receive time minus the header's capture stamp (same host clock)."""
     delays = deque(maxlen=args.window)
+    count = [0, 0]                  # messages received, and at the last report
 
     def report():
-        if not delays:
+        if not delays or count[0] == count[1]:
             print("no new messages", flush=True)
             return
+        count[1] = count[0]
         d = np.array(delays) * 1e3
         print(f"delay p50: {np.percentile(d, 50):.2f} ms  p95: {np.percentile(d, 95):.2f} ms  "
               f"min: {d.min():.2f} ms  max: {d.max():.2f} ms  window: {len(d)}", flush=True)
 
-    return _periodic(args, "all", lambda m: delays.append((m.recv_ns - m.stamp_ns) / 1e9), report)
+    def on_message(m):
+        delays.append((m.recv_ns - m.stamp_ns) / 1e9)
+        count[0] += 1
+
+    return _periodic(args, "all", on_message, report)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -184,6 +199,8 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("topic")
         p.add_argument("--duration", type=float, default=None,
                        help="stop after this many seconds (echo: of silence)")
+        p.add_argument("--wait", action="store_true",
+                       help="wait for a publisher of the topic (default: stop at once when none publishes it)")
         if name == "echo":
             p.add_argument("-n", "--count", type=int, default=0, help="stop after N messages")
             p.add_argument("--full", action="store_true", help="print whole arrays")
