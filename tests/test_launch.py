@@ -216,3 +216,13 @@ def test_product_launch_files_work_from_any_folder(tmp_path, monkeypatch):
     demo = load_launch_file(ROOT / "launch" / "demo.yaml", {})
     source = next(n for n in demo.nodes if n.name == "replay").params["source"]
     assert Path(source).is_file() and Path(source).resolve() == (ROOT / "data/demo/hand_clip.mp4").resolve()
+
+
+def test_the_readme_arguments_exist_in_the_product_launch_files():
+    """`mesh:=false` (a bare install, no OpenGL) and the demo's `loop:=true` (time for a second
+    terminal) are arguments of the launch files the README names, and reach their nodes."""
+    root = Path(__file__).resolve().parent.parent
+    demo = {n.name: n for n in load_launch_file(root / "launch" / "demo.yaml", {"mesh": False, "loop": True}).nodes}
+    assert demo["visualizer"].params["mesh"] is False and demo["replay"].params["loop"] is True
+    webcam = {n.name: n for n in load_launch_file(root / "launch" / "webcam.yaml", {"mesh": False}).nodes}
+    assert webcam["visualizer"].params["mesh"] is False
