@@ -1,6 +1,6 @@
 """replay: a camera from a recording. Publishes /camera/image and /camera/info.
 
-Source: a video file, a folder of images (sorted by name) or an MCAP bag (its /camera/image
+Source: a video file, a folder of images (subfolders included, sorted by path) or an MCAP bag (its /camera/image
 messages; their stamps are replaced by the replay time, as a camera would stamp them).
 `rate` is a speed factor over the source's frame rate (1 = real time, 0 = as fast as the
 graph takes them: the next frame is decoded once fewer than AHEAD sent frames are still

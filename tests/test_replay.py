@@ -86,3 +86,24 @@ def test_bad_source_is_one_clear_error(tmp_path, run_dir, make, words):
     assert r.returncode == 2
     lines = [l for l in r.stderr.strip().splitlines() if l]
     assert len(lines) == 1 and words in lines[0] and str(src) in lines[0], r.stderr
+
+
+def test_an_image_folder_includes_its_subfolders_sorted_by_path(tmp_path):
+    """A dataset's per-person folders (`handeval predict --images DIR`, replay source:=DIR):
+    every image below DIR, sorted by path; none at all is one error that says so."""
+    import cv2
+    import numpy as np
+
+    from handmocap.runtime.frames import ImageFolderFrames
+    for name in ("b/2.png", "a/1.jpg", "a/0.jpg", "top.png", "notes.txt"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        if name.endswith("txt"):
+            (tmp_path / name).write_text("not an image")
+        else:
+            cv2.imwrite(str(tmp_path / name), np.full((8, 8, 3), len(name), np.uint8))
+    frames = ImageFolderFrames(tmp_path)
+    assert [p.relative_to(tmp_path).as_posix() for p in frames.files] == ["a/0.jpg", "a/1.jpg", "b/2.png", "top.png"]
+    assert [i for i, _ in frames] == [0, 1, 2, 3]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="no images .* subfolders included"):
+        ImageFolderFrames(tmp_path / "empty")

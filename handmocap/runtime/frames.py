@@ -64,16 +64,18 @@ class VideoFrames:
 
 
 class ImageFolderFrames:
-    """Images of a folder, sorted by name; an unreadable file is an error (a camera stream
-    must not skip silently), or with skip_unreadable a (i, None) for the caller to report
-    (a folder of photos: one bad file must not cost the others)."""
+    """Images of a folder and its subfolders, sorted by path (a dataset's per-person folders
+    read as they are); an unreadable file is an error (a camera stream must not skip
+    silently), or with skip_unreadable a (i, None) for the caller to report (a folder of
+    photos: one bad file must not cost the others)."""
 
     def __init__(self, path: str | Path, fps: float = 30.0, start_s: float = 0.0, skip_unreadable: bool = False):
         self.path = Path(path)
         self.skip_unreadable = skip_unreadable
-        self.files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        self.files = sorted(p for p in self.path.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
         if not self.files:
-            raise ValueError(f"image folder {self.path}: no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
+            raise ValueError(f"image folder {self.path}: no images ({', '.join(sorted(IMAGE_SUFFIXES))}), "
+                             f"subfolders included")
         self.fps = fps
         self.frame_count = len(self.files)
         self.start_frame = int(round(start_s * fps))

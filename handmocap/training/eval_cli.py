@@ -7,7 +7,7 @@
                     [--methods ours mediapipe] [--only SPLIT ...] [--detnet ...]
     handeval people [--data shared/data] [--png PCK.png] [--json OUT.json] [--jitter N] [--detnet ...]
 
-predict: HandTracker on every image of DIR sorted by name (each image on its own: tracks
+predict: HandTracker on every image below DIR sorted by path (each image on its own: tracks
 reset, no smoothing; --sequence treats the images as consecutive video frames) or on every
 frame of a video file (tracked, smoothed). PRED.npz holds, per image, the best-scoring hand:
   xyz (N,21,3) m camera frame (NaN: no hand)   xyz_rel (N,21,3) DetNet's root-relative
