@@ -598,7 +598,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(prog="handeval", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("predict", help="run the pipeline on a folder of images or a video")
-    p.add_argument("--images", required=True, help="folder of images (sorted by name) or a video file")
+    p.add_argument("--images", required=True, help="folder of images (subfolders included, sorted by path) or a video file")
     k = p.add_mutually_exclusive_group()
     k.add_argument("--K", help="fx,fy,cx,cy of every image (px)")
     k.add_argument("--K-file", help=".npy with (4,), (3,3), (N,4) or (N,3,3)")
