@@ -4,7 +4,7 @@ the same graph's /hand/pose latency, and what the ros2 node costs a frame.
     python benchmarks/bench_ros2.py [--clip PATH] [--frames 300] [--rounds 2]
 
 Per round, in a fresh ROS_DOMAIN_ID: examples/ros2_listen_hands.py (a plain rclpy subscriber),
-launch/ros2.yaml as it ships (sensor-data QoS in, latest-only detector: live settings) with
+launch/ros2.yaml as it ships (camera taken as its driver publishes it, latest-only detector: live settings) with
 bag:= recording /hand/pose, and, once the listener has found the ros2 node's publisher (DDS
 discovery takes 0.1-2 s), examples/ros2_publish_video.py playing the clip at 30 fps
 (sensor_msgs/Image bgr8 + CameraInfo, stamped at publish, as a driver stamps at capture).
