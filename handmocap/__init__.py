@@ -1,6 +1,6 @@
 """handmocap: real-time monocular RGB hand shape and motion capture.
 
-Public entry points (DESIGN.md), imported on first use so that `import handmocap` stays cheap
+Public entry points (docs/reference.md "In-process, without a graph"), imported on first use so that `import handmocap` stays cheap
 for node processes:
     handmocap.HandModel     the bundled open hand model, or a user's MANO file
     handmocap.IKSolver      IKNet (onnxruntime): 3D joints -> global joint rotations

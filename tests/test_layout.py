@@ -41,3 +41,12 @@ def test_no_two_modules_import_each_other():
     graph = {name: {m for m in imports_of(p) if m in files and m != name} for name, p in files.items()}
     cycles = sorted({tuple(sorted((a, b))) for a, deps in graph.items() for b in deps if a in graph.get(b, ())})
     assert cycles == []
+
+
+def test_no_file_cites_the_design_file_a_clone_lacks():
+    """DESIGN.md was the first contract, outside the repo; its content now lives in messages/
+    and docs/reference.md, and a user's clone has no DESIGN.md to follow a citation to."""
+    files = [p for pattern in ("*.py", "*.md", "*.yaml") for p in ROOT.rglob(pattern)
+             if not any(part in (".venv", "runs", ".git", "node_modules") for part in p.relative_to(ROOT).parts)]
+    citing = [str(p.relative_to(ROOT)) for p in files if p.name != "test_layout.py" and "DESIGN.md" in p.read_text()]
+    assert citing == []

@@ -1,4 +1,4 @@
-"""The one joint-order table of the project (DESIGN.md "Joints, frames, units").
+"""The one joint-order table of the project (docs/reference.md: the /hand/pose fields and frames).
 
 21 joints, MediaPipe's and the paper's order: 0 wrist; 1-4 thumb (CMC, MCP, IP, tip);
 5-8 index (MCP, PIP, DIP, tip); 9-12 middle; 13-16 ring; 17-20 little.

@@ -1,4 +1,4 @@
-"""Bags: MCAP files of wire messages, stored exactly as they travelled (DESIGN.md "Bags").
+"""Bags: MCAP files of wire messages, stored exactly as they travelled (docs/reference.md "Bags").
 
 One MCAP channel per topic; its schema is the message type's JSON Schema (schema encoding
 `jsonschema`, schema name = message type name) and its message encoding `msgpack`. Payloads

@@ -1,6 +1,6 @@
 """Camera intrinsics: the one place that makes, loads, scales and publishes them.
 
-Conventions (DESIGN.md): pixels, origin top-left, x right, y down; pixel centres at integer
+Conventions (messages/CameraInfo.json; docs/reference.md): pixels, origin top-left, x right, y down; pixel centres at integer
 coordinates, as in OpenCV, so the centre of a W×H image is ((W-1)/2, (H-1)/2).
 K is (3,3) float64 [[fx, s, cx], [0, fy, cy], [0, 0, 1]] in pixels; distortion is OpenCV's
 (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, τx, τy]]]]), float64 (n,), n in {4, 5, 8, 12, 14}.

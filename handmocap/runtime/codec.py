@@ -487,6 +487,6 @@ def _decode(payload, type_name: str, max_bytes: int) -> dict:
 
 
 def header(seq: int, frame_id: str = "camera", stamp_ns: int | None = None) -> dict:
-    """The header every message starts with (DESIGN.md): capture stamp, sequence, frame id."""
+    """The header every message starts with (messages/common.json `header`): capture stamp, sequence, frame id."""
     return {"stamp_ns": time.time_ns() if stamp_ns is None else int(stamp_ns), "seq": int(seq),
             "frame_id": frame_id}

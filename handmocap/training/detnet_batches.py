@@ -3,7 +3,7 @@
 Each batch (drawn from numpy generator [seed, iteration], so a resumed run sees the
 batches the uninterrupted run would have) mixes:
 * synthetic crops (handsynth shards, --data): all heads. Left hands are mirrored to the
-  right and the 3D label's x negated (DESIGN.md);
+  right and the 3D label's x negated (rotations.mirror_points);
 * real hand crops with 2D labels: howiema_lstm_pm subject 001, the MediaPipe
   pseudo-labels of real_data.TRAIN_VIDEOS (weight = MediaPipe's score) and, since cache
   v5, of every video/wild clip, 11K Hands person and images/scenes photo but the people
