@@ -8,7 +8,7 @@ Matched comparison (first table): for each video (default: the demo clip and, wh
 data pack is beside the repository, two real clips: one hand at 540x960, two hands at
 1280x720) and each maximum number of hands (default 1 and 2), the median ms per frame of
 HandTracker.process and of MediaPipe Hands in tracking mode (scripts/mediapipe_reference.py
---bench in /tmp/mpenv, a subprocess) on the same frames at their own size, with the same
+--bench in /tmp/mpenv, a subprocess; built there when absent: eval_cli.reference_python) on the same frames at their own size, with the same
 maximum number of hands, and the BGR -> RGB conversion MediaPipe needs counted on its side
 (HandTracker takes the camera's BGR frames as they are); ratio = ours / MediaPipe's, the
 median over `--rounds` alternating rounds (one pass each, after a warm-up pass).
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-from handmocap.training.eval_cli import REFERENCE_PYTHON as MP_PYTHON  # noqa: E402  (HANDMOCAP_MEDIAPIPE_PYTHON)
+from handmocap.training.eval_cli import reference_python  # noqa: E402  (HANDMOCAP_MEDIAPIPE_PYTHON)
 REAL_CLIPS = ("video/webcam/lujunwang_hand.mp4", "video/wild/Criminal-9527__hands.mp4")   # one hand, two hands
 MAX_FRAMES = 200
 
@@ -48,10 +48,11 @@ def default_videos():
 
 def mediapipe_ms(video, max_hands, repeat=1):
     """MediaPipe's tracking mode on the video's first MAX_FRAMES frames (a subprocess in
-    /tmp/mpenv): its JSON line (median_ms, hands_per_frame, ...) or a string saying why not."""
-    if not MP_PYTHON.is_file():
-        return f"not measured: {MP_PYTHON} absent (see scripts/mediapipe_reference.py; HANDMOCAP_MEDIAPIPE_PYTHON names another)"
-    r = subprocess.run([str(MP_PYTHON), str(ROOT / "scripts" / "mediapipe_reference.py"), "--bench", str(video),
+    the MediaPipe venv): its JSON line (median_ms, hands_per_frame, ...) or a string saying why not."""
+    python = reference_python()        # found, or built in /tmp/mpenv (said), or None (said why)
+    if python is None:
+        return "not measured: no MediaPipe venv (see the line above)"
+    r = subprocess.run([str(python), str(ROOT / "scripts" / "mediapipe_reference.py"), "--bench", str(video),
                         "--frames", str(MAX_FRAMES), "--max-hands", str(max_hands),
                         "--repeat", str(repeat)], capture_output=True, text=True)
     lines = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]

