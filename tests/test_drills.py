@@ -232,3 +232,29 @@ nodes:
     assert "respawned: continuing after the" in out
     seqs = [m["header"]["seq"] for m, _ in read_bag(bag)["/camera/image"]]
     assert len(seqs) >= 80 and seqs == sorted(set(seqs)) and seqs[-1] == 89, seqs
+
+
+# -- (f) well-formed messages with wrong values --------------------------------------------
+def test_wrong_values_reach_no_subscriber_and_count_no_false_loss(tmp_path, run_dir):
+    """Issue 49's drill, values part: into the demo chain on its clip, a node forges a HandShape
+    with a NaN beta, keypoints with a NaN score and with a stamp of 2**64 - 1, and keypoints from
+    a second stream (seq from 0, another frame_id). Every recorded message is finite and
+    stamped no later than its receipt, every frame of the clip still has its pose, and no node
+    warns of a lost message."""
+    bag = tmp_path / "values.mcap"
+    lf = tmp_path / "g.yaml"
+    lf.write_text(chain_yaml(DEMO_CLIP, bag, rate=1.0,
+                             extra_nodes="  value_forger: {node: graphnodes.value_forger, params: {count: 40}}"))
+    r = handlaunch([lf], run_dir, timeout=120)
+    out = r.stdout + r.stderr
+    assert r.returncode == 0, out
+    from handmocap.runtime.codec import non_finite
+    msgs = read_bag(bag)
+    for topic, items in msgs.items():
+        for m, log_ns in items:
+            assert non_finite(m) is None, (topic, non_finite(m))
+            assert m["header"]["stamp_ns"] <= log_ns, topic
+    images = {m["header"]["stamp_ns"] for m, _ in msgs["/camera/image"]}
+    assert len(images) == 90 and images <= {m["header"]["stamp_ns"] for m, _ in msgs["/hand/pose"]}
+    assert "not-finite" in out and "stamp-future" in out          # refused, and said (once per kind)
+    assert "lost" not in out, [line for line in out.splitlines() if "lost" in line]
