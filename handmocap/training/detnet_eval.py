@@ -5,6 +5,7 @@ used for training) and the held-back people's crops (`people_*`: error / hand si
 """
 import numpy as np
 
+from handmocap.perception.detector import logit
 from handmocap.perception.skeleton import ROOT
 from handmocap.training import real_data
 from handmocap.training.detnet_batches import rotate_mirror_3d
@@ -112,12 +113,6 @@ def predict(net, images, refines=("softmax",), batch=128):
             np.concatenate(pres), np.concatenate(right))
 
 
-def logit(p):
-    """log(p / (1 - p)), p clipped away from 0 and 1."""
-    p = np.clip(p, 1e-6, 1 - 1e-6)
-    return np.log(p / (1 - p))
-
-
 def pck_auc(err_mm, lo=20.0, hi=50.0, steps=15):
     """Paper's 3D PCK over thresholds linspace(20,50) mm -> AUC (trapezoid, normalised)."""
     th = np.linspace(lo, hi, steps)
@@ -168,7 +163,7 @@ def validate(net, sval, rval, refines=("softmax",)):
         clips = people & ~photos
         if clips.any():     # the side of held-back clips' hands, shown as right (image) and as left (flipped)
             m["people_side_acc"] = float(np.mean([(right[clips] > 0.5).mean(), (right_wrong[clips] < 0.5).mean()]))
-            # the detector's mirror vote: the two readings of one hand averaged in logit space
+            # the detector's mirror vote: the two readings of one hand averaged in logit space (its logit)
             m["people_side_acc_pair"] = float((logit(right[clips]) > logit(right_wrong[clips])).mean())
         if how.any():
             m["howiema001_heldout_px_wrong_side"] = float(err_wrong[how].mean())
