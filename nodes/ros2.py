@@ -42,38 +42,40 @@ def check_params(params: dict) -> None:
 def main() -> None:
     node = Node("ros2", params=PARAMS)
     p = node.params
-    ros, executor = None, None
     try:
-        ros, executor = ros2_live.start_rclpy("handmocap", p["discovery"])
-        ts = typestore()
-        publishers = ros2_live.RawPublishers(ros, ts, p["prefix"], node.log)
-        build = Ros2Messages(ts)
-        publishers.advertise({t: m for t, m in TOPICS.items() if p["images"] or not t.startswith("/camera/image")})
-        node.subscribe("/hand/pose", "HandPose", mode="all")
-        node.subscribe("/robot/joint_states", "RobotJointStates", mode="all")
-        node.subscribe("/camera/info", "CameraInfo", mode="latest")
-        if p["images"]:
-            node.subscribe("/camera/image", "Image", mode="latest")
-        node.log.info("publishing hands on ROS 2 (domain %s, discovery %s, prefix %r)",
-                      os.environ.get("ROS_DOMAIN_ID", "0"), p["discovery"], p["prefix"])
-        deadline = time.monotonic() + p["wait_for_subscriber_s"]
-        while publishers.publishers[WAIT_TOPIC].get_subscription_count() == 0 and time.monotonic() < deadline \
-                and node.ok():
-            time.sleep(0.02)                # poses queue up on the bus meanwhile (keep-all)
-        tf = "/tf" not in publishers.left_out        # no /tf to build where it can't be published
-        cpu_ns, count = {}, {}              # this thread's CPU time per input type: the node's cost
-        for msg in node:
-            t0 = time.thread_time_ns()
-            for topic, msgtype, message in build.convert(msg.type, msg.data, tf) or ():
-                publishers.publish(topic, msgtype, message)
-            cpu_ns[msg.type] = cpu_ns.get(msg.type, 0) + time.thread_time_ns() - t0
-            count[msg.type] = count.get(msg.type, 0) + 1
-        node.log.info("ros2: %d ROS 2 messages published; CPU %s", publishers.sent, ", ".join(
-            f"{cpu_ns[k] / count[k] / 1e6:.2f} ms a {k} ({count[k]})" for k in sorted(count)) or "idle")
+        with ros2_live.rclpy_node("handmocap", p["discovery"]) as (ros, _):
+            publish_hands(node, ros, p)
     finally:
-        if ros is not None:
-            ros2_live.stop_rclpy(ros, executor)
         node.close()
+
+
+def publish_hands(node: Node, ros, p: dict) -> None:
+    """The node's loop: every input converted and published on ROS 2 until the inputs end."""
+    ts = typestore()
+    publishers = ros2_live.RawPublishers(ros, ts, p["prefix"], node.log)
+    build = Ros2Messages(ts)
+    publishers.advertise({t: m for t, m in TOPICS.items() if p["images"] or not t.startswith("/camera/image")})
+    node.subscribe("/hand/pose", "HandPose", mode="all")
+    node.subscribe("/robot/joint_states", "RobotJointStates", mode="all")
+    node.subscribe("/camera/info", "CameraInfo", mode="latest")
+    if p["images"]:
+        node.subscribe("/camera/image", "Image", mode="latest")
+    node.log.info("publishing hands on ROS 2 (domain %s, discovery %s, prefix %r)",
+                  os.environ.get("ROS_DOMAIN_ID", "0"), p["discovery"], p["prefix"])
+    deadline = time.monotonic() + p["wait_for_subscriber_s"]
+    while publishers.publishers[WAIT_TOPIC].get_subscription_count() == 0 and time.monotonic() < deadline \
+            and node.ok():
+        time.sleep(0.02)                # poses queue up on the bus meanwhile (keep-all)
+    tf = "/tf" not in publishers.left_out        # no /tf to build where it can't be published
+    cpu_ns, count = {}, {}              # this thread's CPU time per input type: the node's cost
+    for msg in node:
+        t0 = time.thread_time_ns()
+        for topic, msgtype, message in build.convert(msg.type, msg.data, tf) or ():
+            publishers.publish(topic, msgtype, message)
+        cpu_ns[msg.type] = cpu_ns.get(msg.type, 0) + time.thread_time_ns() - t0
+        count[msg.type] = count.get(msg.type, 0) + 1
+    node.log.info("ros2: %d ROS 2 messages published; CPU %s", publishers.sent, ", ".join(
+        f"{cpu_ns[k] / count[k] / 1e6:.2f} ms a {k} ({count[k]})" for k in sorted(count)) or "idle")
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ Needs the optional extra: pip install -e '.[ros2]'.
 from __future__ import annotations
 
 import time
-from collections import Counter, deque
+from collections import deque
 
 from handmocap.runtime import ros2_live
 from handmocap.runtime.camera_info import camera_info_message, default_intrinsics
@@ -58,60 +58,60 @@ def info_topic_for(image_topic: str) -> str:
 
 def main() -> None:
     node = Node("ros2_camera", params=PARAMS)
-    p = node.params
-    ros, executor = None, None
     try:
-        ros, executor = ros2_live.start_rclpy("handmocap_camera", p["discovery"])
-        compressed = p["image_topic"].endswith("/compressed")
-        image_type = "sensor_msgs/msg/" + ("CompressedImage" if compressed else "Image")
-        info_topic = p["info_topic"] or info_topic_for(p["image_topic"])
-        frames, info = deque(), {}
-        classes = {t: ros2_live.ros_class(t) for t in (image_type, "sensor_msgs/msg/CameraInfo")}
-        if None in classes.values():
-            raise RuntimeError(f"ros2_camera: sensor_msgs is not installed: {ros2_live.MISSING_HINT}")
-        # topic -> (type, callback): subscribed once a publisher is found, with its reliability
-        pending = {p["image_topic"]: (image_type, lambda m: frames.append(m)),
-                   info_topic: ("sensor_msgs/msg/CameraInfo", lambda m: info.__setitem__("latest", m))}
-        node.advertise("/camera/info", "CameraInfo")
-        node.advertise("/camera/image", "Image")
-        node.log.info("reading %s (%s) and %s from ROS 2", p["image_topic"], image_type, info_topic)
-        dropped, warned = Counter(), set()
-        received, last_frame = 0, None
-        while node.ok():
-            for topic, (msgtype, callback) in list(pending.items()):
-                profile = ros2_live.qos(msgtype, p["reliable"]) if p["reliable"] is not None else \
-                    ros2_live.publishers_qos(ros, topic, msgtype)
-                if profile is not None:
-                    ros.create_subscription(classes[msgtype], topic, callback, profile)
-                    node.log.info("taking %s %s", topic, "reliably" if profile.reliability.name == "RELIABLE"
-                                  else "best effort")
-                    del pending[topic]
-            executor.spin_once(timeout_sec=SPIN_S)
-            while frames:
-                ros_image = frames.popleft()
-                received += 1
-                last_frame = time.monotonic()
-                stamp, frame_id = ros2_live.stamp_ns(ros_image.header), p["frame_id"] or ros_image.header.frame_id
-                try:
-                    image = ros2_live.image_body(ros_image)
-                    camera = camera_info(info.get("latest"), image, warned, node)
-                except ValueError as e:
-                    dropped[str(e)] += 1
-                    if str(e) not in warned:
-                        warned.add(str(e))
-                        node.log.warning("ros2_camera: dropped %s", e)
-                    continue
-                node.publish("/camera/info", camera, stamp_ns=stamp, frame_id=frame_id or "camera")
-                node.publish("/camera/image", image, stamp_ns=stamp, frame_id=frame_id or "camera")
-            if p["timeout_s"] and last_frame is not None and time.monotonic() - last_frame > p["timeout_s"]:
-                node.log.info("ros2_camera: no frame for %g s after %d: end of stream", p["timeout_s"], received)
-                break
-        if dropped:
-            node.log.warning("ros2_camera: %d of %d frames dropped", sum(dropped.values()), received)
+        with ros2_live.rclpy_node("handmocap_camera", node.params["discovery"]) as (ros, executor):
+            read_camera(node, ros, executor, node.params)
     finally:
-        if ros is not None:
-            ros2_live.stop_rclpy(ros, executor)
         node.close()
+
+
+def read_camera(node: Node, ros, executor, p: dict) -> None:
+    """The node's loop: each ROS 2 frame, in order, as /camera/info + /camera/image, until
+    stopped or `timeout_s` without a frame."""
+    compressed = p["image_topic"].endswith("/compressed")
+    image_type = "sensor_msgs/msg/" + ("CompressedImage" if compressed else "Image")
+    info_topic = p["info_topic"] or info_topic_for(p["image_topic"])
+    frames, info = deque(), {}
+    classes = {t: ros2_live.ros_class(t) for t in (image_type, "sensor_msgs/msg/CameraInfo")}
+    if None in classes.values():
+        raise RuntimeError(f"ros2_camera: sensor_msgs is not installed: {ros2_live.MISSING_HINT}")
+    # topic -> (type, callback): subscribed once a publisher is found, with its reliability
+    pending = {p["image_topic"]: (image_type, lambda m: frames.append(m)),
+               info_topic: ("sensor_msgs/msg/CameraInfo", lambda m: info.__setitem__("latest", m))}
+    node.advertise("/camera/info", "CameraInfo")
+    node.advertise("/camera/image", "Image")
+    node.log.info("reading %s (%s) and %s from ROS 2", p["image_topic"], image_type, info_topic)
+    warned = set()                      # the default-K causes already logged
+    received, unreadable, last_frame = 0, 0, None
+    while node.ok():
+        for topic, (msgtype, callback) in list(pending.items()):
+            profile = ros2_live.qos(msgtype, p["reliable"]) if p["reliable"] is not None else \
+                ros2_live.publishers_qos(ros, topic, msgtype)
+            if profile is not None:
+                ros.create_subscription(classes[msgtype], topic, callback, profile)
+                node.log.info("taking %s %s", topic, "reliably" if profile.reliability.name == "RELIABLE"
+                              else "best effort")
+                del pending[topic]
+        executor.spin_once(timeout_sec=SPIN_S)
+        while frames:
+            ros_image = frames.popleft()
+            received += 1
+            last_frame = time.monotonic()
+            stamp, frame_id = ros2_live.stamp_ns(ros_image.header), p["frame_id"] or ros_image.header.frame_id
+            try:
+                image = ros2_live.image_body(ros_image)
+                camera = camera_info(info.get("latest"), image, warned, node)
+            except ValueError as e:     # counted in the node status, logged once per cause
+                unreadable += 1
+                node.drop(p["image_topic"], str(e), str(e), what="a ROS 2 frame")
+                continue
+            node.publish("/camera/info", camera, stamp_ns=stamp, frame_id=frame_id or "camera")
+            node.publish("/camera/image", image, stamp_ns=stamp, frame_id=frame_id or "camera")
+        if p["timeout_s"] and last_frame is not None and time.monotonic() - last_frame > p["timeout_s"]:
+            node.log.info("ros2_camera: no frame for %g s after %d: end of stream", p["timeout_s"], received)
+            break
+    if unreadable:
+        node.log.warning("ros2_camera: %d of %d frames dropped", unreadable, received)
 
 
 def camera_info(ros_info, image: dict, warned: set, node: Node) -> dict:

@@ -255,7 +255,7 @@ class Node:
         if where is not None:       # checked at the source: no subscriber ever gets it, no seq is spent
             last = self._last_input
             cause = f"from {last.topic} seq {last.data['header']['seq']} stamp {last.stamp_ns}" if last else "no input"
-            self._drop(topic, "not-finite-out", f"{where} has NaN or inf ({cause})", what="a result not published")
+            self.drop(topic, "not-finite-out", f"{where} has NaN or inf ({cause})", what="a result not published")
             return
         seq = self.seq[topic]
         self.seq[topic] = seq + 1
@@ -490,7 +490,7 @@ class Node:
 
     def _decode(self, frames: list) -> Message | None:
         if len(frames) != 3:
-            return self._drop("?", "frames", f"{len(frames)} frames, expected 3")
+            return self.drop("?", "frames", f"{len(frames)} frames, expected 3")
         topic_b, type_b, payload = frames
         names = self._names.get((topic_b, type_b))
         if names is None:
@@ -507,7 +507,7 @@ class Node:
             if sender not in self._eos_tokens and self.extra_endpoints:
                 return None   # a publisher on another host (connect:): its end does not end this node
             if not token or self._eos_tokens.get(sender) != token:   # not from the publisher it names
-                return self._drop(topic, "forged-eos", f"an end of stream that says it is from {sender!r} "
+                return self.drop(topic, "forged-eos", f"an end of stream that says it is from {sender!r} "
                                   f"but lacks that node's token", "an end of stream")
             if sender in self._ended[topic]:
                 return None   # heard already, on the other path
@@ -519,11 +519,11 @@ class Node:
             return None
         want = self.types[topic] if topic in self.types else self.types.get("*")
         if want is not None and want != type_name:
-            return self._drop(topic, "type", f"got {type_name}, expected {want}")
+            return self.drop(topic, "type", f"got {type_name}, expected {want}")
         try:
             data = codec.decode(payload if isinstance(payload, bytes) else payload.buffer, type_name)
         except codec.MalformedMessage as e:
-            return self._drop(topic, e.reason, str(e))
+            return self.drop(topic, e.reason, str(e))
         self._received[topic] += 1
         if "header" in data:
             seq = data["header"]["seq"]
@@ -596,7 +596,9 @@ class Node:
                              "than its input and fell a full queue behind (bus: Queues); subscribe 'latest' to "
                              "take the freshest only", lost[topic] - logged_count, topic, lost[topic], seq, last)
 
-    def _drop(self, topic: str, reason: str, detail: str, what: str = "a malformed message") -> None:
+    def drop(self, topic: str, reason: str, detail: str, what: str = "a malformed message") -> None:
+        """Count one message of `topic` not taken (stats["dropped"], "topic:reason", shown in the
+        node status) and log the first of each (topic, reason) with `detail`; None."""
         self.stats["dropped"][f"{topic}:{reason}"] += 1
         if (topic, reason) not in self._logged_drops:
             self._logged_drops.add((topic, reason))
@@ -614,7 +616,7 @@ class Node:
             reason = f"handler-{type(e).__name__}"
             if (msg.topic, reason) not in self._logged_drops:
                 self.log.warning("its handler failed on a message of %s", msg.topic, exc_info=True)
-            self._drop(msg.topic, reason, f"{type(e).__name__}: {e}", "a message its handler failed on")
+            self.drop(msg.topic, reason, f"{type(e).__name__}: {e}", "a message its handler failed on")
 
     # -- discovery and end of stream --------------------------------------------------------
     def _scan(self, force: bool = False) -> bool:

@@ -10,7 +10,7 @@
 - In: a ROS 2 `sensor_msgs/Image` or `CompressedImage` and its `CameraInfo` as the project's
   Image and CameraInfo bodies (`image_body`, `info_body`).
 
-Safe by default: `start_rclpy` limits DDS discovery to this host (ROS_AUTOMATIC_DISCOVERY_RANGE
+Safe by default: `rclpy_node` limits DDS discovery to this host (ROS_AUTOMATIC_DISCOVERY_RANGE
 LOCALHOST) and binds Fast DDS's receiving sockets to the loopback interface (LOOPBACK_PROFILE)
 unless the node's `discovery` param says "subnet" (the ZeroMQ side's CURVE rule,
 docs/reference.md "Security"). ROS_DOMAIN_ID is rclpy's own (the environment's).
@@ -22,6 +22,7 @@ robots and markers reliable (last RELIABLE_DEPTH), as joint states are.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import importlib
 import os
 import tempfile
@@ -89,10 +90,11 @@ def set_discovery(discovery: str) -> None:
         os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = path
 
 
-def start_rclpy(name: str, discovery: str = "localhost"):
-    """An rclpy node `name` in its own context (safe in a container's thread: rclpy installs no
-    signal handler; the graph's node stops on its own), DDS discovery as `discovery` asks.
-    -> (rclpy node, executor)."""
+@contextlib.contextmanager
+def rclpy_node(name: str, discovery: str = "localhost"):
+    """`with rclpy_node(name, discovery) as (node, executor):` an rclpy node in its own context
+    (safe in a container's thread: rclpy installs no signal handler; the graph's node stops on
+    its own), DDS discovery as `discovery` asks; shut down on leaving."""
     check_discovery(name, discovery)
     set_discovery(discovery)
     try:
@@ -106,15 +108,13 @@ def start_rclpy(name: str, discovery: str = "localhost"):
     node = rclpy.create_node(name, context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    return node, executor
-
-
-def stop_rclpy(node, executor) -> None:
-    context = node.context
-    executor.shutdown(timeout_sec=1.0)
-    node.destroy_node()
-    if context.ok():
-        context.shutdown()
+    try:
+        yield node, executor
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        if context.ok():
+            context.shutdown()
 
 
 def qos(msgtype: str, reliable: bool | None = None):
