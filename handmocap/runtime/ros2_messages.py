@@ -172,12 +172,12 @@ class Ros2Messages:
         for side, hand in hands.items():
             xyz = np.asarray(hand["xyz"], np.float64)
             color = self.T("std_msgs/msg/ColorRGBA", **dict(zip("rgba", MARKER_RGBA[side])))
-            for k, (kind, points, size) in enumerate((
-                    ("bones", [xyz[j] for bone in BONES for j in bone], BONE_WIDTH_M),
-                    ("joints", list(xyz), JOINT_DIAMETER_M))):
+            for k, (kind, shape, points, size) in enumerate((
+                    ("bones", 5, [xyz[j] for bone in BONES for j in bone], BONE_WIDTH_M),       # LINE_LIST
+                    ("joints", 7, list(xyz), JOINT_DIAMETER_M))):                                # SPHERE_LIST
                 out.append(self.T(
                     "visualization_msgs/msg/Marker", header=header, ns=f"hand_{side}/{kind}", id=k,
-                    type=5 if kind == "bones" else 7, action=0, pose=identity,          # LINE_LIST, SPHERE_LIST; ADD
+                    type=shape, action=0, pose=identity,                                        # ADD
                     scale=self.vector((size, size, size)), color=color, lifetime=lifetime, frame_locked=False,
                     points=[self.point(p) for p in points], colors=[], texture_resource="",
                     texture=self.T("sensor_msgs/msg/CompressedImage", header=self.header(0, ""), format="",
@@ -208,8 +208,8 @@ class Ros2Messages:
                     for suffix, m in self.hand_messages(hand, stamp, camera).items()]
             if tf:
                 transforms += self.transforms(hand, stamp, camera)
-        if hands and tf:
-            out.append(("/tf", "tf2_msgs/msg/TFMessage", self.T("tf2_msgs/msg/TFMessage", transforms=transforms)))
         if hands:
+            if tf:
+                out.append(("/tf", "tf2_msgs/msg/TFMessage", self.T("tf2_msgs/msg/TFMessage", transforms=transforms)))
             out.append(("/hand_markers", "visualization_msgs/msg/MarkerArray", self.markers(hands, stamp, camera)))
         return out
