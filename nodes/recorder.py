@@ -50,6 +50,11 @@ def output_path(output: str, overwrite: bool, split: bool = False) -> Path:
     return path
 
 
+def is_split(params: dict) -> bool:
+    """Whether the recorder's params ask for a split recording (`split_s` or `split_mb`)."""
+    return params.get("split_s") is not None or params.get("split_mb") is not None
+
+
 def open_output(output: str, overwrite: bool, split_s=None, split_mb=None):
     """A BagWriter on `output` (parent folders made), or a SplitBagWriter with `split_s` or
     `split_mb` (an earlier recording's splits under that name removed); FileExistsError as output_path."""
@@ -72,7 +77,7 @@ def check_params(params: dict) -> None:
     check_jpeg_param("recorder", params.get("jpeg_quality", PARAMS["jpeg_quality"]))
     for key in ("split_s", "split_mb"):
         check_number_param("recorder", key, params.get(key), positive=True, null=True)
-    split = params.get("split_s") is not None or params.get("split_mb") is not None
+    split = is_split(params)
     try:
         output_path(str(params.get("output", PARAMS["output"])), overwrite, split)
     except FileExistsError as e:
@@ -94,7 +99,7 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
     if isinstance(topics, str):
         topics = [topics]
     try:
-        split = p["split_s"] is not None or p["split_mb"] is not None
+        split = is_split(p)
         path = output_path(str(p["output"]), bool(p["overwrite"]), split)
         # the bag is made (or an earlier one replaced) by the first message, not at start: a
         # graph that fails at once must leave neither an empty bag nor a replaced recording
