@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-from handmocap.training.eval_cli import reference_python  # noqa: E402  (HANDMOCAP_MEDIAPIPE_PYTHON)
+from handmocap.training.eval_cli import add_model_arguments, detector_settings, reference_python  # noqa: E402
 REAL_CLIPS = ("video/webcam/lujunwang_hand.mp4", "video/wild/Criminal-9527__hands.mp4")   # one hand, two hands
 MAX_FRAMES = 200
 
@@ -191,18 +191,11 @@ def main():
     p.add_argument("--rounds", type=int, default=5,
                    help="matched comparison: rounds of ours then MediaPipe's, alternating (default %(default)s)")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads per network")
-    p.add_argument("--detnet", help="DetNet: int8 (default, models/detnet_int8.onnx), float32 "
-                                     "(models/detnet.onnx) or an ONNX path")
-    p.add_argument("--side-detnet", help="the DetNet whose handedness head gives the side (default: --detnet's own)")
-    p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx)")
-    p.add_argument("--iknet", help="IKNet: int8 (default, models/iknet_int8.onnx), float32 or an ONNX path")
+    add_model_arguments(p)              # --detnet, --side-detnet, --finder, --iknet, --set: as handeval's
     p.add_argument("--max-hands", type=int, nargs="+", default=[1, 2],
                    help="maximum numbers of hands, each measured on both sides (default 1 2)")
-    p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
-                   help="detector settings (HandDetector keywords), e.g. tracked_test_time_crops=4")
     args = p.parse_args()
-    from handmocap.training.eval_cli import detector_settings
-    settings = detector_settings(args.set)
+    settings = detector_settings(args.set or [])
     from handmocap.perception.detector import HandDetector
     from handmocap.runtime.frames import read_video
     from handmocap.perception.tracker import HandTracker

@@ -7,10 +7,12 @@ Takes the freshest image only (latest-only: a live camera never builds a backlog
 every_frame:=true every image in order (offline processing of a recording); publishes one
 HandKeypoints per processed image with its stamp; `hands` may be empty.
 
-Params: detnet (ONNX path, or "int8" (default, models/detnet_int8.onnx) / "float32"
-(models/detnet.onnx) / "lite0" (models/detnet_lite0_int8.onnx: pretrained features, better
-keypoints on strangers, a worse side)), side_detnet (the DetNet whose handedness head gives the
-side, the same names; default: detnet's own), finder (ONNX path, default
+Params: detnet (ONNX path, or null (the default: models/detnet_lite0_int8.onnx, pretrained
+features, with the side from models/detnet_int8.onnx) / "int8" (models/detnet_int8.onnx alone) /
+"float32" (models/detnet.onnx) / "lite0" (alone: its own side is worse)), side_detnet (the DetNet
+whose handedness head gives the side, the same names; null: int8's for the default detnet, else
+detnet's own; "none": detnet's own), side_every (with a side network, frames between its
+readings of a tracked hand; null: every frame), finder (ONNX path, default
 models/finder.onnx; "none": try the centre square of the frame), grey_finder (the finder run on
 grey frames, a mono or IR camera's: ONNX path, default models/finder_grey.onnx with the bundled
 finder; "none": `finder` on every frame), grey_detnet (the DetNet run on grey frames: ONNX path,
@@ -61,10 +63,10 @@ from handmocap.runtime.node import Message, Node, check_bool_param, check_file_p
 # HandDetector's settings a launch file may set, with their defaults (one place: DetectorSettings)
 TUNABLE = ("max_hands", "finder_threshold", "presence_threshold", "min_confidence", "birth_confidence",
            "unborn_retry", "evict_margin", "opposite_hands", "upright_step", "finder_handedness", "mirror_vote_every",
-           "redetect_every", "reseed_iou", "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops",
+           "side_every", "redetect_every", "reseed_iou", "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops",
            "second_look", "handedness_memory", "handedness", "smooth_min_cutoff", "smooth_beta")
 # the settings that null turns off (HandDetector takes None for them); null for any other is an error
-NULLABLE = {"evict_margin", "opposite_hands", "upright_step", "mirror_vote_every", "test_time_crops", "reseed_margin",
+NULLABLE = {"evict_margin", "opposite_hands", "upright_step", "mirror_vote_every", "side_every", "test_time_crops", "reseed_margin",
             "tracked_test_time_crops", "second_look", "handedness", "smooth_min_cutoff"}
 _DEFAULTS = DetectorSettings()
 PARAMS = {"detnet": None, "side_detnet": None, "finder": None, "grey_finder": None, "grey_detnet": None, "threads": 1,

@@ -967,3 +967,35 @@ def test_the_published_joints_of_a_still_hand_shake_less_and_a_moving_hand_is_fo
     assert np.abs(slow_hands[0]["uv"] - truth).max() < np.abs(hands[0]["uv"] - truth).max()
     with pytest.raises(ValueError, match="smooth"):
         HandDetector(FakeDetNet(), FakeFinder(), smooth_min_cutoff=-1.0)
+
+
+class FakePair:
+    """DetNetRunner with a side network: keypoints from `keypoints`, the handedness from `side`
+    (both FakeDetNets); read_side=False skips `side` and gives NaN handedness."""
+
+    def __init__(self, keypoints, side):
+        self.keypoints, self.side = keypoints, side
+        self.side_crops = []                # crops the side network read, per call
+
+    def __call__(self, crops_rgb, read_side=True):
+        out = self.keypoints(crops_rgb)
+        self.side_crops.append(len(crops_rgb) if read_side else 0)
+        out["handedness"] = self.side(crops_rgb)["handedness"] if read_side else np.full(len(crops_rgb), np.nan)
+        return out
+
+
+def test_side_every_reads_the_side_network_on_births_and_mirror_votes_only():
+    """With a side network and side_every=6 (= mirror_vote_every), a tracked hand's side is
+    read on its first crops and on every 6th frame (both readings), and its side stays the
+    side network's, not the keypoint network's (biased the other way)."""
+    frame = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160, right=False))
+    for every, reads in ((None, 13), (6, 3)):
+        pair = FakePair(FakeDetNet(right_bias=6.0), FakeDetNet())
+        det = HandDetector(pair, FakeFinder(), finder_handedness=0.0, mirror_vote_every=6, side_every=every,
+                           upright_step=None)
+        sides = [h["handedness"] for _ in range(13) for h in det.process(frame)]
+        assert sides == ["left"] * 13, every
+        # a birth reads its crop twice (turn, refine); then one frame in `every` (two crops: the vote)
+        read_frames = sum(n > 0 for n in pair.side_crops)
+        assert read_frames == reads + 1, (every, pair.side_crops)
+        assert det.tracks[0].right_logit < 0 and det.tracks[0].samples > 0

@@ -967,6 +967,20 @@ def test_a_side_detnet_gives_the_handedness_and_nothing_else():
     assert not np.array_equal(alone_kp["handedness"], alone_side["handedness"])
 
 
+def test_the_default_detnet_is_lite0_with_the_int8_networks_side_and_a_named_one_runs_alone():
+    """DetNetRunner.load(): lite0's keypoints, the int8 network's handedness (the pair the
+    held-back clips chose, session 37); a named network, or side_path "none", runs alone."""
+    pytest.importorskip("onnxruntime")
+    from handmocap.perception.detector import DETNET_INT8, DETNET_LITE0, DetNetRunner, DetectorSettings
+    default = DetNetRunner.load()
+    assert default.path == DETNET_LITE0 and default.side.path == DETNET_INT8
+    assert DetNetRunner.load("lite0").side is None and DetNetRunner.load(None, side_path="none").side is None
+    assert DetNetRunner.load("int8").side is None and DetectorSettings().side_every == 6
+    crops = (np.random.default_rng(2).random((2, 128, 128, 3)) * 255).astype(np.uint8)
+    skipped = default(crops, read_side=False)
+    assert np.isnan(skipped["handedness"]).all() and np.array_equal(skipped["uv"], default(crops)["uv"])
+
+
 def test_the_handedness_loss_weighs_both_sides_alike_whatever_the_left_share():
     """Crops shown as left and as right hands carry equal total handedness weight, for any
     --share-left (the loss once assumed 0.4 and leaned left at 0.5)."""

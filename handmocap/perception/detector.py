@@ -79,10 +79,13 @@ CROP_SCALE = 1.5            # crop side / side of the 21-joint box (synth: verte
 MIN_CROP_SIDE = 24.0        # px in the frame
 DETNET_FLOAT32 = Path(__file__).resolve().parents[2] / "models" / "detnet.onnx"   # `handtrain detnet` writes it
 DETNET_INT8 = DETNET_FLOAT32.with_name("detnet_int8.onnx")     # `python -m handmocap.training.quantize_detnet` makes it
-DETNET_PATH = DETNET_INT8                                       # what runs by default
-# lite0: DetNet on EfficientNet-Lite0 from ImageNet weights (session 35), int8: better keypoints on
-# strangers, a worse side (models/README.md); for a known hand (`handedness`) it is the better read
+# lite0: DetNet on EfficientNet-Lite0 from ImageNet weights (session 35), int8: closer keypoints on
+# strangers than the int8 (fast-deep) network, a worse side of its own (models/README.md)
 DETNET_LITE0 = DETNET_FLOAT32.with_name("detnet_lite0_int8.onnx")
+# what runs by default (since session 37): lite0's keypoints, and the side from the int8
+# network's handedness head (`side_every` frames apart): tracked on the held-back people's clips,
+# side 87.7% against lite0's own 70.6% and int8's 82.9% (docs/experiment_log.md, "Session 37")
+DETNET_PATH, DETNET_SIDE_PATH = DETNET_LITE0, DETNET_INT8
 DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32, "lite0": DETNET_LITE0}  # short names: detnet param
 # DetNet fine-tuned on grey crops (`handtrain detnet --grey 1`), its int8 copy: run on grey frames
 DETNET_GREY = DETNET_FLOAT32.with_name("detnet_grey_int8.onnx")
@@ -110,7 +113,7 @@ def _variant_count(name, value):
 
 
 def detnet_path(path=None) -> Path:
-    """DetNet file: None -> DETNET_PATH (int8); "int8" / "float32" / "lite0" -> the bundled files; else a path."""
+    """DetNet file: None -> DETNET_PATH (lite0); "int8" / "float32" / "lite0" -> the bundled files; else a path."""
     return DETNET_PATH if path is None else DETNET_NAMES.get(str(path), Path(path))
 
 
@@ -276,37 +279,44 @@ def crop_for_box(box, mirrored=False, scale=CROP_SCALE):
 
 
 class DetNetRunner:
-    """DetNet on onnxruntime (by default models/detnet_int8.onnx, the static int8 copy of
-    models/detnet.onnx): (N,128,128,3) uint8 RGB crops -> dict of arrays
+    """DetNet on onnxruntime (by default models/detnet_lite0_int8.onnx with the side from
+    models/detnet_int8.onnx): (N,128,128,3) uint8 RGB crops -> dict of arrays
     uv (N,21,2) crop px, xyz (N,21,3), confidence (N,21), presence (N,), handedness (N,),
     uv_peak (N,21,2) crop px: the joints the detector tracks with (the heatmap peaks; files
     exported before session 17 have none, and the detector then follows uv).
     side: another DetNetRunner whose handedness head answers instead of this one's (on the
-    same crops): one network's keypoints with another's side."""
+    same crops): one network's keypoints with another's side. Called with read_side=False,
+    such a pair skips the side network and gives handedness NaN (no reading); a single
+    network always reads its own head, which costs nothing more."""
 
-    def __init__(self, session, side=None):
-        self.session, self.side = session, side
+    def __init__(self, session, side=None, path=None):
+        self.session, self.side, self.path = session, side, path     # path: the file, where loaded from one
         self.outputs = [o.name for o in session.get_outputs()]
 
     @classmethod
     def load(cls, path=None, threads=1, side_path=None):
-        """path: None (models/detnet_int8.onnx), "int8", "float32" (models/detnet.onnx), "lite0"
-        or a file; side_path: the DetNet whose handedness head gives the side (None: this
-        one's). Warns when an int8 file was made from another float32 network than the one
-        beside it."""
+        """path: None (the default: models/detnet_lite0_int8.onnx, its side from
+        models/detnet_int8.onnx unless side_path says otherwise), "int8"
+        (models/detnet_int8.onnx), "float32" (models/detnet.onnx), "lite0" or a file;
+        side_path: the DetNet whose handedness head gives the side (None: the default pair's
+        for path None, else this one's; "none": this one's). Warns when an int8 file was made
+        from another float32 network than the one beside it."""
+        if path is None and side_path is None:
+            side_path = DETNET_SIDE_PATH
         path = detnet_path(path)
         made_by = "python -m handmocap.training.quantize_detnet" if path == DETNET_INT8 else "handtrain detnet"
         session = open_session(path, "DetNet", made_by, threads)
         stale = stale_quantization(session, path, "python -m handmocap.training.quantize_detnet")
         if stale:
             warnings.warn(stale, stacklevel=2)
-        return cls(session, cls.load(side_path, threads) if side_path not in (None, "none") else None)
+        return cls(session, cls.load(side_path, threads) if side_path not in (None, "none") else None, path)
 
-    def __call__(self, crops_rgb):
+    def __call__(self, crops_rgb, read_side=True):
         x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
         out = dict(zip(self.outputs, self.session.run(None, {"image": x})))
         if self.side is not None:
-            out["handedness"] = self.side.session.run(["handedness"], {"image": x})[0]
+            out["handedness"] = self.side.session.run(["handedness"], {"image": x})[0] if read_side \
+                else np.full(len(x), np.nan, np.float32)
         return out
 
 
@@ -353,7 +363,9 @@ class Track:
 
     def add_head_reading(self, p_right_seen, mirrored):
         """DetNet's handedness head p_right_seen (does the crop show a right hand) on a crop
-        of this hand that was (mirrored) or was not flipped."""
+        of this hand that was (mirrored) or was not flipped; NaN (not read) is no reading."""
+        if np.isnan(p_right_seen):
+            return
         self.add_handedness(1.0 - p_right_seen if mirrored else p_right_seen)
 
     def add_handedness(self, p_right, weight=1.0):
@@ -389,6 +401,7 @@ class DetectorSettings:
     upright_step: float | None = 90.0   # crops turn in steps of this many degrees (0: any; None: never)
     finder_handedness: float = 0.3      # the finder's side against one DetNet reading
     mirror_vote_every: int | None = 6   # frames between readings of the crop flipped (0 or None: never)
+    side_every: int | None = 6          # with a side network: frames between its readings (None: every frame)
     test_time_crops: int | None = 0     # more crops read for a new track, median kept (photos: 4)
     reseed_margin: float | None = 0.2   # a re-seed must come this close to the track's heatmap peak
     tracked_test_time_crops: int | None = 0   # the same for every tracked hand on every frame
@@ -480,6 +493,11 @@ class HandDetector:
         # The head alone is biased on views unlike its training data; asked about a crop and
         # its mirror image, its two answers share the bias and averaging them cancels it
         self.mirror_vote_every = s.mirror_vote_every
+        # with a second network for the side (DetNetRunner `side`), a tracked hand's side is
+        # read on every this many frames only, and on every new track's crops and mirror
+        # votes (None: on every frame): the side changes rarely, and the side network costs
+        # as much a crop as the keypoints' one
+        self.side_every = s.side_every
         # a track's handedness is the running mean logit of about its last this many readings:
         # a hand keeps its side, so long enough to outlast the head's bad stretches on a view,
         # short enough that a track started on the wrong side turns (60 since session 27)
@@ -670,7 +688,7 @@ class HandDetector:
     def _found_peaks(self, image, found):
         """(M,) DetNet's mean heatmap peak on the crop of each found (box, right_prob)."""
         crops = [crop_for_box(box, right_prob < 0.5, self.crop_scale) for box, right_prob in found]
-        return self._run(image, crops)["confidence"].mean(axis=1)
+        return self._run(image, crops, read_side=False)["confidence"].mean(axis=1)
 
     def _reseed_believed(self, image, box, right_prob, track):
         """Whether DetNet's mean heatmap peak on the crop of a found box is at least the
@@ -718,9 +736,10 @@ class HandDetector:
         return inside or box_iou(cb, box)[0, 0] >= 0.3
 
     # -------------------------------------------------------------- per frame
-    def _run(self, image_bgr, crops, flipped=()):
+    def _run(self, image_bgr, crops, flipped=(), read_side=True):
         """DetNet's outputs on the CropTransforms `crops` of a frame, then on the crops with
-        indices `flipped` mirrored the other way (in the same batch, after the others)."""
+        indices `flipped` mirrored the other way (in the same batch, after the others);
+        read_side=False: a side network (DetNetRunner `side`) is not run, handedness NaN."""
         # cut from the BGR frame and reverse the channels of the crops only: cutting from a
         # reversed-channel view of the frame made OpenCV copy the whole frame for each crop
         pixels = np.stack([c.cut(image_bgr) for c in crops])
@@ -728,7 +747,9 @@ class HandDetector:
             pixels = np.concatenate([pixels, pixels[list(flipped), :, ::-1]])
         self.stats["crops"] += len(pixels)
         detnet = self.grey_detnet if self.grey_frames and self.grey_detnet is not None else self.detnet
-        out = detnet(np.ascontiguousarray(pixels[..., ::-1]))
+        pixels = np.ascontiguousarray(pixels[..., ::-1])
+        # only a pair of networks (DetNetRunner `side`) has a side read to skip
+        out = detnet(pixels, read_side=read_side) if getattr(detnet, "side", None) is not None else detnet(pixels)
         if "uv_peak" not in out:            # a file exported before session 17
             out["uv_peak"] = out["uv"].copy()
         return out
@@ -834,7 +855,8 @@ class HandDetector:
         flipped, and the handedness head's answer there goes into their running handedness."""
         due = [i for i, t in enumerate(tracks)
                if self.mirror_vote_every and not t.fixed_side and t.age % self.mirror_vote_every == 0]
-        out = self._run(image_bgr, [t.crop for t in tracks], due)
+        read_side = not self.side_every or bool(due) or any(t.age % self.side_every == 0 for t in tracks)
+        out = self._run(image_bgr, [t.crop for t in tracks], due, read_side)
         n = len(tracks)
         for k, i in enumerate(due):     # the head on the crop mirrored the other way
             tracks[i].add_head_reading(float(out["handedness"][n + k]), not tracks[i].crop.mirrored)
@@ -854,7 +876,7 @@ class HandDetector:
         if turned:
             for i in turned:
                 self.tracks[i].crop = replace(self.tracks[i].crop, mirrored=not self.tracks[i].is_right)
-            again = self._run(image_bgr, [self.tracks[i].crop for i in turned])
+            again = self._run(image_bgr, [self.tracks[i].crop for i in turned], read_side=False)
             for k, i in enumerate(turned):
                 for key in out:
                     out[key][i] = again[key][k]
@@ -904,7 +926,7 @@ class HandDetector:
         handedness the mean logit. Presence and heatmap peaks stay the crop's own: which
         hands are born does not change (a turned variant's peaks are lower)."""
         crops = [c for i in idx for c in nearby_crops(self.tracks[i].crop, k)]
-        more = self._run(image_bgr, crops)
+        more = self._run(image_bgr, crops, read_side=not np.isnan(out["handedness"][idx]).any())
         for n, i in enumerate(idx):
             own = self.tracks[i].crop
             views = [own] + crops[n * k:(n + 1) * k]
@@ -914,7 +936,8 @@ class HandDetector:
             xyz = np.median([crop_to_frame_xyz(c, normalize_joints(o["xyz"][r])) for c, (o, r) in zip(views, rows)],
                             axis=0)
             out["xyz"][i] = frame_to_crop_xyz(own, xyz)
-            out["handedness"][i] = sigmoid(np.mean(logit([o["handedness"][r] for o, r in rows])))
+            read = [o["handedness"][r] for o, r in rows if not np.isnan(o["handedness"][r])]
+            out["handedness"][i] = sigmoid(np.mean(logit(read))) if read else np.nan
 
     def _one_left_one_right(self):
         """Two tracks DetNet believes are hands (running mean heatmap peak >= opposite_hands)

@@ -1,6 +1,6 @@
 """HandTracker: the whole image-to-pose pipeline in one process, like MediaPipe's HandLandmarker.
 
-    tracker = HandTracker()                          # models/detnet_int8.onnx, finder.onnx, iknet_int8.onnx
+    tracker = HandTracker()                          # models/detnet_lite0_int8.onnx (+ detnet_int8's side), finder.onnx, iknet_int8.onnx
                                                      # (grey frames: finder_grey.onnx, detnet_grey_int8.onnx)
     for frame in frames:
         hands = tracker.process(frame_bgr, K=None, stamp_ns=None)
@@ -33,7 +33,7 @@ class HandTracker:
     """detnet, finder, iknet, model: paths (None: the bundled ones; finder "none": no
     finder, the centre square is tried instead; iknet "float32": the float32 IKNet instead
     of the default static int8 copy); side_detnet: the DetNet whose handedness head gives
-    the side (None: detnet's own); detector: a ready HandDetector instead of
+    the side (None: int8's for the default detnet, else detnet's own; "none": detnet's own); detector: a ready HandDetector instead of
     detnet/finder. smooth: One Euro smoothing of rotations and translation per track, and
     of the 2D joints unless smooth_min_cutoff is given (off for single images). vertices:
     add each hand's mesh vertices (V,3) m camera frame. Other keywords go to HandDetector

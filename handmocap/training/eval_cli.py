@@ -565,10 +565,10 @@ def detector_settings(pairs):
 
 
 def add_model_arguments(p):
-    p.add_argument("--detnet", help="DetNet: int8 (default, models/detnet_int8.onnx), float32 "
-                                     "(models/detnet.onnx), lite0 (models/detnet_lite0_int8.onnx) or an ONNX path")
+    p.add_argument("--detnet", help="DetNet: int8 (models/detnet_int8.onnx), float32 (models/detnet.onnx), lite0 "
+                                     "(models/detnet_lite0_int8.onnx) or an ONNX path; default: lite0 with int8's side")
     p.add_argument("--side-detnet", help="the DetNet whose handedness head gives the side (int8, float32, lite0 or "
-                                         "a path; default: --detnet's own)")
+                                         "a path; default: int8 for the default --detnet, else its own; none: its own)")
     p.add_argument("--finder", help="hand finder ONNX (default models/finder.onnx; 'none': centre square)")
     p.add_argument("--iknet", help="IKNet: int8 (default, models/iknet_int8.onnx), float32 (models/iknet.onnx) "
                                    "or an ONNX path")
