@@ -11,46 +11,18 @@ Params: detnet (ONNX path, or null (the default: models/detnet_lite0_int8.onnx, 
 features, with the side from models/detnet_int8.onnx) / "int8" (models/detnet_int8.onnx alone) /
 "float32" (models/detnet.onnx) / "lite0" (alone: its own side is worse)), side_detnet (the DetNet
 whose handedness head gives the side, the same names; null: int8's for the default detnet, else
-detnet's own; "none": detnet's own), side_every (with a side network, frames between its
-readings of a tracked hand; null: every frame), finder (ONNX path, default
-models/finder.onnx; "none": try the centre square of the frame), grey_finder (the finder run on
-grey frames, a mono or IR camera's: ONNX path, default models/finder_grey.onnx with the bundled
-finder; "none": `finder` on every frame), grey_detnet (the DetNet run on grey frames: ONNX path,
-default models/detnet_grey_int8.onnx with the bundled int8 DetNet; "none": `detnet` on every
-frame), threads (onnxruntime
-intra-op threads per network), max_hands, finder_threshold (the hand finder's boxes from this
-score on are proposed; lower it for a dim or distant camera: docs/models_history.md), presence_threshold
-(a track ends below it),
-min_confidence (a track ends below this mean heatmap peak; 0 = off), birth_confidence (a found
-hand becomes a track only from this mean heatmap peak on; see docs/models_history.md),
-unborn_retry (frames until the finder looks again after a hand was refused), evict_margin
-(with every track slot taken, a found hand replaces the track with the lowest running heatmap
-peak when its own peak is this much higher; null = never), opposite_hands (two tracks at
-least this sure to be hands that read as the same hand: the less sure one turns; null = off),
-upright_step (a track's crop turns in steps of this many degrees so that its hand appears
-upright, from its last 2D joints: 90 quarter turns, 0 any angle, null never),
-finder_handedness (weight of the hand finder's handedness against one DetNet reading),
-mirror_vote_every (every this many frames of a track, and on its first, DetNet's handedness
-head also reads the crop flipped; 0 or null = never), handedness_memory (a track's handedness
-is the running mean logit of about this many readings), handedness (left or right: every
-hand is read as that side, for one known hand: no wrong-side readings and no mirror vote;
-null, the default: each hand's side from DetNet and the finder), test_time_crops (a new track is read on
-its crop and this many variants of it, larger, smaller, turned, and the median kept: for
-streams of unrelated photos; 0, the default for video, or null = off),
-tracked_test_time_crops (the same for every tracked hand on every frame: that many more
-DetNet crops per hand and frame for a more accurate 2D and 3D; 0, the default, or null = off),
-second_look (a tracked hand whose joints' box changed size by more than this fraction since
-the last frame is read again on 4 variants of its crop and the median kept; 0 or null = never),
-redetect_every (frames between finder runs, which also check the tracks), reseed_iou (a track
-whose joints overlap the hand the finder sees in its crop less than this restarts from the
-finder's box; 0 = never), reseed_margin (... only where DetNet's mean heatmap peak on that
-box's crop is at least the track's running peak minus this; null = always), crop_scale (crop side / joint-box side),
-smooth_min_cutoff (Hz: the published 2D joints' One Euro filter cut-off for a still hand, on the images'
-stamps; 0 or null = unfiltered), smooth_beta (how fast the cut-off rises with speed, per hand size a
-second), every_frame.
+detnet's own; "none": detnet's own), finder (ONNX path, default models/finder.onnx; "none": try
+the centre square of the frame), grey_finder (the finder run on grey frames, a mono or IR
+camera's: ONNX path, default models/finder_grey.onnx with the bundled finder; "none": `finder`
+on every frame), grey_detnet (the DetNet run on grey frames: ONNX path, default
+models/detnet_grey_int8.onnx with the bundled DetNet; "none": `detnet` on every frame), threads
+(onnxruntime intra-op threads per network), every_frame; and every HandDetector setting, the
+fields of DetectorSettings (handmocap/perception/detector.py, each explained beside it; the
+table in docs/reference.md, "Detector settings", is made from them).
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable
 
 import numpy as np
@@ -60,14 +32,10 @@ from handmocap.runtime.frames import frame_bgr
 from handmocap.perception.hand_finder import DEFAULT_PATH as FINDER_PATH, GREY_PATH as GREY_FINDER_PATH
 from handmocap.runtime.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
 
-# HandDetector's settings a launch file may set, with their defaults (one place: DetectorSettings)
-TUNABLE = ("max_hands", "finder_threshold", "presence_threshold", "min_confidence", "birth_confidence",
-           "unborn_retry", "evict_margin", "opposite_hands", "upright_step", "finder_handedness", "mirror_vote_every",
-           "side_every", "redetect_every", "reseed_iou", "crop_scale", "test_time_crops", "reseed_margin", "tracked_test_time_crops",
-           "second_look", "handedness_memory", "handedness", "smooth_min_cutoff", "smooth_beta")
-# the settings that null turns off (HandDetector takes None for them); null for any other is an error
-NULLABLE = {"evict_margin", "opposite_hands", "upright_step", "mirror_vote_every", "side_every", "test_time_crops", "reseed_margin",
-            "tracked_test_time_crops", "second_look", "handedness", "smooth_min_cutoff"}
+# HandDetector's settings a launch file may set, with their defaults: every DetectorSettings
+# field (each documented there), those typed `| None` taking null
+TUNABLE = tuple(f.name for f in dataclasses.fields(DetectorSettings))
+NULLABLE = DetectorSettings.nullable()
 _DEFAULTS = DetectorSettings()
 PARAMS = {"detnet": None, "side_detnet": None, "finder": None, "grey_finder": None, "grey_detnet": None, "threads": 1,
           **{k: getattr(_DEFAULTS, k) for k in TUNABLE}, "every_frame": False}
@@ -83,6 +51,10 @@ def setting(name: str, value):
     if name == "handedness":                      # the one setting that is a word
         if value not in ("left", "right"):
             raise ValueError(f"detector param handedness: expected left, right or null, got {value!r}")
+        return value
+    if isinstance(PARAMS[name], bool):
+        if not isinstance(value, bool):
+            raise ValueError(f"detector param {name}: expected true or false, got {value!r}")
         return value
     try:
         if isinstance(value, (bool, str)):

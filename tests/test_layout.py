@@ -50,3 +50,30 @@ def test_no_file_cites_the_design_file_a_clone_lacks():
              if not any(part in (".venv", "runs", ".git", "node_modules") for part in p.relative_to(ROOT).parts)]
     citing = [str(p.relative_to(ROOT)) for p in files if p.name != "test_layout.py" and "DESIGN.md" in p.read_text()]
     assert citing == []
+
+
+def test_the_detector_settings_table_in_the_reference_is_made_from_the_settings():
+    """docs/reference.md's table is DetectorSettings' fields, defaults and comments as they are
+    (python scripts/settings_table.py rewrites it), and every field has a comment."""
+    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "settings_table.py"), "--check"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from settings_table import field_docs
+
+    from handmocap.perception.detector import DetectorSettings
+    assert all(field_docs(DetectorSettings).values())
+
+
+def test_every_detector_setting_is_a_detector_node_param_and_none_typed_ones_take_null():
+    """A setting is declared once, as a DetectorSettings field: the node's params and the
+    ones null may set follow from it."""
+    import dataclasses
+
+    from handmocap.nodes.detector import NULLABLE, PARAMS, setting
+    from handmocap.perception.detector import DetectorSettings
+    for f in dataclasses.fields(DetectorSettings):
+        assert PARAMS[f.name] == getattr(DetectorSettings(), f.name)
+        if f.name in NULLABLE:
+            assert setting(f.name, None) is None
+    assert {"side_every", "evict_margin", "handedness"} <= NULLABLE and "max_hands" not in NULLABLE

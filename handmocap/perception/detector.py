@@ -4,7 +4,7 @@ Per frame (`HandDetector.process`):
 1. The hand finder (hand_finder.HandFinder) runs when there is no track, when a track was
    lost on the previous frame (or dropped as a duplicate), and every `redetect_every`
    frames. Each found box goes to the track whose joint box it overlaps best (IoU >=
-   `match_iou`, one box per track); a box no track matched but inside the crop of a track
+   MATCH_IOU, one box per track); a box no track matched but inside the crop of a track
    no box matched (IoU >= 0.3 or its centre inside it) is that track's too. A track's box
    informs its handedness, and re-seeds the track's crop when it overlaps the track's
    joints less than `reseed_iou` (a track that slid up the forearm: DetNet's presence
@@ -90,6 +90,7 @@ DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32, "lite0": DETNET_
 # DetNet fine-tuned on grey crops (`handtrain detnet --grey 1`), its int8 copy: run on grey frames
 DETNET_GREY = DETNET_FLOAT32.with_name("detnet_grey_int8.onnx")
 CENTRE = "centre"           # the fallback that tries the centre square of the frame
+MATCH_IOU = 0.3             # a found box is a track's own hand from this overlap with its joint box on
 # HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
 # so no birth threshold; a close-up the finder misses is tried on the centre square; each
 # hand read on its crop and 4 variants of it (chosen on training-side stills, docs/models_history.md)
@@ -353,7 +354,6 @@ class Track:
     birth_confidence: float | None = None   # its own birth threshold (None: the detector's)
     fixed_side: bool = False          # the side was given (HandDetector `handedness`): readings are ignored
     memory: int = HANDEDNESS_MEMORY   # handedness readings the running mean is over (`handedness_memory`)
-    unconfirmed: int = 0              # finder runs in a row on which no found box was this track's hand
     smoother: OneEuroFilter | None = None   # its published 2D joints' filter, in units of `unit`
     unit: float = 1.0                 # px: the hand's size when the filter started
 
@@ -379,41 +379,104 @@ class Track:
 
 @dataclass(frozen=True)
 class DetectorSettings:
-    """Every setting of a HandDetector, with its default: the one place the detector node's
-    params, `handeval --set` and the scripts read them from. What each does is said where
-    HandDetector.__init__ stores it; in short:"""
+    """Every setting of a HandDetector, with its default and, beside it, what it does: the one
+    place the detector node's params (and which of them take null), `handeval --set` and the
+    scripts read them from. A HandDetector has each as an attribute of the same name.
+    __post_init__ refuses a value out of range (ValueError naming the setting)."""
     max_hands: int = 2                  # hands tracked at most
-    presence_threshold: float = 0.5     # below it (presence head) a track is lost
-    redetect_every: int = 10            # frames between finder runs while a slot is free
-    crop_scale: float = CROP_SCALE      # crop side / joint-box side
-    finder_threshold: float = 0.3       # the finder's score a box needs to be proposed
-    min_confidence: float = 0.1         # below this mean heatmap peak a track is lost
-    reseed_iou: float = 0.3             # a found box overlapping a track less than this re-seeds it (0: never)
-    birth_confidence: float = 0.3       # mean heatmap peak a found hand needs to become a track (0: photos)
-    match_iou: float = 0.3              # a found box is a track's own hand from this overlap on
-    candidates: int = 0                 # the finder's best boxes considered (0: max_hands)
-    refine_passes: int = 1              # DetNet passes on a new track's re-cut crop
-    duplicate_joints: float = 0.0       # overlapping tracks are one hand if their joints agree this well
-    unborn_retry: int = 3               # frames until the finder looks again after a refused hand
-    evict_margin: float | None = 0.2    # a found hand this much surer replaces the least sure track (None: never)
-    centre_confidence: float = 0.3      # heatmap peak a centre-square track needs
-    opposite_hands: float | None = 0.4  # two tracks this sure are a left and a right hand (None: off)
-    upright_step: float | None = 90.0   # crops turn in steps of this many degrees (0: any; None: never)
-    finder_handedness: float = 0.3      # the finder's side against one DetNet reading
-    mirror_vote_every: int | None = 6   # frames between readings of the crop flipped (0 or None: never)
-    side_every: int | None = 6          # with a side network: frames between its readings (None: every frame)
-    test_time_crops: int | None = 0     # more crops read for a new track, median kept (photos: 4)
-    reseed_margin: float | None = 0.2   # a re-seed must come this close to the track's heatmap peak
-    tracked_test_time_crops: int | None = 0   # the same for every tracked hand on every frame
-    second_look: float | None = 0.1     # a hand whose box changed size by more is read again on more crops
-    second_look_crops: int = 2          # ... on this many variants of its crop (TEST_TIME_VARIANTS)
-    handedness_memory: int = HANDEDNESS_MEMORY   # readings in a track's running side
-    handedness: str | None = None       # "left" / "right": every hand is that side; None: per track
-    settle_side: bool = True            # a track whose side turns is read again, mirrored for it
-    unconfirmed_evict: int | None = None    # finder runs without its box after which any found hand may replace a track
-    unconfirmed_drop: int | None = None     # finder runs without its box after which a track ends (None: never)
-    smooth_min_cutoff: float | None = 2.0   # Hz: the published 2D joints' One Euro cut-off at rest (0 or None: off)
-    smooth_beta: float = 16.0           # its rise per hand size a second of speed
+    # a track is lost below this presence (DetNet's presence head)
+    presence_threshold: float = 0.5
+    # frames between finder runs while a track slot is free; the finder then also checks the tracks
+    redetect_every: int = 10
+    crop_scale: float = CROP_SCALE      # crop side / the hand's 21-joint box side
+    # the finder's score a box needs to be proposed; lower it for a dim or distant camera
+    finder_threshold: float = 0.3
+    # a track is lost below this mean heatmap peak too: the presence head stays sure on a crop
+    # that slid onto the forearm, the heatmap peaks do drop there (0: off)
+    min_confidence: float = 0.1
+    # every `redetect_every` frames the finder checks the tracks: a found hand inside a track's
+    # crop whose box overlaps the track's joints less than this re-seeds the track from the
+    # finder's box (0: never; the finder then only runs while a slot is free)
+    reseed_iou: float = 0.3
+    # a found hand becomes a track only from this mean heatmap peak on its refined crop on:
+    # with min_confidence a hysteresis (chosen on training-side clips by
+    # scripts/detector_thresholds.py). DetNet's presence head is sure of almost anything the
+    # finder proposes (a mouse, a face), its peaks are not. 0 for unrelated photos (one chance each)
+    birth_confidence: float = 0.3
+    # frames until the finder looks again after a proposed hand was not born: while one hand is
+    # tracked, a second one refused on its first frame would otherwise wait `redetect_every`
+    unborn_retry: int = 3
+    # with every track slot taken, a found hand no track covers replaces the track DetNet
+    # believes least (running mean heatmap peak) when its own peak is this much higher (None:
+    # never): otherwise a desk object or a forearm that outlived its hand keeps the slot
+    evict_margin: float | None = 0.2
+    # a track tried on the centre square (the CENTRE fallback) is born only from this mean
+    # heatmap peak on, even where birth_confidence is lower: the centre of a photo is not a hand
+    centre_confidence: float = 0.3
+    # two tracks both at least this sure to be hands (running mean heatmap peak) that read as the
+    # same hand are a person's left and right: the one with the weaker side evidence turns (None:
+    # off); false tracks (desk objects, a forearm) stay below it, so they cannot turn a real hand
+    opposite_hands: float | None = 0.4
+    # a track's crop turns in whole steps of this many degrees (0: any angle; None: never) so its
+    # hand appears upright, wrist below the middle finger's base, from its last 2D joints; a new
+    # track tries the four quarter turns. Unturned, a hand hanging down read 2-4x worse
+    upright_step: float | None = 90.0
+    # weight of the finder's side against one DetNet reading (0: DetNet's alone)
+    finder_handedness: float = 0.3
+    # every this many frames of a track (and on its first), DetNet also reads its crop flipped
+    # the other way and the handedness head's answer there votes too (0 or None: never): the
+    # head is biased on views unlike its training data, and on a crop and its mirror image its
+    # two answers share the bias, which their mean cancels
+    mirror_vote_every: int | None = 6
+    # with a second network for the side (DetNetRunner `side`, the default pair), a tracked
+    # hand's side is read on a track's first crops and every this many frames only (None: every
+    # frame): spread out, a track's `handedness_memory` readings span longer than one view's
+    # errors (held-back clips: side 87.7% against 81.7% read every frame; session 37)
+    side_every: int | None = 6
+    # a new track's reading is the per-coordinate median over its crop and this many variants
+    # (TEST_TIME_VARIANTS: a little larger, smaller, turned; 0 or None: off): for photos, read once
+    test_time_crops: int | None = 0
+    # a re-seed must convince DetNet: its mean heatmap peak on the found box's crop at least the
+    # track's running peak minus this (None: every re-seed is taken); a track swollen around an
+    # exploded prediction holds boxes of other things
+    reseed_margin: float | None = 0.2
+    # the same median for every tracked hand on every frame (0 or None: off): K more crops a hand
+    tracked_test_time_crops: int | None = 0
+    # a tracked hand whose joints' box changed size by more than this fraction since the last
+    # frame is read again on `second_look_crops` variants, median kept (0 or None: never): a hand
+    # does not change size that fast, and such readings were often wrong
+    second_look: float | None = 0.1
+    second_look_crops: int = 2          # variants of its crop a second look reads (0..6)
+    # a track's side is the running mean logit of about its last this many readings: long enough
+    # to outlast the head's bad stretches on a view, short enough that a wrong start turns
+    handedness_memory: int = HANDEDNESS_MEMORY
+    # "left" or "right": every hand is that side (one known hand, e.g. the one driving a robot
+    # hand): no wrong-side reading, no mirror vote to pay for; None: each track's side is read
+    handedness: str | None = None
+    # a track whose side turns on this frame's readings is read again, mirrored for its new side:
+    # otherwise the hand published as left was read as a right one, its 2D 2-3x worse and its 3D
+    # the other hand's; a photo has no next frame to mend it. One crop more per turn
+    settle_side: bool = True
+    # each track's published 2D joints go through a One Euro filter on the joints / the hand's
+    # size: cut-off smooth_min_cutoff Hz at rest (0 or None: unfiltered), rising by smooth_beta Hz
+    # per hand size a second. 2 Hz and 16 halve the shake and leave the error to MediaPipe's
+    # labels no worse on the training people's clips (research/keypoint_smoothing.py)
+    smooth_min_cutoff: float | None = 2.0
+    smooth_beta: float = 16.0           # the filter's cut-off rise, Hz per hand size a second of speed
+
+    def __post_init__(self):
+        if self.handedness not in (None, "left", "right"):
+            raise ValueError(f"handedness must be 'left', 'right' or None, got {self.handedness!r}")
+        for name in ("test_time_crops", "tracked_test_time_crops", "second_look_crops"):
+            _variant_count(name, getattr(self, name))
+        if (self.smooth_min_cutoff or 0.0) < 0 or self.smooth_beta < 0:
+            raise ValueError(f"smooth_min_cutoff and smooth_beta must be >= 0, got {self.smooth_min_cutoff}, "
+                             f"{self.smooth_beta}")
+
+    @classmethod
+    def nullable(cls) -> set[str]:
+        """The settings None turns off (their type says `| None`)."""
+        return {f.name for f in dataclasses.fields(cls) if "None" in str(f.type)}
 
 
 class HandDetector:
@@ -428,7 +491,7 @@ class HandDetector:
     a hysteresis, chosen on training-side held-out clips by scripts/detector_thresholds.py;
     0.3 is for video, where a hand refused on one frame is proposed again `unborn_retry`
     frames later: for unrelated photos, one chance each, use 0, or PHOTO_SETTINGS with
-    HandDetector.load). The other settings are explained where __init__ stores them.
+    HandDetector.load). Every setting is explained beside its DetectorSettings field.
     """
 
     def __init__(self, detnet, finder=None, fallback=None, grey_finder=None, grey_detnet=None,
@@ -442,7 +505,16 @@ class HandDetector:
             unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(DetectorSettings)})
             raise TypeError(f"HandDetector has no setting {', '.join(unknown)} (DetectorSettings' fields are "
                             f"its settings)") from None
-        self.settings = s = settings
+        self.settings = settings
+        # each setting is an attribute of the same name (DetectorSettings says what it does);
+        # a few are read in the form the code uses: None as 0, the retry at most the finder's period
+        for f in dataclasses.fields(DetectorSettings):
+            setattr(self, f.name, getattr(settings, f.name))
+        self.unborn_retry = min(settings.unborn_retry, settings.redetect_every)
+        self.test_time_crops = settings.test_time_crops or 0
+        self.tracked_test_time_crops = settings.tracked_test_time_crops or 0
+        self.second_look = settings.second_look or 0.0
+        self.smooth_min_cutoff = settings.smooth_min_cutoff or 0.0
         self.detnet, self.finder = detnet, finder
         # the finder and the DetNet for grey frames (a mono or IR camera: hand_finder.is_grey,
         # checked whenever the finder runs; None: `finder` / `detnet` on every frame)
@@ -453,120 +525,13 @@ class HandDetector:
         # photo whose hand fills the frame, which the finder, trained on hands in scenes,
         # can miss)
         self.fallback = fallback
-        # a track tried on the centre square is born only from this mean heatmap peak on,
-        # even where birth_confidence is lower (photos): the centre of a hand-free photo is
-        # not a hand
-        self.centre_confidence = s.centre_confidence
-        # DetNet passes on a new track's crop re-cut around its own last prediction
-        self.refine_passes = s.refine_passes
-        # two overlapping tracks are one hand only if their joints agree this well (0: always)
-        self.duplicate_joints = s.duplicate_joints
-        self.max_hands, self.presence_threshold = s.max_hands, s.presence_threshold
-        self.redetect_every, self.crop_scale = s.redetect_every, s.crop_scale
-        self.finder_threshold = s.finder_threshold
-        # the presence head stays sure on a crop that slid onto the forearm; the heatmap
-        # peaks (mean over joints) do drop there, so they end such a track too
-        self.min_confidence, self.birth_confidence = s.min_confidence, s.birth_confidence
-        # frames until the finder looks again after a proposed hand was not born: while one
-        # hand is tracked, a second one refused on its first frame would otherwise wait
-        # `redetect_every` frames for its next chance
-        self.unborn_retry = min(s.unborn_retry, s.redetect_every)
-        # with every track slot taken, a found hand that no track covers replaces the track
-        # DetNet believes least (running mean heatmap peak) when its own peak is this much
-        # higher (None: never): otherwise a desk object or a forearm that outlived its hand
-        # keeps the slot and the real hand is never tracked
-        self.evict_margin = s.evict_margin
-        # two tracks both at least this sure to be hands (running mean heatmap peak) are one
-        # person's left and right hand (None: handedness per track only); false tracks
-        # (desk objects, a forearm) stay below it, so they cannot turn a real hand
-        self.opposite_hands = s.opposite_hands
-        # a track's crop turns (in whole steps of this many degrees; 0: any angle; None:
-        # never) so that its hand appears upright, wrist below the middle finger's base, from
-        # its last 2D joints; a new track tries all four quarter turns. DetNet saw real hands
-        # turned at most 90 degrees in training: a hand hanging down (a camera above a desk)
-        # read 2-4x worse than an upright one
-        self.upright_step = s.upright_step
-        # weight of the finder's handedness against one DetNet reading (0: DetNet's alone)
-        self.finder_handedness = s.finder_handedness
-        # every this many frames of a track (and on its first), DetNet also reads its crop
-        # flipped the other way and the handedness head's answer there votes too (0: never).
-        # The head alone is biased on views unlike its training data; asked about a crop and
-        # its mirror image, its two answers share the bias and averaging them cancels it
-        self.mirror_vote_every = s.mirror_vote_every
-        # with a second network for the side (DetNetRunner `side`), a tracked hand's side is
-        # read on every this many frames only, and on every new track's crops and mirror
-        # votes (None: on every frame): the side changes rarely, and the side network costs
-        # as much a crop as the keypoints' one
-        self.side_every = s.side_every
-        # a track's handedness is the running mean logit of about its last this many readings:
-        # a hand keeps its side, so long enough to outlast the head's bad stretches on a view,
-        # short enough that a track started on the wrong side turns (60 since session 27)
-        self.handedness_memory = s.handedness_memory
-        # "left" or "right": every hand is that side (one known hand, e.g. the hand that drives a
-        # robot hand): no wrong-side reading, and no mirror vote to pay for; None: each track's
-        # side from DetNet's handedness head and the finder
-        if s.handedness not in (None, "left", "right"):
-            raise ValueError(f"handedness must be 'left', 'right' or None, got {s.handedness!r}")
-        self.handedness = s.handedness
-        # a track whose side turns on this frame's readings (a new track's first ones outvote the
-        # finder's guess its crop was mirrored for; a tracked hand's running mean crosses over)
-        # is read again, mirrored for the side it now has: otherwise the hand published as
-        # left was read as a right one (or the reverse), its 2D 2-3x worse and its 3D the
-        # other hand's, which the ik node then mirrors the wrong way; a photo has no next
-        # frame to mend it. One crop more per turn
-        self.settle_side = s.settle_side
-        # a new track's reading is the per-coordinate median over its crop and this many
-        # more (TEST_TIME_VARIANTS: a little larger, smaller, turned): for photos, where each
-        # hand is read once and a crop's chance placement otherwise stays in the result
-        self.test_time_crops = _variant_count("test_time_crops", s.test_time_crops)
-        # the same for every tracked hand on every frame (0: never): K more DetNet crops per
-        # hand and frame, for accuracy where the time is there
-        self.tracked_test_time_crops = _variant_count("tracked_test_time_crops", s.tracked_test_time_crops)
-        # a tracked hand whose joints' box changed size by more than this fraction since the
-        # last frame is read again on `second_look_crops` variants of its crop and the median kept (0: never):
-        # a hand does not change size that fast, and such readings were often wrong
-        self.second_look = s.second_look or 0.0
-        self.second_look_crops = _variant_count("second_look_crops", s.second_look_crops)
-        # a re-seed must convince DetNet: its mean heatmap peak on the found box's crop at
-        # least the track's running peak minus this (None: every re-seed is taken). A track
-        # whose crop has swollen around an exploded prediction holds boxes of other things,
-        # which a re-seed would otherwise move it onto
-        self.reseed_margin = s.reseed_margin
-        # the finder checks the tracks every `redetect_every` frames: a found hand inside a
-        # track's crop whose box overlaps the track's joints less than this re-seeds the track
-        # (0: never; the finder then only runs while fewer than max_hands hands are tracked)
-        self.reseed_iou = s.reseed_iou
-        # a found box is a track's own hand when it overlaps the track's joint box this much
-        self.match_iou = s.match_iou
-        # the finder's best `candidates` boxes are considered (0: max_hands); where more
-        # than the free track slots are new, DetNet's mean heatmap peak on each one's crop
-        # picks which become tracks (the finder's own score ranks desk objects too high)
-        self.candidates = s.candidates
-        # a track the finder has not seen on `unconfirmed_evict` of its runs in a row loses the
-        # evict margin's protection: a found hand DetNet would let be born replaces it; on
-        # `unconfirmed_drop` runs it ends (None: never). DetNet stays sure of a crop that slid
-        # onto curly hair or the arm a hand left the frame from (held-back clips: such tracks
-        # lasted 60-100 frames and kept the real hand from a slot); the finder, which sees the
-        # whole frame, does not see a hand there
-        self.unconfirmed_evict, self.unconfirmed_drop = s.unconfirmed_evict, s.unconfirmed_drop
-        # each track's published 2D joints go through a One Euro filter on the joints / the
-        # hand's size (so beta means the same at any distance): cut-off smooth_min_cutoff Hz
-        # at rest, rising by smooth_beta Hz per hand size a second (0 or None: unfiltered).
-        # DetNet's joints shake from frame to frame several times more than MediaPipe's
-        # (`handeval people`, the shake column); 2 Hz and 16 were chosen on the training
-        # people's clips as the setting that halves the shake and leaves the error to
-        # MediaPipe's labels no worse (research/keypoint_smoothing.py)
-        if (s.smooth_min_cutoff or 0.0) < 0 or s.smooth_beta < 0:
-            raise ValueError(f"smooth_min_cutoff and smooth_beta must be >= 0, got {s.smooth_min_cutoff}, "
-                             f"{s.smooth_beta}")
-        self.smooth_min_cutoff, self.smooth_beta = s.smooth_min_cutoff or 0.0, s.smooth_beta
         self.frame_time = 0.0
         self.tracks: list[Track] = []
         self.next_id = 0
         self.frames_since_find = 0
         self.lost_last_frame = False
         self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
-                      "evictions": 0, "unconfirmed_drops": 0, "handedness_turns": 0, "second_looks": 0,
+                      "evictions": 0, "handedness_turns": 0, "second_looks": 0,
                       "side_rereads": 0, "grey_finder_runs": 0}
 
     @classmethod
@@ -624,7 +589,7 @@ class HandDetector:
             # with every slot taken, one box more than the tracks: a hand they do not hold may evict one
             full = self.evict_margin is not None and len(self.tracks) >= self.max_hands
             found = [(f.box, f.score, f.right_prob) for f in finder.find(
-                image, self.finder_threshold, max(self.max_hands + full, self.candidates))]
+                image, self.finder_threshold, self.max_hands + full)]
         if self.handedness is not None:             # the given side, not the finder's guess
             found = [(box, score, float(self.handedness == "right")) for box, score, _ in found]
         new, reseeded, fresh = [], [], []
@@ -638,7 +603,7 @@ class HandDetector:
                     overlap[k, t.track_id] = box_iou(square_box(t.uv), box)[0, 0]
         owner = {}
         for (k, tid), iou in sorted(overlap.items(), key=lambda kv: -kv[1]):
-            if iou >= self.match_iou and k not in owner and tid not in owner.values():
+            if iou >= MATCH_IOU and k not in owner and tid not in owner.values():
                 owner[k] = tid
         for k, (box, score, right_prob) in enumerate(found):
             if k in owner:
@@ -660,11 +625,7 @@ class HandDetector:
                     reseeded.append(t)
                 continue
             fresh.append((box, right_prob))
-        if not centre:
-            self._count_unconfirmed(set(owner.values()))
         free = self.max_hands - len(self.tracks)
-        if self.candidates and len(fresh) > free > 0:   # DetNet says which of them look most like a hand
-            fresh = [fresh[i] for i in np.argsort(-self._found_peaks(image, fresh), kind="stable")]
         for box, right_prob in fresh[:max(free, 0)]:
             new.append(self._new_track(box, right_prob))
             if centre:
@@ -673,17 +634,6 @@ class HandDetector:
         if free <= 0 and fresh and self.evict_margin is not None:
             new += self._evict(image, fresh, reseeded)
         return new + reseeded
-
-    def _count_unconfirmed(self, seen):
-        """After a finder run: each track's count of runs in a row that found no box of its
-        hand (`seen`: the ids of the tracks a found box was matched to); the tracks at
-        `unconfirmed_drop` end."""
-        for t in self.tracks:
-            t.unconfirmed = 0 if t.track_id in seen else t.unconfirmed + 1
-        if self.unconfirmed_drop:
-            kept = [t for t in self.tracks if t.unconfirmed < self.unconfirmed_drop]
-            self.stats["unconfirmed_drops"] += len(self.tracks) - len(kept)
-            self.tracks = kept
 
     def _found_peaks(self, image, found):
         """(M,) DetNet's mean heatmap peak on the crop of each found (box, right_prob)."""
@@ -709,19 +659,15 @@ class HandDetector:
     def _evict(self, image, fresh, keep):
         """New tracks for found boxes `fresh` ((box, right_prob) list) that DetNet believes
         more than the tracks they replace (mean heatmap peak on the box's crop above the
-        weakest track's running peak by `evict_margin`; a track unseen by the finder on
-        `unconfirmed_evict` runs goes first, to any box whose peak reaches birth_confidence);
-        tracks in `keep` stay."""
+        weakest track's running peak by `evict_margin`); tracks in `keep` stay."""
         peak = self._found_peaks(image, fresh)
         born = []
         for i in np.argsort(-peak, kind="stable"):
             held = [t for t in self.tracks if t not in keep and t not in born]
             if not held:
                 break
-            unseen = [t for t in held if self.unconfirmed_evict and t.unconfirmed >= self.unconfirmed_evict]
-            weakest = min(unseen or held, key=lambda t: t.confidence)
-            bar = self.birth_confidence if unseen else weakest.confidence + self.evict_margin
-            if peak[i] < bar:
+            weakest = min(held, key=lambda t: t.confidence)
+            if peak[i] < weakest.confidence + self.evict_margin:
                 break
             born.append(self._new_track(*fresh[i]))
             self.tracks[self.tracks.index(weakest)] = born[-1]
@@ -770,7 +716,8 @@ class HandDetector:
         return hands
 
     def _track(self, image_bgr, new):
-        """DetNet on every track's crop (the `new` ones re-cut `refine_passes` times): the frame's hands."""
+        """DetNet on every track's crop (the `new` ones re-cut once, from their own first
+        prediction): the frame's hands."""
         self.lost_last_frame = False
         if not self.tracks:
             return []
@@ -778,7 +725,7 @@ class HandDetector:
         idx = [i for i, t in enumerate(self.tracks) if t in new]
         if self.upright_step is not None and idx:
             self._turn_new_tracks(image_bgr, idx, out)
-        for _ in range(self.refine_passes if new else 0):   # a new track's crop from its own prediction
+        if idx:                                     # a new track's crop from its own prediction
             for i in idx:
                 t = self.tracks[i]
                 if out["presence"][i] >= self.presence_threshold:
@@ -973,8 +920,7 @@ class HandDetector:
 
     def _drop_duplicates(self, hands, followed=None, iou=0.5, inside=0.7):
         """Two tracks on one hand (joint boxes with IoU >= `iou`, or the smaller box at
-        least `inside` covered by the other; with `duplicate_joints`, also joints that agree:
-        median distance below that fraction of the hand's size): keep the higher score
+        least `inside` covered by the other): keep the higher score
         (ties: the older track). Judged on `followed` {track id: (21,2) joints the track
         follows} where given, else on the hands' published uv."""
         followed = followed or {h["track_id"]: h["uv"] for h in hands}
@@ -986,10 +932,6 @@ class HandDetector:
             if kept_boxes:
                 overlap = (box_iou(box, np.array(kept_boxes))[0] >= iou) | \
                           (box_overlap_of_smaller(box, np.array(kept_boxes)) >= inside)
-                if self.duplicate_joints:   # overlapping boxes, but two hands (clasped, clapping)?
-                    size = np.max(box[2:] - box[:2])
-                    overlap &= np.array([np.median(np.linalg.norm(uv - followed[k["track_id"]], axis=1))
-                                         < self.duplicate_joints * size for k in kept])
                 if overlap.any():
                     continue
             kept.append(h)
