@@ -73,7 +73,7 @@ def mesh_marker_ms(repeats=10):
     """What a posed-mesh Marker (TRIANGLE_LIST of the hand model's faces) would cost the ros2
     node a hand: built as rosbags objects and serialized as the skeleton markers are -> (ms, bytes)."""
     from handmocap.perception.hand_model import HandModel
-    from handmocap.runtime.ros2_messages import Ros2Messages, typestore
+    from handmocap.interop.ros2_messages import Ros2Messages, typestore
     model, ts = HandModel.load(), typestore()
     build = Ros2Messages(ts)
     corners = np.random.default_rng(0).random((model.faces.size, 3))      # one point per triangle corner

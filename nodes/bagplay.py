@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from handmocap.runtime.bag_cli import CliError, play_messages, playable_topics
+from handmocap.runtime.bag import play_messages, playable_topics
 from handmocap.runtime.node import Node, check_bool_param, check_number_param, run
 
 PARAMS = {"file": None, "rate": 1.0, "loop": False, "topics": []}
@@ -28,13 +28,10 @@ def main() -> None:
     p = node.params
     if not p["file"]:
         raise ValueError("bagplay needs a bag: file:=PATH.mcap")
-    try:
-        topics = playable_topics(p["file"], p["topics"] or None)
-        for topic, type_name in topics.items():
-            node.advertise(topic, type_name)
-        sent = play_messages(node, p["file"], topics, float(p["rate"]), bool(p["loop"]))
-    except CliError as e:
-        raise ValueError(str(e)) from None
+    topics = playable_topics(p["file"], p["topics"] or None)       # ValueError naming what cannot be played
+    for topic, type_name in topics.items():
+        node.advertise(topic, type_name)
+    sent = play_messages(node, p["file"], topics, float(p["rate"]), bool(p["loop"]))
     node.log.info("played %d message(s) from %s", sent, p["file"])
     node.close()
 

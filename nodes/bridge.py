@@ -1,7 +1,7 @@
 """bridge: the graph, live, in Foxglove Studio (Open connection -> ws://localhost:8765).
 /camera/image, /camera/info, /hand/keypoints, /hand/pose -> Foxglove's WebSocket protocol.
 
-A thin loop over handmocap.runtime.foxglove_live.LiveBridge (its module docstring has the channel
+A thin loop over handmocap.interop.foxglove_live.LiveBridge (its module docstring has the channel
 table): the camera image as JPEG, the calibration, the 2D skeleton over the image, the 3D
 skeleton and the posed hand mesh, frame transforms world -> camera -> hand/<id>/wrist, and
 the raw /hand/pose as JSON (for Plot panels). Every input is latest-only: a slow viewer
@@ -14,7 +14,7 @@ path, default bundled: the one the ik node uses). Needs the optional extra: pip 
 """
 from __future__ import annotations
 
-from handmocap.runtime import foxglove_live
+from handmocap.interop import foxglove_live
 from handmocap.perception.hand_model import HandModel
 from handmocap.runtime.node import Node, check_file_param, check_number_param, run
 

@@ -6,7 +6,7 @@ Parameters (PARAMS):
   normally (exit 0), which makes the node testable without a camera.
 - width, height, fps: the capture format asked for. A camera may pick another; the node
   publishes what it delivers (logged once) and scales K to it.
-- calibration: a calibration file (formats: handmocap.runtime.camera_info); without one K comes from
+- calibration: a calibration file (formats: handmocap.perception.camera_info); without one K comes from
   a 60 degree horizontal field of view (source 'default-fov').
 - frame_id: header frame id of both topics.
 - jpeg_quality: null publishes raw bgr8 frames; 1-100 JPEG frames of that quality (a graph
@@ -36,7 +36,7 @@ from collections.abc import Iterator
 import cv2
 import numpy as np
 
-from handmocap.runtime.camera_info import Intrinsics, camera_info_message, check_calibration_param, intrinsics_for_frames
+from handmocap.perception.camera_info import Intrinsics, camera_info_message, check_calibration_param, intrinsics_for_frames
 from handmocap.runtime.frames import image_message
 from handmocap.runtime.node import Node, check_bool_param, check_jpeg_param, check_number_param, run
 

@@ -36,7 +36,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from handmocap.runtime.camera_info import as_distortion, as_K, camera_info_message, default_intrinsics
+from handmocap.perception.camera_info import as_distortion, as_K, camera_info_message, default_intrinsics
 from handmocap.runtime.node import Node, check_file_param, check_number_param, run
 
 PARAMS = {"device": None, "socket": "CAM_A", "width": 640, "height": 480, "fps": 30, "frame_id": "camera",

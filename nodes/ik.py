@@ -25,7 +25,7 @@ from typing import Callable
 
 import numpy as np
 
-from handmocap.runtime import camera_info
+from handmocap.perception import camera_info
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.ik_solver import IKSolver
 from handmocap.runtime.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin

@@ -7,7 +7,7 @@ graph takes them: the next frame is decoded once fewer than AHEAD sent frames ar
 queued for or held by a subscriber); `start` skips that many seconds; `loop` restarts at the end; `duration` (seconds, null: no
 limit) ends the stream after that long (with `loop`: a long run). A replay respawned by its launcher
 continues after the frames it had sent (Progress), with their sequence numbers. /camera/info
-comes from `calibration` (a file, see handmocap.runtime.camera_info) or, failing that, from the
+comes from `calibration` (a file, see handmocap.perception.camera_info) or, failing that, from the
 bag's own /camera/info, or from a default field of view (camera_info.DEFAULT_HFOV_DEG) that
 the message marks with source "default-fov". It is sent with every frame, so late subscribers
 get it at once (a latched topic by repetition). `jpeg_quality` (1-100) publishes JPEG images
@@ -20,7 +20,8 @@ import time
 from collections import deque
 from pathlib import Path
 
-from handmocap.runtime import camera_info, codec
+from handmocap.perception import camera_info
+from handmocap.runtime import codec
 from handmocap.runtime.frames import frame_bgr, image_message, open_frames
 from handmocap.runtime.node import Node, check_bool_param, check_jpeg_param, check_number_param, run
 

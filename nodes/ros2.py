@@ -1,11 +1,11 @@
 """ros2: the graph's hands, live, on ROS 2 (rclpy and Fast DDS from PyPI; no ROS install).
 /hand/pose, /camera/image, /camera/info, /robot/joint_states -> the ROS 2 topics that
-`handbag export --ros2` writes (handmocap.runtime.ros2_messages has the table):
+`handbag export --ros2` writes (handmocap.interop.ros2_messages has the table):
 `<prefix>/hand_<side>/joint_states`, `keypoints`, `wrist_pose`, `<prefix>/hand_markers`
 (RViz), `<prefix>/camera/image/compressed`, `<prefix>/camera/camera_info`,
 `<prefix>/robot_<side>/joint_states`; `/tf` only where rclpy has tf2_msgs (not on PyPI).
 
-A thin loop over handmocap.runtime.ros2_live.RawPublishers: each message converted once, CDR
+A thin loop over handmocap.interop.ros2_live.RawPublishers: each message converted once, CDR
 bytes published by rclpy. Hands keep every message (reliable QoS); the camera is latest-only
 and its JPEG costs about 3 ms a frame (images: false leaves it out).
 
@@ -22,9 +22,9 @@ from __future__ import annotations
 import os
 import time
 
-from handmocap.runtime import ros2_live
+from handmocap.interop import ros2_live
 from handmocap.runtime.node import Node, check_bool_param, check_number_param, run
-from handmocap.runtime.ros2_messages import TOPICS, Ros2Messages, typestore
+from handmocap.interop.ros2_messages import TOPICS, Ros2Messages, typestore
 
 PARAMS = {"prefix": "", "discovery": "localhost", "images": True, "wait_for_subscriber_s": 0.0}
 WAIT_TOPIC = "/hand_right/joint_states"     # the topic whose subscriber wait_for_subscriber_s waits for

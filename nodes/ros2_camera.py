@@ -3,7 +3,7 @@
 stamped with its ROS header stamp (`header.stamp_ns`), so latency and pairing downstream
 are the camera driver's.
 
-A thin loop over handmocap.runtime.ros2_live (image_body, info_body): rclpy is spun in this
+A thin loop over handmocap.interop.ros2_live (image_body, info_body): rclpy is spun in this
 node's own loop, so every frame is handled in order in the thread that publishes it.
 /camera/info is published just before each image with its stamp, as the `camera` node does;
 until the first CameraInfo arrives K is the 60 degree default (logged once). A frame that
@@ -18,7 +18,7 @@ Params:
   that publishes reliably (best effort lost two thirds of raw 352x640 frames here: Fast DDS
   fragments them), best effort from one that publishes best effort (ros2_live.publishers_qos;
   the subscriptions are made once the driver is found); true or false forces one.
-- discovery: "localhost" (default), "subnet" or "off" (handmocap.runtime.ros2_live).
+- discovery: "localhost" (default), "subnet" or "off" (handmocap.interop.ros2_live).
 - frame_id: the frame id to publish (default: the ROS header's).
 - timeout_s: end the stream after this long without a frame once frames came (a bag played
   with `ros2 bag play`); null: run until stopped.
@@ -29,8 +29,8 @@ from __future__ import annotations
 import time
 from collections import deque
 
-from handmocap.runtime import ros2_live
-from handmocap.runtime.camera_info import camera_info_message, default_intrinsics
+from handmocap.interop import ros2_live
+from handmocap.perception.camera_info import camera_info_message, default_intrinsics
 from handmocap.runtime.node import Node, check_bool_param, check_number_param, run
 
 PARAMS = {"image_topic": "/camera/image_raw", "info_topic": None, "reliable": None, "discovery": "localhost",

@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.runtime import camera_info
+from handmocap.perception import camera_info
 from handmocap.runtime.frame_sync import FrameSync
 from handmocap.runtime.frames import frame_bgr, image_message
 from handmocap.perception.hand_model import HandModel

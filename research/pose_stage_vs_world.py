@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap.runtime import camera_info
+from handmocap.perception import camera_info
 from handmocap.perception.detector import DetNetRunner, HandDetector
 from handmocap.runtime.frames import read_video
 from handmocap.perception.hand_model import HandModel

@@ -24,7 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.runtime import camera_info
+from handmocap.perception import camera_info
 from handmocap.training import real_data
 from handmocap.perception.detector import HandDetector
 from handmocap.perception.hand_model import HandModel

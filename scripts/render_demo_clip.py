@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.runtime.camera_info import default_K
+from handmocap.perception.camera_info import default_K
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.joint_limits import named_pose
 from handmocap.perception.render import MeshRenderer

@@ -19,7 +19,7 @@ import pytest
 from mcap.reader import make_reader
 
 from handmocap.runtime import bag, bus, codec
-from handmocap.runtime.bag_cli import main as handbag
+from handmocap.interop.bag_cli import main as handbag
 from handmocap.runtime.frames import frame_bgr
 from handmocap.perception.skeleton import BONES
 
@@ -83,7 +83,7 @@ def write_sample_bag(path: Path, extra_frames: int = 0) -> list[tuple[str, str, 
 
 
 def run_handbag(*args: str, env=None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "handmocap.runtime.bag_cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "handmocap.interop.bag_cli", *args], capture_output=True,
                           text=True, timeout=60, env=env)
 
 
@@ -271,7 +271,7 @@ def test_export_foxglove(tmp_path):
 def test_export_foxglove_shows_hand_meshes_as_triangles(tmp_path):
     """/hand/mesh becomes a SceneUpdate of triangles with the faces of the first message that
     carries them, the messages before it too (a left hand's winding reversed)."""
-    from handmocap.runtime.foxglove_export import export_foxglove
+    from handmocap.interop.foxglove_export import export_foxglove
     src, dst = tmp_path / "m.mcap", tmp_path / "fox.mcap"
     rng = np.random.default_rng(2)
     faces = np.array([[0, 1, 2], [1, 3, 2]], np.int32)
@@ -458,7 +458,7 @@ def test_info_into_a_pipe_that_closes_early_is_no_error(tmp_path):
     path = tmp_path / "b.mcap"
     with bag.BagWriter(path) as w:
         w.write("/camera/image", "Image", image_payload(0), 1, 1)
-    r = subprocess.run(["sh", "-c", f"'{sys.executable}' -m handmocap.runtime.bag_cli info '{path}' | head -1"],
+    r = subprocess.run(["sh", "-c", f"'{sys.executable}' -m handmocap.interop.bag_cli info '{path}' | head -1"],
                        capture_output=True, text=True, timeout=60)
     assert r.stdout.startswith("path:") and "Broken pipe" not in r.stderr, r.stderr
 

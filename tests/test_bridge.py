@@ -17,7 +17,9 @@ import pytest
 
 from conftest import graph_env
 from graphnodes.pose_source import W, H, synthetic_pose_hands
-from handmocap.runtime import camera_info, codec, foxglove_live as fl
+from handmocap.perception import camera_info
+from handmocap.runtime import codec
+from handmocap.interop import foxglove_live as fl
 from handmocap.runtime.frames import image_message
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.rotations import quat_to_matrix

@@ -1,4 +1,4 @@
-"""Intrinsics (handmocap.runtime.camera_info) and the webcam node (nodes/camera.py)."""
+"""Intrinsics (handmocap.perception.camera_info) and the webcam node (nodes/camera.py)."""
 from __future__ import annotations
 
 import json
@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from handmocap.runtime import codec
-from handmocap.runtime.camera_info import (Intrinsics, camera_info_message, default_K, intrinsics_for_frames,
+from handmocap.perception.camera_info import (Intrinsics, camera_info_message, default_K, intrinsics_for_frames,
                                    load_calibration, scale_K)
 from handmocap.nodes import camera
 from conftest import write_test_video

@@ -13,7 +13,7 @@ import pytest
 
 from conftest import ROOT, graph_env
 from graphnodes.pose_source import synthetic_pose_hands
-from handmocap.runtime import camera_info
+from handmocap.perception import camera_info
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception import retarget as dex
 from handmocap.perception.rotations import mirror_points

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from conftest import handlaunch
-from handmocap.runtime import camera_info, codec
+from handmocap.perception import camera_info
+from handmocap.runtime import codec
 from handmocap.runtime.bag import iter_messages
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.ik_solver import IKSolver

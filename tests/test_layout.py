@@ -77,3 +77,20 @@ def test_every_detector_setting_is_a_detector_node_param_and_none_typed_ones_tak
         if f.name in NULLABLE:
             assert setting(f.name, None) is None
     assert {"side_every", "evict_margin", "handedness"} <= NULLABLE and "max_hands" not in NULLABLE
+
+
+def test_the_wings_import_one_way():
+    """perception (the maths, geometry included) and runtime (the bus, codec, bags, launcher)
+    import neither each other nor the wings above them; interop (Foxglove, ROS 2, the bag
+    command line) may import both; nothing in handmocap/ imports a node."""
+    wing = lambda p: p.relative_to(ROOT / "handmocap").parts[0]   # noqa: E731
+    forbidden = {"perception": ("handmocap.runtime", "handmocap.interop", "handmocap.training"),
+                 "runtime": ("handmocap.perception", "handmocap.interop", "handmocap.training"),
+                 "interop": ("handmocap.training",)}
+    offenders = {}
+    for p in (ROOT / "handmocap").rglob("*.py"):
+        bad = [m for m in imports_of(p)
+               if m.startswith("handmocap.nodes") or m.startswith(forbidden.get(wing(p), ()))]
+        if bad:
+            offenders[str(p.relative_to(ROOT))] = sorted(bad)
+    assert offenders == {}

@@ -21,7 +21,7 @@ def clip(tmp_path_factory):
 
 
 def bag_counts(bag):
-    r = subprocess.run([sys.executable, "-m", "handmocap.runtime.bag_cli", "info", str(bag), "--json"],
+    r = subprocess.run([sys.executable, "-m", "handmocap.interop.bag_cli", "info", str(bag), "--json"],
                        capture_output=True, text=True, check=True)
     info = json.loads(r.stdout)
     return {t: v["count"] for t, v in info["topics"].items()}, info

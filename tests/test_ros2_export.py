@@ -9,8 +9,9 @@ import pytest
 import yaml
 
 from graphnodes.pose_source import synthetic_pose_hands
-from handmocap.runtime import bag, camera_info, codec
-from handmocap.runtime.bag_cli import main as handbag
+from handmocap.runtime import bag, codec
+from handmocap.perception import camera_info
+from handmocap.interop.bag_cli import main as handbag
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.joint_limits import JointLimits
 from handmocap.perception.rotations import mirror_points, quat_rotate

@@ -91,8 +91,8 @@ def export_values(bag_path, tmp_path):
     """{(topic, stamp): rosbags message} of `handbag export --ros2` of the run's bag."""
     from rosbags.rosbag2 import Reader
 
-    from handmocap.runtime.bag_cli import main as handbag
-    from handmocap.runtime.ros2_messages import typestore
+    from handmocap.interop.bag_cli import main as handbag
+    from handmocap.interop.ros2_messages import typestore
     assert handbag(["export", str(bag_path), "--ros2", str(tmp_path / "ros2bag")]) == 0
     ts, out = typestore(), {}
     with Reader(tmp_path / "ros2bag") as reader:
@@ -225,7 +225,7 @@ def test_ros_images_become_the_graphs_images():
     import cv2
     from sensor_msgs.msg import CompressedImage, Image
 
-    from handmocap.runtime.ros2_live import image_body
+    from handmocap.interop.ros2_live import image_body
     frame = np.random.default_rng(0).integers(0, 255, (5, 7, 3), np.uint8)
     padded = np.zeros((5, 24), np.uint8)                               # rows padded to 24 bytes (step)
     padded[:, :21] = frame.reshape(5, 21)
@@ -250,7 +250,7 @@ def test_ros_images_become_the_graphs_images():
 def test_ros_camera_info_and_names():
     from sensor_msgs.msg import CameraInfo
 
-    from handmocap.runtime.ros2_live import info_body
+    from handmocap.interop.ros2_live import info_body
     from handmocap.nodes.ros2_camera import check_params, info_topic_for
     K = [500.0, 0, 320, 0, 510, 240, 0, 0, 1]
     body = info_body(CameraInfo(width=640, height=480, k=K, d=[0.1, -0.2, 0, 0, 0.01]))
@@ -272,8 +272,8 @@ def test_rclpy_definitions_are_checked_against_rosbags():
     from sensor_msgs.msg import JointState
     from visualization_msgs.msg import MarkerArray
 
-    from handmocap.runtime.ros2_live import ros_class, same_fields
-    from handmocap.runtime.ros2_messages import TOPICS, typestore
+    from handmocap.interop.ros2_live import ros_class, same_fields
+    from handmocap.interop.ros2_messages import TOPICS, typestore
     ts = typestore()
     for cls, msgtype in ((JointState, "sensor_msgs/msg/JointState"), (PoseArray, "geometry_msgs/msg/PoseArray"),
                          (MarkerArray, "visualization_msgs/msg/MarkerArray")):

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from handmocap.runtime import camera_info, codec
+from handmocap.perception import camera_info
+from handmocap.runtime import codec
 from handmocap.perception.detector import HandDetector
 from handmocap.perception.hand_model import HandModel
 from handmocap.training.pose_data import PoseSampler

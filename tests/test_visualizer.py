@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, graph_env, handlaunch
-from handmocap.runtime.camera_info import project
+from handmocap.perception.camera_info import project
 from handmocap.runtime.frame_sync import FrameSync
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.overlay import FINGER_COLOURS, Overlay, composite, draw_skeleton, side_view_transform

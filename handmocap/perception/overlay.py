@@ -18,7 +18,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from handmocap.runtime.camera_info import project
+from handmocap.perception.camera_info import project
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.pose import hand_certainty, hand_mesh
 from handmocap.perception.skeleton import BONES

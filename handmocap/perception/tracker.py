@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from handmocap.runtime import camera_info
+from handmocap.perception import camera_info
 from handmocap.perception.detector import HandDetector
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.ik_solver import IKSolver

@@ -19,7 +19,7 @@ that is degenerate too (non-finite or collapsed input), DEFAULT_DEPTH_M.
 """
 import numpy as np
 
-from handmocap.runtime.camera_info import project
+from handmocap.perception.camera_info import project
 from handmocap.perception.skeleton import REF_BONE, ROOT, normalize_joints
 
 # Reference bone (wrist -> middle MCP) of an average adult hand, metres: the bundled

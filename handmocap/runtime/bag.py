@@ -441,3 +441,146 @@ def bag_info(path: str | os.PathLike) -> dict:
     scan = scans[0]
     return _info_dict(path, scan.size, topics, start, end, truncated=not scan.complete,
                       unreadable=scan.size - scan.good_bytes)
+
+
+# -- recording and playing: what the recorder and bagplay nodes and `handbag` share ----------
+IDLE_TICK_S = 0.5   # when nothing arrives this long, the recorder closes the open chunk if it is old
+
+
+def output_path(output: str, overwrite: bool, split: bool = False) -> Path:
+    """The bag path `output`; FileExistsError names the file if it exists and may not be replaced
+    (with `split`: its first split)."""
+    path = Path(output).expanduser()
+    if split and split_paths(path) and not overwrite:
+        raise FileExistsError(f"{split_paths(path)[0]} already exists (remove the splits of {path}, choose "
+                              f"another output, or set overwrite:=true)")
+    if path.exists() and not overwrite and not split:
+        cut = ""
+        try:
+            if bag_info(path)["truncated"]:
+                cut = f"; it was cut short (its recorder was killed): `handbag repair {path}` makes it whole"
+        except (OSError, ValueError):
+            pass
+        raise FileExistsError(f"{path} already exists (remove it, choose another "
+                              f"output, or set overwrite:=true){cut}")
+    return path
+
+
+def open_output(output: str, overwrite: bool, split_s=None, split_mb=None):
+    """A BagWriter on `output` (parent folders made), or a SplitBagWriter with `split_s` or
+    `split_mb` (an earlier recording's splits under that name removed); FileExistsError as output_path."""
+    split = split_s is not None or split_mb is not None
+    path = output_path(output, overwrite, split)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not split:
+        return BagWriter(path)
+    for old in split_paths(path):
+        old.unlink()
+    return SplitBagWriter(path, split_s, None if split_mb is None else int(split_mb * 1e6))
+
+
+def summary_line(counts: dict, path: Path) -> str:
+    """'recorded 12 message(s) to out.mcap: /a 10, /b 2'."""
+    total = sum(counts.values())
+    per_topic = ", ".join(f"{t} {n}" for t, n in sorted(counts.items())) or "no topics"
+    return f"recorded {total} message(s) to {path}: {per_topic}"
+
+
+def record(node, output: str, topics: list[str], overwrite: bool = False, raw: bool = False,
+           jpeg_quality: int | None = 90, split_s: float | None = None, split_mb: float | None = None) -> None:
+    """Record `topics` (empty: every topic) of the graph `node` is in to the bag `output` until
+    the node stops (SIGINT/SIGTERM) or every recorded input has ended: the recorder node and
+    `handbag record`. Subscriptions are keep-all (a bag is complete: publishers wait for it);
+    images not in JPEG are stored as JPEG of `jpeg_quality` unless `raw` (or quality None).
+    The bag is made (or an earlier one replaced) by the first message, not at start: a graph
+    that fails at once leaves neither an empty bag nor a replaced recording. FileExistsError
+    (before anything is subscribed) as output_path; the node is left open."""
+    from handmocap.runtime.frames import compressed
+    split = split_s is not None or split_mb is not None
+    path = output_path(output, overwrite, split)
+    for topic in topics or [None]:
+        node.subscribe(topic, None, mode="lossless")
+    node.log.info("recording %s to %s%s", ", ".join(topics) or "every topic",
+                  f"splits of {path}" if split else path,
+                  " (replacing it once the first message arrives)" if path.exists() or
+                  (split and split_paths(path)) else "")
+    bag = None
+    refused: set[str] = set()   # topics seen with a second message type (a graph bug)
+    try:
+        for msg in node.events(timeout=IDLE_TICK_S):
+            if msg is None:
+                if bag is not None:
+                    bag.tick()
+                continue
+            if bag is None:
+                bag = open_output(str(path), True, split_s, split_mb)
+            payload = msg.raw
+            if msg.type == "Image" and not raw and jpeg_quality and msg.data["encoding"] != "jpeg":
+                payload = codec.encode(compressed(msg.data, int(jpeg_quality)), "Image")
+            try:
+                bag.write(msg.topic, msg.type, payload, msg.recv_ns, msg.stamp_ns)
+            except ValueError as e:   # one channel holds one type: keep the first, skip the rest
+                if msg.topic not in refused:
+                    refused.add(msg.topic)
+                    node.log.warning("not recording some messages: %s", e)
+    finally:
+        if bag is None:
+            node.log.info("recorded nothing: %s", f"{path} left as it was" if path.exists() else f"no {path} written")
+        else:
+            bag.close()
+            where = bag.path if not isinstance(bag, SplitBagWriter) else \
+                f"{bag.paths[0]} ... {bag.paths[-1].name} ({len(bag.paths)} splits)"
+            node.log.info("%s", summary_line(bag.counts, where))
+
+
+def checked_info(path: str, topics: list[str] | None) -> dict:
+    info = bag_info(path)
+    if topics:
+        unknown = [t for t in topics if t not in info["topics"]]
+        if unknown:
+            raise ValueError(f"{path}: no topic(s) {', '.join(unknown)} in this bag "
+                           f"(it has {', '.join(info['topics']) or 'none'})")
+    return info
+
+
+def _sleep_until(node, t: float) -> None:
+    while node.ok():
+        left = t - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(left, 0.1))
+
+
+def playable_topics(path, topics=None) -> dict:
+    """{topic: message type} of a bag that can be played (msgpack messages of known types),
+    limited to `topics` when given; raises ValueError naming the problem."""
+    info = checked_info(path, topics)
+    chosen = {t: v for t, v in info["topics"].items() if not topics or t in topics}
+    for topic, v in chosen.items():
+        if v["encoding"] != MESSAGE_ENCODING:
+            raise ValueError(f"{path}: topic {topic} holds {v['encoding']} messages; only bags "
+                           f"recorded by handbag/recorder ({MESSAGE_ENCODING}) can be played")
+        if v["type"] not in codec.message_types():
+            raise ValueError(f"{path}: topic {topic} has unknown message type {v['type']!r}")
+    return {t: v["type"] for t, v in chosen.items()}
+
+
+def play_messages(node, path, topics: dict, rate: float = 1.0, loop: bool = False) -> int:
+    """Publish a bag's stored payloads unchanged on `node` (which advertised `topics`), paced by
+    their log times / rate (0: as fast as possible); returns how many were sent."""
+    if rate < 0:
+        raise ValueError(f"rate must be >= 0, not {rate}")
+    sent = 0
+    while node.ok():
+        t_start, t_first = time.monotonic(), None
+        for topic, type_name, payload, log_ns in iter_messages(path, list(topics)):
+            if not node.ok():
+                break
+            t_first = log_ns if t_first is None else t_first
+            if rate > 0:
+                _sleep_until(node, t_start + (log_ns - t_first) / 1e9 / rate)
+            node.publish_raw(topic, type_name, payload)
+            sent += 1
+        if not loop or t_first is None:
+            break
+    return sent

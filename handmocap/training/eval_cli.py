@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from handmocap.training import metrics
-from handmocap.runtime.camera_info import project
+from handmocap.perception.camera_info import project
 from handmocap.runtime.frames import open_frames
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.training.real_data import RHD_TO_MP, interhand_to_mp
@@ -61,7 +61,7 @@ MAX_HANDS = 2
 # ----------------------------------------------------------------------------- predict
 def parse_K(text=None, path=None, count=None):
     """None, or an (N,3,3) array of K per image from --K text or --K-file."""
-    from handmocap.runtime.camera_info import as_K
+    from handmocap.perception.camera_info import as_K
     if text is None and path is None:
         return None
     if text is not None:

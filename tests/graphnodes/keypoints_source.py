@@ -2,7 +2,7 @@
 random poses within the joint limits), projected with a default K, plus /camera/info."""
 import numpy as np
 
-from handmocap.runtime import camera_info
+from handmocap.perception import camera_info
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.joint_limits import JointLimits
 from handmocap.runtime.node import Node, run

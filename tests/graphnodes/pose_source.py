@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from handmocap.runtime import camera_info
+from handmocap.perception import camera_info
 from handmocap.perception.hand_model import HandModel
 from handmocap.runtime.node import Node, run
 from handmocap.perception.pose import pose_fields

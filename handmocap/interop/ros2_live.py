@@ -1,7 +1,7 @@
 """ROS 2, live, for the graph's `ros2` and `ros2_camera` nodes: rclpy and Fast DDS from PyPI
 (pip install -e '.[ros2]'), no ROS install and no code of ours on the wire.
 
-- Out: the messages of handmocap.runtime.ros2_messages (rosbags' definitions) are serialized
+- Out: the messages of handmocap.interop.ros2_messages (rosbags' definitions) are serialized
   to CDR by rosbags and published as they are by rclpy publishers of the same ROS type
   (`Publisher.publish(bytes)`), the bytes `handbag export --ros2` writes into a bag. At start
   each type's rclpy definition is checked field by field against rosbags' (`same_fields`).
@@ -30,7 +30,7 @@ import tempfile
 import cv2
 import numpy as np
 
-from handmocap.runtime.camera_info import camera_info_message
+from handmocap.perception.camera_info import camera_info_message
 
 DISCOVERY = {"localhost": "LOCALHOST", "subnet": "SUBNET", "off": "OFF"}
 SENSOR_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/CameraInfo")

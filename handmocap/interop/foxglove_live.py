@@ -1,8 +1,8 @@
 """The graph, live, in Foxglove: what the `bridge` node (nodes/bridge.py) serves over Foxglove's
 WebSocket protocol, as plain conversions plus one small class that knows no bus.
 
-Every channel is JSON (schema encoding `jsonschema`, handmocap.runtime.foxglove_schemas), the same
-conversions as `handbag export --foxglove` (handmocap.runtime.foxglove_export) where they exist:
+Every channel is JSON (schema encoding `jsonschema`, handmocap.interop.foxglove_schemas), the same
+conversions as `handbag export --foxglove` (handmocap.interop.foxglove_export) where they exist:
 
 | graph topic (type)           | Foxglove topic          | schema                        | rate            |
 |------------------------------|-------------------------|-------------------------------|-----------------|
@@ -27,8 +27,8 @@ import time
 
 import numpy as np
 
-from handmocap.runtime import foxglove_schemas as fs
-from handmocap.runtime.foxglove_export import (
+from handmocap.interop import foxglove_schemas as fs
+from handmocap.interop.foxglove_export import (
     camera_info_to_calibration, foxglove_time, image_to_compressed, json_schema_for, keypoints_to_annotations,
     mesh_entity, pose_to_scene_update, to_jsonable,
 )

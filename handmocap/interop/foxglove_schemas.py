@@ -1,5 +1,5 @@
 """Minimal JSON Schemas of the Foxglove well-known message types that `handbag export
---foxglove` and the live bridge (handmocap.runtime.foxglove_live) write (written here from the field lists of Foxglove's schema docs; only the
+--foxglove` and the live bridge (handmocap.interop.foxglove_live) write (written here from the field lists of Foxglove's schema docs; only the
 fields we fill are described, Foxglove treats missing optional fields as defaults).
 
 A channel whose schema has encoding `jsonschema`, one of these names and message encoding

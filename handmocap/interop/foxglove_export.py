@@ -25,7 +25,8 @@ import cv2
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from handmocap.runtime import codec, foxglove_schemas as fs
+from handmocap.runtime import codec
+from handmocap.interop import foxglove_schemas as fs
 from handmocap.runtime.bag import bag_info, iter_messages
 from handmocap.perception.overlay import hand_label
 from handmocap.perception.pose import hand_certainty

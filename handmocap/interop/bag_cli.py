@@ -15,11 +15,9 @@ import datetime
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
-from handmocap.runtime import codec
-from handmocap.runtime.bag import MESSAGE_ENCODING, NotABag, bag_info, iter_messages
+from handmocap.runtime.bag import NotABag, bag_info, checked_info, play_messages, playable_topics, record
 
 SUBSCRIBER_WAIT_S = 5.0   # how long play waits for the graph's subscribers to connect
 
@@ -30,70 +28,18 @@ class CliError(Exception):
 
 # -- record ----------------------------------------------------------------------------------
 def cmd_record(args) -> None:
-    from handmocap.nodes import recorder
-    argv = [f"output:={json.dumps(str(args.output))}", f"topics:={json.dumps(args.topics)}",
-            f"overwrite:={'true' if args.overwrite else 'false'}", f"split_s:={json.dumps(args.split_s)}",
-            f"split_mb:={json.dumps(args.split_mb)}"]
+    from handmocap.runtime.node import Node
     out = Path(args.output).expanduser()
     if out.exists() and not args.overwrite and args.split_s is None and args.split_mb is None:
         raise CliError(f"{out} already exists (remove it, choose another -o, or pass --overwrite)")
-    recorder.main(argv=argv, name=f"bagrec{os.getpid()}")
+    node = Node(f"bagrec{os.getpid()}", argv=[])
+    try:
+        record(node, str(args.output), args.topics or [], args.overwrite, split_s=args.split_s, split_mb=args.split_mb)
+    finally:
+        node.close()
 
 
 # -- play ------------------------------------------------------------------------------------
-def _checked_info(path: str, topics: list[str] | None) -> dict:
-    info = bag_info(path)
-    if topics:
-        unknown = [t for t in topics if t not in info["topics"]]
-        if unknown:
-            raise CliError(f"{path}: no topic(s) {', '.join(unknown)} in this bag "
-                           f"(it has {', '.join(info['topics']) or 'none'})")
-    return info
-
-
-def _sleep_until(node, t: float) -> None:
-    while node.ok():
-        left = t - time.monotonic()
-        if left <= 0:
-            return
-        time.sleep(min(left, 0.1))
-
-
-def playable_topics(path, topics=None) -> dict:
-    """{topic: message type} of a bag that can be played (msgpack messages of known types),
-    limited to `topics` when given; raises CliError naming the problem."""
-    info = _checked_info(path, topics)
-    chosen = {t: v for t, v in info["topics"].items() if not topics or t in topics}
-    for topic, v in chosen.items():
-        if v["encoding"] != MESSAGE_ENCODING:
-            raise CliError(f"{path}: topic {topic} holds {v['encoding']} messages; only bags "
-                           f"recorded by handbag/recorder ({MESSAGE_ENCODING}) can be played")
-        if v["type"] not in codec.message_types():
-            raise CliError(f"{path}: topic {topic} has unknown message type {v['type']!r}")
-    return {t: v["type"] for t, v in chosen.items()}
-
-
-def play_messages(node, path, topics: dict, rate: float = 1.0, loop: bool = False) -> int:
-    """Publish a bag's stored payloads unchanged on `node` (which advertised `topics`), paced by
-    their log times / rate (0: as fast as possible); returns how many were sent."""
-    if rate < 0:
-        raise CliError(f"rate must be >= 0, not {rate}")
-    sent = 0
-    while node.ok():
-        t_start, t_first = time.monotonic(), None
-        for topic, type_name, payload, log_ns in iter_messages(path, list(topics)):
-            if not node.ok():
-                break
-            t_first = log_ns if t_first is None else t_first
-            if rate > 0:
-                _sleep_until(node, t_start + (log_ns - t_first) / 1e9 / rate)
-            node.publish_raw(topic, type_name, payload)
-            sent += 1
-        if not loop or t_first is None:
-            break
-    return sent
-
-
 def cmd_play(args) -> None:
     from handmocap.runtime.node import Node
     topics = playable_topics(args.file, args.topics)
@@ -166,13 +112,13 @@ def cmd_repair(args) -> None:
 def cmd_export(args) -> None:
     if args.ros2:
         return export_ros2_cli(args)
-    from handmocap.runtime.foxglove_export import export_foxglove
+    from handmocap.interop.foxglove_export import export_foxglove
     if not args.foxglove:
         raise CliError("export needs a target format: --foxglove -o OUT.mcap, or --ros2 OUT_FOLDER")
     if not args.output:
         raise CliError("export --foxglove needs -o OUT.mcap")
     src, dst = Path(args.file), Path(args.output)
-    _checked_info(args.file, args.topics)
+    checked_info(args.file, args.topics)
     if dst.exists() and dst.resolve() == src.resolve():
         raise CliError(f"{dst}: the output would overwrite the input bag")
     dst.parent.mkdir(parents=True, exist_ok=True)
@@ -185,9 +131,9 @@ def cmd_export(args) -> None:
 
 
 def export_ros2_cli(args) -> None:
-    from handmocap.runtime.ros2_export import export_ros2
+    from handmocap.interop.ros2_export import export_ros2
     src, dst = Path(args.file), Path(args.ros2)
-    _checked_info(args.file, args.topics)
+    checked_info(args.file, args.topics)
     if dst.exists():
         raise CliError(f"{dst} already exists: a rosbag2 is a new folder (remove it or choose another)")
     result = export_ros2(src, dst, args.topics)

@@ -1,7 +1,7 @@
 """`handbag export --ros2 OUT`: a project bag as a ROS 2 bag (rosbag2: MCAP storage, CDR,
 metadata.yaml) that `ros2 bag info` and `ros2 bag play` take, without a ROS install.
 
-The topics and types are those of handmocap.runtime.ros2_messages (the live `ros2` node
+The topics and types are those of handmocap.interop.ros2_messages (the live `ros2` node
 publishes the same messages); other topics are left out (listed by the export).
 """
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from handmocap.runtime import codec
 from handmocap.runtime.bag import iter_messages
-from handmocap.runtime.ros2_messages import Ros2Messages, typestore
+from handmocap.interop.ros2_messages import Ros2Messages, typestore
 
 
 def export_ros2(src: Path, dst: Path, topics=None) -> dict:
