@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from handmocap.perception.detector import detnet_path
+from handmocap.perception.detnet_runner import detnet_path
 
 
 def bench(path, batch, threads, seconds):

@@ -27,7 +27,9 @@ from typing import Callable
 
 import numpy as np
 
-from handmocap.perception.detector import CROP, DETNET_GREY, DETNET_NAMES, DetectorSettings, HandDetector, detnet_path
+from handmocap.perception.crops import CROP
+from handmocap.perception.detector import DetectorSettings, HandDetector
+from handmocap.perception.detnet_runner import DETNET_GREY, DETNET_NAMES, detnet_path
 from handmocap.runtime.frames import frame_bgr
 from handmocap.perception.hand_finder import DEFAULT_PATH as FINDER_PATH, GREY_PATH as GREY_FINDER_PATH
 from handmocap.runtime.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin

@@ -16,7 +16,7 @@ import time
 import cv2
 import numpy as np
 
-from handmocap.perception import detector as D
+from handmocap.perception import crops as C, detector as D, detnet_runner
 from handmocap.training import eval_people, real_data
 
 
@@ -44,20 +44,20 @@ def cut_area_by_k(crop, image):
     return np.ascontiguousarray(out[:, ::-1]) if crop.mirrored else out
 
 
-METHODS = {"powers of two (shipped)": D.CropTransform.cut, "area by k (before)": cut_area_by_k}
+METHODS = {"powers of two (shipped)": C.CropTransform.cut, "area by k (before)": cut_area_by_k}
 
 
 def timing(video, max_hands=2, frames=200, passes=5):
     from handmocap.runtime.frames import read_video
     images = [f for _, f in zip(range(frames), read_video(str(video)))]
-    seen, cut = [], D.CropTransform.cut
-    D.CropTransform.cut = lambda self, image: (seen.append((self, image)), cut(self, image))[1]
+    seen, cut = [], C.CropTransform.cut
+    C.CropTransform.cut = lambda self, image: (seen.append((self, image)), cut(self, image))[1]
     try:
         det = D.HandDetector.load(max_hands=max_hands)
         for im in images:
             det.process(im)
     finally:
-        D.CropTransform.cut = cut
+        C.CropTransform.cut = cut
     spent = {m: [] for m in METHODS}
     for _ in range(passes):
         for name, fn in METHODS.items():
@@ -69,7 +69,7 @@ def timing(video, max_hands=2, frames=200, passes=5):
 
 
 def accuracy(shared):
-    detnet = D.DetNetRunner.load()
+    detnet = detnet_runner.DetNetRunner.load()
     step = D.DetectorSettings().upright_step
     err = {m: [] for m in METHODS}
     for video in real_data.wild_clips(shared, held_back=True):
@@ -77,7 +77,7 @@ def accuracy(shared):
             for uv, ok, side in zip(hands, reliable, sides):
                 if f % 3 or not ok:
                     continue
-                crop = D.crop_for_joints(uv, mirrored=side == "left", upright_step=step)
+                crop = C.crop_for_joints(uv, mirrored=side == "left", upright_step=step)
                 for name, fn in METHODS.items():
                     out = detnet(fn(crop, image)[None, ..., ::-1])      # BGR crop -> RGB
                     err[name].append(np.linalg.norm(crop.to_frame(out["uv"][0]) - uv, axis=-1)

@@ -21,7 +21,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.perception.detector import DetectorSettings, DetNetRunner, crop_for_joints, logit
+from handmocap.perception.crops import crop_for_joints
+from handmocap.perception.detector import DetectorSettings
+from handmocap.perception.detnet_runner import DetNetRunner
+from handmocap.perception.tracks import logit
 
 UPRIGHT_STEP = DetectorSettings().upright_step
 

@@ -19,7 +19,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))   # detector_thresholds, a tool
 from detector_thresholds import clips  # noqa: E402
-from handmocap.perception.detector import CropTransform, DetNetRunner, crop_for_joints
+from handmocap.perception.crops import CropTransform, crop_for_joints
+from handmocap.perception.detnet_runner import DetNetRunner
 from handmocap.training.pose_data import SHARED_DATA
 
 

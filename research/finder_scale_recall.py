@@ -14,7 +14,7 @@ import onnx
 import onnxruntime as ort
 
 from handmocap.perception import hand_finder as hf
-from handmocap.perception.detector import square_box
+from handmocap.perception.crops import square_box
 from handmocap.training import eval_people, real_data
 from handmocap.training.pose_data import SHARED_DATA
 

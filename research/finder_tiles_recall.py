@@ -8,7 +8,7 @@ import numpy as np
 from handmocap.training import real_data, eval_people
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.perception.hand_finder import HandFinder, box_iou, tile_windows
-from handmocap.perception.detector import square_box
+from handmocap.perception.crops import square_box
 held = sys.argv[1] == "held"
 tiles = int(sys.argv[2]); thr = float(sys.argv[3]) if len(sys.argv) > 3 else 0.3
 finder = HandFinder.load()

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from handmocap.training import real_data
-from handmocap.perception.detector import hand_angle, logit
+from handmocap.perception.crops import hand_angle
+from handmocap.perception.tracks import logit
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.training.quantize_detnet import OnnxNet
 from handmocap.training.detnet_data import CTX, CTX_SCALE, load_real

@@ -16,7 +16,7 @@ import argparse
 
 import numpy as np
 
-from handmocap.perception import detector as detector_module
+from handmocap.perception import tracks as detector_module
 from handmocap.perception.detector import HandDetector
 from handmocap.training import eval_people, real_data
 from handmocap.training.eval_cli import detector_settings

@@ -7,7 +7,8 @@ import sys
 import numpy as np
 from handmocap.training import real_data, eval_people
 from handmocap.training.pose_data import SHARED_DATA
-from handmocap.perception.detector import HandDetector, square_box
+from handmocap.perception.crops import square_box
+from handmocap.perception.detector import HandDetector
 from handmocap.perception.hand_finder import box_iou
 
 name = sys.argv[1]

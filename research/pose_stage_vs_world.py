@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from handmocap.perception import camera_info
-from handmocap.perception.detector import DetNetRunner, HandDetector
+from handmocap.perception.detector import HandDetector
+from handmocap.perception.detnet_runner import DetNetRunner
 from handmocap.runtime.frames import read_video
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.ik_solver import IKSolver

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap.perception.detector import logit
+from handmocap.perception.tracks import logit
 from handmocap.training.real_data import hand_size
 
 

@@ -36,7 +36,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.perception.detector import DetNetRunner, crop_for_joints, logit, nearby_crops
+from handmocap.perception.crops import crop_for_joints, nearby_crops
+from handmocap.perception.detnet_runner import DetNetRunner
+from handmocap.perception.tracks import logit
 from handmocap.perception.hand_finder import HandFinder
 
 SPLITS = ["temugeb_cam0", "temugeb_cam1", "howiema_040", "cmu_sample", "mmpose_freihand", "mmpose_rhd",

@@ -14,7 +14,8 @@ import argparse
 
 import numpy as np
 
-from handmocap.perception.detector import DETNET_INT8, DETNET_LITE0, logit
+from handmocap.perception.detnet_runner import DETNET_INT8, DETNET_LITE0
+from handmocap.perception.tracks import logit
 from handmocap.training.detnet_eval import HELD_BACK_SOURCE
 from handmocap.training.quantize_detnet import OnnxNet, heldout_sets
 

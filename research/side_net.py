@@ -28,7 +28,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from handmocap.perception.detector import logit
+from handmocap.perception.tracks import logit
 from handmocap.training.detnet import BACKBONES, conv_bn
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.training.detnet_batches import BatchMaker, degrade, motion_blur, to_torch

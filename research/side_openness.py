@@ -21,7 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from people_learning_curve import HALF_OWNERS  # noqa: E402
 
-from handmocap.perception import detector  # noqa: E402
+from handmocap.perception import detector, tracks  # noqa: E402
 from handmocap.training import eval_people, real_data  # noqa: E402
 from handmocap.training.pose_data import SHARED_DATA  # noqa: E402
 
@@ -38,14 +38,14 @@ def main():
     p.add_argument("--detnet", required=True)
     p.add_argument("--floor", type=float, default=0.1)
     args = p.parse_args()
-    plain = detector.Track.add_head_reading
+    plain = tracks.Track.add_head_reading
 
     def weighted(track, p_right_seen, mirrored):
         w = 1.0 if track.uv is None else float(np.clip((openness(track.uv) - 0.6) / 0.3, args.floor, 1.0))
         track.add_handedness(1.0 - p_right_seen if mirrored else p_right_seen, weight=w)
 
     for name, reading in (("as shipped", plain), (f"by openness (floor {args.floor})", weighted)):
-        detector.Track.add_head_reading = reading
+        tracks.Track.add_head_reading = reading
         clips = []
         for video in real_data.wild_clips(SHARED_DATA):
             if video.stem.split("__")[0] in HALF_OWNERS:

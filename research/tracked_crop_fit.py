@@ -8,7 +8,8 @@ import sys
 import numpy as np
 from handmocap.training import real_data, eval_people
 from handmocap.training.pose_data import SHARED_DATA
-from handmocap.perception.detector import HandDetector, CROP_SCALE
+from handmocap.perception.crops import CROP_SCALE
+from handmocap.perception.detector import HandDetector
 held = sys.argv[1] == "held"
 det = HandDetector.load()
 ratio, off, err = [], [], []

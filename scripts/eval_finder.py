@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from handmocap.perception.detector import square_box
+from handmocap.perception.crops import square_box
 from handmocap.perception.hand_finder import HandFinder, box_iou
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap.perception.detector import DetNetRunner
+from handmocap.perception.detnet_runner import DetNetRunner
 from handmocap.training.detnet import REFINE, DetNet, export_onnx
 from handmocap.training.detnet_init import state_from_onnx
 

@@ -9,7 +9,9 @@ import pytest
 
 from conftest import ROOT, graph_env
 from handmocap.perception.hand_finder import FoundHand
-from handmocap.perception.detector import CENTRE, HANDEDNESS_MEMORY, CropTransform, HandDetector, Track, crop_for_joints
+from handmocap.perception.crops import CropTransform, crop_for_joints
+from handmocap.perception.detector import CENTRE, HandDetector
+from handmocap.perception.tracks import HANDEDNESS_MEMORY, Track
 from handmocap.perception.rotations import mirror_points
 from handmocap.perception.skeleton import normalize_joints
 
@@ -167,7 +169,7 @@ def turned_hand(centre, size, angle, right=True):
 @pytest.mark.parametrize("angle", [np.pi, np.pi / 2, -2.2])
 def test_an_upright_crop_shows_a_turned_hand_upright_and_its_joints_come_back_in_frame_axes(angle):
     uv_true = turned_hand((320, 240), 150, angle)
-    from handmocap.perception.detector import hand_angle
+    from handmocap.perception.crops import hand_angle
     assert abs(np.angle(np.exp(1j * (hand_angle(uv_true) - angle)))) < 1e-9
     crop = crop_for_joints(uv_true, upright_step=0)
     in_crop = crop.to_crop(uv_true)
@@ -652,7 +654,7 @@ def test_two_sure_hands_that_both_read_right_become_a_left_and_a_right():
 def test_a_second_hand_beside_a_tracked_one_is_a_new_track_not_the_tracks_own():
     """Clapping: hand B's centre lies inside tracked hand A's crop (1.5x its joint box). The
     finder's box on A is A's; the box on B starts a new track, and A is not re-seeded."""
-    from handmocap.perception.detector import square_box
+    from handmocap.perception.crops import square_box
     a = canonical_hand((250, 300), 120)
     box_a = square_box(a)
     b = a + (0.65 * (box_a[2] - box_a[0]), 0.0)                # joint boxes' IoU 0.21
@@ -823,7 +825,7 @@ def test_second_look_reads_a_hand_again_when_its_size_jumps():
 
 
 def test_crop_and_frame_camera_axes_are_inverse_for_mirrored_and_turned_crops():
-    from handmocap.perception.detector import crop_to_frame_xyz, frame_to_crop_xyz
+    from handmocap.perception.crops import crop_to_frame_xyz, frame_to_crop_xyz
     xyz = np.random.default_rng(5).normal(size=(21, 3))
     for mirrored in (False, True):
         for angle in (0.0, 0.4, -2.0):
@@ -834,7 +836,8 @@ def test_crop_and_frame_camera_axes_are_inverse_for_mirrored_and_turned_crops():
 def test_two_tracks_on_one_box_are_one_hand_and_the_surer_is_kept():
     """One hand twice (joints a few px apart), or two hands clasped in one box: one track, the
     higher score's (telling clasped hands apart by their joints was tried: docs/models_history.md)."""
-    from handmocap.perception.detector import CropTransform, Track
+    from handmocap.perception.crops import CropTransform
+    from handmocap.perception.tracks import Track
     right = canonical_hand((300, 300), 150)
     left = right.copy()                                           # clasped: the same box, other joints
     left[:, 0] = right[:, 0].min() + right[:, 0].max() - right[:, 0]

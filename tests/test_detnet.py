@@ -373,7 +373,7 @@ def test_motion_blur_smears_the_asked_share_of_hand_crops_about_the_same_centre(
 def test_upright_batches_show_every_hand_upright_within_the_spread():
     """--upright D: each synthetic crop is turned so its hand's wrist is below its middle
     finger's base, then by at most D degrees (mirrored crops too)."""
-    from handmocap.perception.detector import hand_angle
+    from handmocap.perception.crops import hand_angle
     from handmocap.training.detnet_batches import BatchMaker
     rng = np.random.default_rng(2)
     n = 16
@@ -644,13 +644,13 @@ def _demo_crops(n=24):
 
 def test_a_missing_detnet_file_is_one_error_naming_it_and_how_to_make_it(tmp_path):
     """Outside a launch file (HandTracker, handeval, a node started by hand) the load itself says it."""
-    from handmocap.perception.detector import DetNetRunner
+    from handmocap.perception.detnet_runner import DetNetRunner
     with pytest.raises(FileNotFoundError, match=r"nope\.onnx not found; make it with `handtrain detnet`"):
         DetNetRunner.load(tmp_path / "nope.onnx")
 
 
 def test_int8_detnet_is_close_to_float32_and_made_from_the_shipped_float32():
-    from handmocap.perception.detector import DETNET_INT8, DetNetRunner
+    from handmocap.perception.detnet_runner import DETNET_INT8, DetNetRunner
     from handmocap.perception.onnx_models import stale_quantization
     int8, f32 = DetNetRunner.load("int8"), DetNetRunner.load("float32")
     crops = _demo_crops()
@@ -668,7 +668,7 @@ def test_int8_detnet_is_close_to_float32_and_made_from_the_shipped_float32():
 def test_quantize_makes_an_int8_copy_that_agrees_and_knows_its_source(tmp_path):
     torch = _torch()
     pytest.importorskip("onnx")
-    from handmocap.perception.detector import DetNetRunner
+    from handmocap.perception.detnet_runner import DetNetRunner
     from handmocap.training.detnet import DetNet, export_onnx
     from handmocap.perception.onnx_models import stale_quantization
     from handmocap.training.quantize_detnet import quantize
@@ -688,7 +688,7 @@ def test_quantize_makes_an_int8_copy_that_agrees_and_knows_its_source(tmp_path):
 
 
 def test_quarter_turned_held_out_crops_keep_labels_on_their_pixels_and_hands_upright():
-    from handmocap.perception.detector import hand_angle
+    from handmocap.perception.crops import hand_angle
     from handmocap.training.quantize_detnet import quarter_turned
     rng = np.random.default_rng(5)
     n = 12
@@ -928,7 +928,7 @@ def test_the_lite0_detnet_runs_by_name_and_its_weights_rebuild_it():
     committed beside it load into a lite0 DetNet that reads crops as the int8 file does."""
     torch = _torch()
     ort = pytest.importorskip("onnxruntime")
-    from handmocap.perception.detector import DETNET_LITE0, detnet_path
+    from handmocap.perception.detnet_runner import DETNET_LITE0, detnet_path
     from handmocap.training.detnet import DetNet, DetNetExport
     assert detnet_path("lite0") == DETNET_LITE0 and DETNET_LITE0.is_file()
     ckpt = torch.load(MODEL.with_name("detnet_lite0.pt"), map_location="cpu", weights_only=False)
@@ -936,7 +936,7 @@ def test_the_lite0_detnet_runs_by_name_and_its_weights_rebuild_it():
     net = DetNet("lite0")
     net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in ckpt["model"].items()})
     import cv2
-    from handmocap.perception.detector import crop_for_joints
+    from handmocap.perception.crops import crop_for_joints
     demo = Path(__file__).resolve().parent.parent / "data" / "demo"
     labels, video = np.load(demo / "hand_clip.npz"), cv2.VideoCapture(str(demo / "hand_clip.mp4"))
     crops = []
@@ -957,7 +957,7 @@ def test_a_side_detnet_gives_the_handedness_and_nothing_else():
     """DetNetRunner.load(path, side_path=...): the keypoints are the first network's, the
     handedness the side network's, on the same crops."""
     pytest.importorskip("onnxruntime")
-    from handmocap.perception.detector import DetNetRunner
+    from handmocap.perception.detnet_runner import DetNetRunner
     crops = (np.random.default_rng(1).random((3, 128, 128, 3)) * 255).astype(np.uint8)
     keypoints, side = DetNetRunner.load("lite0"), DetNetRunner.load("int8")
     both = DetNetRunner.load("lite0", side_path="int8")(crops)
@@ -971,7 +971,8 @@ def test_the_default_detnet_is_lite0_with_the_int8_networks_side_and_a_named_one
     """DetNetRunner.load(): lite0's keypoints, the int8 network's handedness (the pair the
     held-back clips chose, session 37); a named network, or side_path "none", runs alone."""
     pytest.importorskip("onnxruntime")
-    from handmocap.perception.detector import DETNET_INT8, DETNET_LITE0, DetNetRunner, DetectorSettings
+    from handmocap.perception.detector import DetectorSettings
+    from handmocap.perception.detnet_runner import DETNET_INT8, DETNET_LITE0, DetNetRunner
     default = DetNetRunner.load()
     assert default.path == DETNET_LITE0 and default.side.path == DETNET_INT8
     assert DetNetRunner.load("lite0").side is None and DetNetRunner.load(None, side_path="none").side is None

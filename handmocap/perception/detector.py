@@ -60,35 +60,22 @@ Per frame (`HandDetector.process`):
 from __future__ import annotations
 
 import math
-import warnings
 import dataclasses
-from dataclasses import dataclass, field, replace
-from pathlib import Path
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
+from handmocap.perception.crops import (CROP_SCALE, TEST_TIME_VARIANTS, CropTransform, box_overlap_of_smaller,
+                                        crop_for_box, crop_for_joints, crop_to_frame_xyz, frame_to_crop_xyz,
+                                        nearby_crops, square_box)
+from handmocap.perception.detnet_runner import DETNET_GREY, DetNetRunner
 from handmocap.perception.one_euro import OneEuroFilter
-from handmocap.perception.hand_finder import GREY_PATH, HandFinder, box_iou, is_grey, sigmoid, square
-from handmocap.perception.onnx_models import open_session, stale_quantization
+from handmocap.perception.hand_finder import GREY_PATH, HandFinder, box_iou, is_grey, sigmoid
 from handmocap.perception.rotations import mirror_points
 from handmocap.perception.skeleton import normalize_joints
+from handmocap.perception.tracks import HANDEDNESS_MEMORY, Track, logit
 
-CROP = 128
-CROP_SCALE = 1.5            # crop side / side of the 21-joint box (synth: vertex box ~1.16x joint box, x 1.3)
-MIN_CROP_SIDE = 24.0        # px in the frame
-DETNET_FLOAT32 = Path(__file__).resolve().parents[2] / "models" / "detnet.onnx"   # `handtrain detnet` writes it
-DETNET_INT8 = DETNET_FLOAT32.with_name("detnet_int8.onnx")     # `python -m handmocap.training.quantize_detnet` makes it
-# lite0: DetNet on EfficientNet-Lite0 from ImageNet weights (session 35), int8: closer keypoints on
-# strangers than the int8 (fast-deep) network, a worse side of its own (models/README.md)
-DETNET_LITE0 = DETNET_FLOAT32.with_name("detnet_lite0_int8.onnx")
-# what runs by default (since session 37): lite0's keypoints, and the side from the int8
-# network's handedness head (`side_every` frames apart): tracked on the held-back people's clips,
-# side 87.7% against lite0's own 70.6% and int8's 82.9% (docs/experiment_log.md, "Session 37")
-DETNET_PATH, DETNET_SIDE_PATH = DETNET_LITE0, DETNET_INT8
-DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32, "lite0": DETNET_LITE0}  # short names: detnet param
-# DetNet fine-tuned on grey crops (`handtrain detnet --grey 1`), its int8 copy: run on grey frames
-DETNET_GREY = DETNET_FLOAT32.with_name("detnet_grey_int8.onnx")
 CENTRE = "centre"           # the fallback that tries the centre square of the frame
 MATCH_IOU = 0.3             # a found box is a track's own hand from this overlap with its joint box on
 # HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
@@ -100,9 +87,6 @@ PHOTO_SETTINGS = {"birth_confidence": 0.0, "fallback_path": CENTRE, "test_time_c
 # (chosen on training-side clips at three turns, docs/models_history.md; 20 ms a frame against 9
 # on the AVX2 machine, MediaPipe 32)
 ACCURATE_VIDEO_SETTINGS = {"tracked_test_time_crops": 4}
-# (side factor, extra turn in degrees) of the crops a new track's reading is averaged over
-# besides its own (`test_time_crops`): within the jitter DetNet was trained with
-TEST_TIME_VARIANTS = ((0.9, 0.0), (1.1, 0.0), (1.0, -20.0), (1.0, 20.0), (0.95, -10.0), (1.05, 10.0))
 
 
 def _variant_count(name, value):
@@ -111,270 +95,6 @@ def _variant_count(name, value):
     if not 0 <= value <= len(TEST_TIME_VARIANTS):
         raise ValueError(f"{name} must be 0..{len(TEST_TIME_VARIANTS)}, got {value}")
     return value
-
-
-def detnet_path(path=None) -> Path:
-    """DetNet file: None -> DETNET_PATH (lite0); "int8" / "float32" / "lite0" -> the bundled files; else a path."""
-    return DETNET_PATH if path is None else DETNET_NAMES.get(str(path), Path(path))
-
-
-@dataclass(frozen=True)
-class CropTransform:
-    """A square crop of the frame, turned by `angle`, resized to `size` px, optionally
-    flipped left-right.
-
-    The square has `side` frame px and its centre at c = (x0, y0) + (side - 1) / 2 (integers
-    x0, y0: at angle 0 it covers frame pixels x0 .. x0+side-1). `angle` (radians) is the
-    direction, clockwise from the frame's up, that becomes up in the crop: a hand leaning by
-    `angle` appears upright. Pixel centres are at integer coordinates in both images
-    (cv2.resize's convention):
-        u_crop = (size - 1) / 2 + (size / side) R (u - c),  R = [[cos a, sin a], [-sin a, cos a]],
-    then u_crop -> size - 1 - u_crop if mirrored. At angle 0 that is
-        u_crop = (u - x0 + 0.5) * size / side - 0.5.
-    """
-    x0: int
-    y0: int
-    side: int
-    size: int = CROP
-    mirrored: bool = False
-    angle: float = 0.0
-
-    @classmethod
-    def around(cls, centre, side, size=CROP, mirrored=False, angle=0.0):
-        """The crop of about `side` px (at least MIN_CROP_SIDE) centred on `centre` (2,) px."""
-        side = int(round(max(float(side), MIN_CROP_SIDE)))
-        x0 = int(math.floor(centre[0] - (side - 1) / 2 + 0.5))
-        y0 = int(math.floor(centre[1] - (side - 1) / 2 + 0.5))
-        return cls(x0, y0, side, size, bool(mirrored), float(angle))
-
-    @property
-    def centre(self):
-        """(2,) frame px of the crop's centre."""
-        return np.array([self.x0 + (self.side - 1) / 2, self.y0 + (self.side - 1) / 2])
-
-    @property
-    def rotation(self):
-        """(2,2) R: crop axes = R @ frame axes (the identity at angle 0)."""
-        c, s = math.cos(self.angle), math.sin(self.angle)
-        return np.array([[c, s], [-s, c]])
-
-    @property
-    def box(self):
-        """(4,) x0, y0, x1, y1 frame px of the crop's outer edges (turned: the box around them)."""
-        half = self.side / 2 * (abs(math.cos(self.angle)) + abs(math.sin(self.angle)))
-        c = self.centre
-        return np.array([c[0] - half, c[1] - half, c[0] + half, c[1] + half])
-
-    def to_crop(self, uv):
-        """(..., 2) frame px -> crop px."""
-        uv = np.asarray(uv, dtype=np.float64)
-        out = (uv - self.centre) @ (self.rotation.T * (self.size / self.side)) + (self.size - 1) / 2
-        if self.mirrored:
-            out[..., 0] = self.size - 1 - out[..., 0]
-        return out
-
-    def to_frame(self, uv_crop):
-        """(..., 2) crop px -> frame px."""
-        uv_crop = np.array(uv_crop, dtype=np.float64)
-        if self.mirrored:
-            uv_crop[..., 0] = self.size - 1 - uv_crop[..., 0]
-        return (uv_crop - (self.size - 1) / 2) @ (self.rotation * (self.side / self.size)) + self.centre
-
-    def to_frame_axes(self, xyz):
-        """(..., 3) vectors in the crop's camera axes (unmirrored) -> the frame camera's:
-        the turn about the optical axis undone."""
-        xyz = np.array(xyz, dtype=np.float64)
-        xyz[..., :2] = xyz[..., :2] @ self.rotation
-        return xyz
-
-    def cut(self, image):
-        """(size,size,C) uint8 crop of `image` (H,W,C); outside the frame the border pixels
-        are repeated. Cost is about independent of the crop's side: a crop at least twice
-        the output size is first shrunk by k, the largest power of two that leaves at least
-        `size` px (halvings by 2x2 means, in-frame part only, exact pixel mapping
-        u_small + 0.5 = (u - x + 0.5) / k), then one bilinear warp (shrinking by less than 2).
-        Powers of two because OpenCV's area shrink is vectorised for a factor of 2 alone:
-        by 3 it costs 8x a halving, by 5 20x (docs/experiment_log.md, session 24)."""
-        h, w = image.shape[:2]
-        s = self.size / self.side                       # crop px per frame px
-        k = 1 << max(0, int(1.0 / s).bit_length() - 1)
-        src, ox, oy = image, 0, 0
-        if k >= 2:                                      # the in-frame part (+ margin), whole k-blocks
-            lo = self.box[:2] + 0.5                     # (x0, y0) at angle 0
-            span = self.box[2] - self.box[0]
-            ox, oy = max(int(math.floor(lo[0])) - k, 0) // k * k, max(int(math.floor(lo[1])) - k, 0) // k * k
-            x1 = min(int(math.ceil(lo[0] + span)) + k, w)
-            y1 = min(int(math.ceil(lo[1] + span)) + k, h)
-            nx, ny = (x1 - ox) // k, (y1 - oy) // k
-            if nx < 1 or ny < 1:                        # wholly outside: nearest frame pixels only
-                k, ox, oy = 1, 0, 0
-            else:
-                src = image[oy:oy + ny * k, ox:ox + nx * k]
-                for _ in range(k.bit_length() - 1):     # 2x2 means, k/2 ... 1 times: one k x k mean
-                    src = cv2.resize(src, (src.shape[1] // 2, src.shape[0] // 2), interpolation=cv2.INTER_AREA)
-        # frame u = k (u_src + 0.5) - 0.5 + o, then the crop mapping of the class doc
-        A = self.rotation * s
-        t = A @ (np.array([0.5 * k - 0.5 + ox, 0.5 * k - 0.5 + oy]) - self.centre) + (self.size - 1) / 2
-        M = np.hstack([A * k, t[:, None]])
-        if self.mirrored:                               # u_crop -> size - 1 - u_crop, inside the one warp
-            M[0] = -M[0]
-            M[0, 2] += self.size - 1
-        return cv2.warpAffine(src, M, (self.size, self.size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-
-
-def crop_to_frame_xyz(crop, xyz):
-    """(..., 3) DetNet 3D read on `crop` (right-hand, crop axes) -> the frame camera's axes."""
-    return crop.to_frame_axes(mirror_points(xyz) if crop.mirrored else xyz)
-
-
-def frame_to_crop_xyz(crop, xyz):
-    """Inverse of crop_to_frame_xyz: (..., 3) frame-camera axes -> as DetNet reads `crop`."""
-    xyz = np.array(xyz, dtype=np.float64)
-    xyz[..., :2] = xyz[..., :2] @ crop.rotation.T
-    return mirror_points(xyz) if crop.mirrored else xyz
-
-
-def hand_angle(uv):
-    """Direction (radians, clockwise from the frame's up) from the wrist (0) to the middle
-    finger's base (9) of joints uv (..., 21, 2) px: the turn that shows the hand upright."""
-    v = np.asarray(uv, dtype=np.float64)[..., 9, :] - np.asarray(uv, dtype=np.float64)[..., 0, :]
-    return np.arctan2(v[..., 0], -v[..., 1])
-
-
-def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE, upright_step=None):
-    """The DetNet crop of a hand whose 2D joints are uv (21,2) frame px: the square around
-    their box times `scale`. upright_step (degrees): the crop turned by hand_angle rounded to
-    whole steps of it (90: quarter turns; 0: any angle), the box taken in the turned axes (as
-    MediaPipe cuts its landmark crops); None: never turned."""
-    angle = 0.0
-    if upright_step is not None and np.all(np.isfinite(uv[[0, 9]])):
-        angle = float(hand_angle(uv))
-        if upright_step:
-            step = math.radians(float(upright_step))
-            angle = round(angle / step) * step
-    c, s = math.cos(angle), math.sin(angle)
-    R = np.array([[c, s], [-s, c]])
-    turned = uv @ R.T
-    lo, hi = np.nanmin(turned, axis=0), np.nanmax(turned, axis=0)
-    return CropTransform.around(R.T @ ((lo + hi) / 2), float(np.max(hi - lo)) * scale, mirrored=mirrored,
-                                angle=angle)
-
-
-def square_box(uv):
-    """(4,) x0, y0, x1, y1 of the square around joints uv (21,2) (the finder's box)."""
-    return square(np.concatenate([np.nanmin(uv, axis=0), np.nanmax(uv, axis=0)]))
-
-
-def nearby_crops(crop, k):
-    """The first `k` TEST_TIME_VARIANTS of a CropTransform: the same hand a little larger,
-    smaller or turned (same centre and mirroring)."""
-    return [CropTransform.around(crop.centre, crop.side * scale, mirrored=crop.mirrored,
-                                 angle=crop.angle + math.radians(turn)) for scale, turn in TEST_TIME_VARIANTS[:k]]
-
-
-def crop_for_box(box, mirrored=False, scale=CROP_SCALE):
-    """The DetNet crop of a hand whose joint box is (4,) x0, y0, x1, y1 frame px."""
-    box = np.asarray(box, dtype=np.float64)
-    return CropTransform.around((box[:2] + box[2:]) / 2, float(np.max(box[2:] - box[:2])) * scale,
-                                mirrored=mirrored)
-
-
-class DetNetRunner:
-    """DetNet on onnxruntime (by default models/detnet_lite0_int8.onnx with the side from
-    models/detnet_int8.onnx): (N,128,128,3) uint8 RGB crops -> dict of arrays
-    uv (N,21,2) crop px, xyz (N,21,3), confidence (N,21), presence (N,), handedness (N,),
-    uv_peak (N,21,2) crop px: the joints the detector tracks with (the heatmap peaks; files
-    exported before session 17 have none, and the detector then follows uv).
-    side: another DetNetRunner whose handedness head answers instead of this one's (on the
-    same crops): one network's keypoints with another's side. Called with read_side=False,
-    such a pair skips the side network and gives handedness NaN (no reading); a single
-    network always reads its own head, which costs nothing more."""
-
-    def __init__(self, session, side=None, path=None):
-        self.session, self.side, self.path = session, side, path     # path: the file, where loaded from one
-        self.outputs = [o.name for o in session.get_outputs()]
-
-    @classmethod
-    def load(cls, path=None, threads=1, side_path=None):
-        """path: None (the default: models/detnet_lite0_int8.onnx, its side from
-        models/detnet_int8.onnx unless side_path says otherwise), "int8"
-        (models/detnet_int8.onnx), "float32" (models/detnet.onnx), "lite0" or a file;
-        side_path: the DetNet whose handedness head gives the side (None: the default pair's
-        for path None, else this one's; "none": this one's). Warns when an int8 file was made
-        from another float32 network than the one beside it."""
-        if path is None and side_path is None:
-            side_path = DETNET_SIDE_PATH
-        path = detnet_path(path)
-        made_by = "python -m handmocap.training.quantize_detnet" if path == DETNET_INT8 else "handtrain detnet"
-        session = open_session(path, "DetNet", made_by, threads)
-        stale = stale_quantization(session, path, "python -m handmocap.training.quantize_detnet")
-        if stale:
-            warnings.warn(stale, stacklevel=2)
-        return cls(session, cls.load(side_path, threads) if side_path not in (None, "none") else None, path)
-
-    def __call__(self, crops_rgb, read_side=True):
-        x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
-        out = dict(zip(self.outputs, self.session.run(None, {"image": x})))
-        if self.side is not None:
-            out["handedness"] = self.side.session.run(["handedness"], {"image": x})[0] if read_side \
-                else np.full(len(x), np.nan, np.float32)
-        return out
-
-
-def box_overlap_of_smaller(box, boxes):
-    """(M,) intersection of `box` (4,) with each of `boxes` (M,4), over the smaller area."""
-    x0, y0 = np.maximum(box[0], boxes[:, 0]), np.maximum(box[1], boxes[:, 1])
-    x1, y1 = np.minimum(box[2], boxes[:, 2]), np.minimum(box[3], boxes[:, 3])
-    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
-    area = lambda b: np.maximum((b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1]), 1e-9)   # noqa: E731
-    return inter / np.minimum(area(box), area(boxes))
-
-
-def logit(p):
-    p = np.clip(np.asarray(p, dtype=np.float64), 1e-4, 1 - 1e-4)
-    return np.log(p / (1 - p))
-
-
-# readings a track's running handedness is over (DetectorSettings.handedness_memory; chosen
-# on training-side clips, docs/experiment_log.md, "Session 27")
-HANDEDNESS_MEMORY = 60
-
-
-@dataclass
-class Track:
-    """One tracked hand: its next crop and what was last seen of it."""
-    track_id: int
-    crop: CropTransform
-    right_logit: float = 0.0          # running handedness evidence (> 0: right)
-    samples: int = 0
-    uv: np.ndarray | None = None
-    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    age: int = 0
-    confidence: float = 0.0           # running mean heatmap peak: how much DetNet believes it is a hand
-    birth_confidence: float | None = None   # its own birth threshold (None: the detector's)
-    fixed_side: bool = False          # the side was given (HandDetector `handedness`): readings are ignored
-    memory: int = HANDEDNESS_MEMORY   # handedness readings the running mean is over (`handedness_memory`)
-    smoother: OneEuroFilter | None = None   # its published 2D joints' filter, in units of `unit`
-    unit: float = 1.0                 # px: the hand's size when the filter started
-
-    @property
-    def is_right(self) -> bool:
-        return self.right_logit >= 0.0
-
-    def add_head_reading(self, p_right_seen, mirrored):
-        """DetNet's handedness head p_right_seen (does the crop show a right hand) on a crop
-        of this hand that was (mirrored) or was not flipped; NaN (not read) is no reading."""
-        if np.isnan(p_right_seen):
-            return
-        self.add_handedness(1.0 - p_right_seen if mirrored else p_right_seen)
-
-    def add_handedness(self, p_right, weight=1.0):
-        """Running mean of logits over about the last `memory` observations."""
-        if self.fixed_side:
-            return
-        n = min(self.samples + weight, self.memory)
-        self.right_logit += (float(np.clip(logit(p_right), -6, 6)) - self.right_logit) * weight / n
-        self.samples = min(self.samples + weight, self.memory)
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ it, cut out along its joints (`hand_occluders`: two hands touching or crossing).
 import cv2
 import numpy as np
 
-from handmocap.perception.detector import hand_angle
+from handmocap.perception.crops import hand_angle
 from handmocap.perception.skeleton import BONES
 from handmocap.training import real_data
 from handmocap.training.detnet_data import CTX, CTX_SCALE, HARD_NEGATIVES, WILD_SOURCE

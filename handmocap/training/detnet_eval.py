@@ -5,7 +5,7 @@ used for training) and the held-back people's crops (`people_*`: error / hand si
 """
 import numpy as np
 
-from handmocap.perception.detector import logit
+from handmocap.perception.tracks import logit
 from handmocap.perception.skeleton import ROOT
 from handmocap.training import real_data
 from handmocap.training.detnet_batches import rotate_mirror_3d

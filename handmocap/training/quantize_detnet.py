@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap.perception.detector import DETNET_FLOAT32, DETNET_INT8, DetNetRunner
+from handmocap.perception.detnet_runner import DETNET_FLOAT32, DETNET_INT8, DetNetRunner
 from handmocap.perception.hand_finder import greyed
 from handmocap.perception.onnx_models import quantize_static_int8
 
@@ -107,10 +107,10 @@ def heldout_sets(shared=None, val="runs/detnet_data/synth_val", upright=False, g
 def quarter_turned(crops):
     """A held-out set (image (N,S,S,3) with uv (N,21,2), optionally xyz (N,21,3) and the
     unmirrored `raw` images) with each crop turned as the detector's `upright_step` 90 turns
-    it: by the quarter turns nearest to its hand's angle (detector.hand_angle), so the hand
+    it: by the quarter turns nearest to its hand's angle (crops.hand_angle), so the hand
     is within 45 degrees of upright. A turn counter-clockwise takes a point (x, y) to
     (y, S-1-x) and a 3D offset (x, y, z) to (y, -x, z); `raw` turns the mirror way."""
-    from handmocap.perception.detector import hand_angle
+    from handmocap.perception.crops import hand_angle
     out = dict(crops)
     size = crops["image"].shape[1]
     k = np.round(hand_angle(crops["uv"]) / (np.pi / 2)).astype(int) % 4

@@ -331,7 +331,7 @@ def crop_affine(cx, cy, side, out=128, angle_deg=0.0, mirror=False):
 
 def warp(image, M, out=128, replicate=False):
     """Apply a crop_affine (bilinear). Outside the image: reflected, or with replicate=True
-    the edge pixels repeated, as the detector's crops (detector.CropTransform.cut) repeat them."""
+    the edge pixels repeated, as the detector's crops (crops.CropTransform.cut) repeat them."""
     import cv2
     border = cv2.BORDER_REPLICATE if replicate else cv2.BORDER_REFLECT_101
     return cv2.warpAffine(image, M, (out, out), flags=cv2.INTER_LINEAR, borderMode=border)

@@ -1,0 +1,70 @@
+"""DetNet on onnxruntime: which file runs (the bundled ones by name), and the runner that reads
+a batch of crops, optionally with a second network's handedness head (the default pair)."""
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from handmocap.perception.onnx_models import open_session, stale_quantization
+
+DETNET_FLOAT32 = Path(__file__).resolve().parents[2] / "models" / "detnet.onnx"   # `handtrain detnet` writes it
+DETNET_INT8 = DETNET_FLOAT32.with_name("detnet_int8.onnx")     # `python -m handmocap.training.quantize_detnet` makes it
+# lite0: DetNet on EfficientNet-Lite0 from ImageNet weights (session 35), int8: closer keypoints on
+# strangers than the int8 (fast-deep) network, a worse side of its own (models/README.md)
+DETNET_LITE0 = DETNET_FLOAT32.with_name("detnet_lite0_int8.onnx")
+# what runs by default (since session 37): lite0's keypoints, and the side from the int8
+# network's handedness head (`side_every` frames apart): tracked on the held-back people's clips,
+# side 87.7% against lite0's own 70.6% and int8's 82.9% (docs/experiment_log.md, "Session 37")
+DETNET_PATH, DETNET_SIDE_PATH = DETNET_LITE0, DETNET_INT8
+DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32, "lite0": DETNET_LITE0}  # short names: detnet param
+# DetNet fine-tuned on grey crops (`handtrain detnet --grey 1`), its int8 copy: run on grey frames
+DETNET_GREY = DETNET_FLOAT32.with_name("detnet_grey_int8.onnx")
+
+
+def detnet_path(path=None) -> Path:
+    """DetNet file: None -> DETNET_PATH (lite0); "int8" / "float32" / "lite0" -> the bundled files; else a path."""
+    return DETNET_PATH if path is None else DETNET_NAMES.get(str(path), Path(path))
+
+
+class DetNetRunner:
+    """DetNet on onnxruntime (by default models/detnet_lite0_int8.onnx with the side from
+    models/detnet_int8.onnx): (N,128,128,3) uint8 RGB crops -> dict of arrays
+    uv (N,21,2) crop px, xyz (N,21,3), confidence (N,21), presence (N,), handedness (N,),
+    uv_peak (N,21,2) crop px: the joints the detector tracks with (the heatmap peaks; files
+    exported before session 17 have none, and the detector then follows uv).
+    side: another DetNetRunner whose handedness head answers instead of this one's (on the
+    same crops): one network's keypoints with another's side. Called with read_side=False,
+    such a pair skips the side network and gives handedness NaN (no reading); a single
+    network always reads its own head, which costs nothing more."""
+
+    def __init__(self, session, side=None, path=None):
+        self.session, self.side, self.path = session, side, path     # path: the file, where loaded from one
+        self.outputs = [o.name for o in session.get_outputs()]
+
+    @classmethod
+    def load(cls, path=None, threads=1, side_path=None):
+        """path: None (the default: models/detnet_lite0_int8.onnx, its side from
+        models/detnet_int8.onnx unless side_path says otherwise), "int8"
+        (models/detnet_int8.onnx), "float32" (models/detnet.onnx), "lite0" or a file;
+        side_path: the DetNet whose handedness head gives the side (None: the default pair's
+        for path None, else this one's; "none": this one's). Warns when an int8 file was made
+        from another float32 network than the one beside it."""
+        if path is None and side_path is None:
+            side_path = DETNET_SIDE_PATH
+        path = detnet_path(path)
+        made_by = "python -m handmocap.training.quantize_detnet" if path == DETNET_INT8 else "handtrain detnet"
+        session = open_session(path, "DetNet", made_by, threads)
+        stale = stale_quantization(session, path, "python -m handmocap.training.quantize_detnet")
+        if stale:
+            warnings.warn(stale, stacklevel=2)
+        return cls(session, cls.load(side_path, threads) if side_path not in (None, "none") else None, path)
+
+    def __call__(self, crops_rgb, read_side=True):
+        x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
+        out = dict(zip(self.outputs, self.session.run(None, {"image": x})))
+        if self.side is not None:
+            out["handedness"] = self.side.session.run(["handedness"], {"image": x})[0] if read_side \
+                else np.full(len(x), np.nan, np.float32)
+        return out
