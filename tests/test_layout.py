@@ -52,14 +52,18 @@ def test_no_file_cites_the_design_file_a_clone_lacks():
     assert citing == []
 
 
-def test_the_detector_settings_table_in_the_reference_is_made_from_the_settings():
-    """docs/reference.md's table is DetectorSettings' fields, defaults and comments as they are
-    (python scripts/settings_table.py rewrites it), and every field has a comment."""
-    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "settings_table.py"), "--check"],
+def test_the_docs_tables_are_made_from_where_each_thing_is_declared():
+    """docs/reference.md's detector settings and /hand/pose tables and the README's /hand/pose
+    table are DetectorSettings' fields and comments and messages/HandPose.json's descriptions
+    as they are (python scripts/doc_tables.py rewrites them); every setting has a comment and
+    every /hand/pose field a description and a summary."""
+    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "doc_tables.py"), "--check"],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     sys.path.insert(0, str(ROOT / "scripts"))
-    from settings_table import field_docs
+    from doc_tables import field_docs, pose_fields
+    assert all(p.get("description") for _, p in pose_fields())
+    assert all(p.get("x-summary") for name, p in pose_fields() if name.startswith("hands[i]."))
 
     from handmocap.perception.detector import DetectorSettings
     assert all(field_docs(DetectorSettings).values())
