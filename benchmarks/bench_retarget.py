@@ -93,8 +93,8 @@ def main():
         if not path.exists():
             sys.exit(f"bench_retarget: {path} not found")
 
-    from handmocap.perception.pose import POSE_DEFAULTS
-    hand_length = POSE_DEFAULTS["hand_length"] if args.hand_length is None else args.hand_length
+    from handmocap.perception.pose import PoseSettings
+    hand_length = PoseSettings().hand_length if args.hand_length is None else args.hand_length
     if args.max_ms is None:
         from handmocap.nodes.retarget import PARAMS
         args.max_ms = PARAMS["max_ms"]

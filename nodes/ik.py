@@ -10,17 +10,14 @@ paper's X_ref, D_ref); the bundled average hand until a shape is known. K from
 /camera/info; a default field of view from the image size until one arrives.
 
 Params: model (hand model path, default bundled), iknet ("int8", the default:
-models/iknet_int8.onnx; "float32": models/iknet.onnx; or an ONNX path), threads (onnxruntime intra-op threads), and PoseEstimator's settings
-(handmocap.perception.pose.POSE_DEFAULTS): xy_from_keypoints (0.5: how far the x, y of the joints IKNet
-reads move from DetNet's onto those the 2D keypoints imply through K; 0: DetNet's as they
-are), hand_length (metres, wrist crease to middle fingertip: the size of every hand, 0.183 by
-default, the adult average), clamp_to_limits, smooth, rot_min_cutoff Hz / rot_beta on
-quaternion components, root_min_cutoff Hz / root_beta on metres, d_cutoff Hz, reset_after_s.
-The filter defaults were chosen on the detector's output on real clips
-(research/tune_smoothing.py): lower cut-offs smooth more and lag more.
+models/iknet_int8.onnx; "float32": models/iknet.onnx; or an ONNX path), threads (onnxruntime
+intra-op threads), and every PoseEstimator setting: the fields of
+handmocap.perception.pose.PoseSettings (xy_from_keypoints, hand_length, clamp_to_limits, smooth,
+the filters' cut-offs, reset_after_s), each explained beside it.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable
 
 import numpy as np
@@ -28,10 +25,11 @@ import numpy as np
 from handmocap.perception import camera_info
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.ik_solver import IKSolver
-from handmocap.runtime.node import Message, Node, check_bool_param, check_file_param, check_number_param, run, spin
-from handmocap.perception.pose import POSE_DEFAULTS, PoseEstimator, mesh_message
+from handmocap.runtime.node import Message, Node, check_file_param, check_number_param, run, spin
+from handmocap.perception.pose import PoseEstimator, PoseSettings, mesh_message
 
-PARAMS = {"model": None, "iknet": None, "threads": 1, **POSE_DEFAULTS}
+SETTINGS = tuple(f.name for f in dataclasses.fields(PoseSettings))   # the params PoseSettings declares
+PARAMS = {"model": None, "iknet": None, "threads": 1, **dataclasses.asdict(PoseSettings())}
 
 
 def check_params(params: dict) -> None:
@@ -40,17 +38,10 @@ def check_params(params: dict) -> None:
     check_file_param("ik", "model", params.get("model"))
     check_file_param("ik", "iknet", params.get("iknet"), ("int8", "float32"), "handtrain iknet")
     check_number_param("ik", "threads", params.get("threads", PARAMS["threads"]), minimum=1, integer=True)
-    for key, default in POSE_DEFAULTS.items():
-        value = params.get(key, default)
-        if isinstance(default, bool):
-            check_bool_param("ik", key, value)
-        else:
-            check_number_param("ik", key, value, minimum=None if key.endswith("cutoff") else 0,
-                               positive=key.endswith("cutoff"))   # a 0 Hz cut-off divides by zero
-    length = params.get("hand_length", POSE_DEFAULTS["hand_length"])
-    if not 0.08 <= length <= 0.30:   # 18 or 183 would be centimetres or millimetres
-        raise ValueError(f"ik param hand_length: expected metres from the wrist crease to the middle fingertip "
-                         f"(adults: about 0.16 to 0.21), got {length!r}")
+    try:
+        PoseSettings(**{k: params[k] for k in SETTINGS if k in params})
+    except ValueError as e:
+        raise ValueError(f"ik param {e}") from None
 
 
 def start() -> tuple[Node, Callable[[Message], None]]:
@@ -70,7 +61,7 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     except Exception as e:   # a file that loads but is not IKNet; onnxruntime's errors are no ValueError
         raise ValueError(f"IKNet model {p['iknet'] or 'models/iknet_int8.onnx'} does not take IKNet's input: "
                          f"{str(e).splitlines()[0][:200]}") from None
-    estimator = PoseEstimator(solver, model, p)
+    estimator = PoseEstimator(solver, model, **{k: p[k] for k in SETTINGS})
     K = None
     mesh_joined = 0
 

@@ -106,7 +106,7 @@ def clips(shared):
         K = camera_info.default_K(image.shape[1], image.shape[0])
         rows = {}
         for name, params in settings.items():
-            shapes, poses = ShapeEstimator(model), PoseEstimator(solver, model, params)
+            shapes, poses = ShapeEstimator(model), PoseEstimator(solver, model, **params)
             rows[name] = []
             for i, hands in frames:
                 poses.set_shapes(shapes.update(hands, i / fps))

@@ -2,7 +2,7 @@
 
     python research/tune_smoothing.py [--shared ../shared/data] [--sigma 1 1.5 2]
 
-The filter defaults (handmocap.perception.pose.POSE_DEFAULTS) were first set on synthetic jitter. Here
+The filter defaults (handmocap.perception.pose.PoseSettings) were first set on synthetic jitter. Here
 the detector and the shape estimate run once over the real clips of shared/data/video that
 DetNet's and the finder's training used (real_data.TRAIN_VIDEOS; no evaluation split: this
 chooses a filter, it measures no accuracy), every frame in order at the file's frame rate;
@@ -29,7 +29,7 @@ from handmocap.training import real_data
 from handmocap.perception.detector import HandDetector
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.ik_solver import IKSolver
-from handmocap.perception.pose import POSE_DEFAULTS, PoseEstimator
+from handmocap.perception.pose import PoseEstimator, PoseSettings
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.perception.shape import ShapeEstimator
 
@@ -61,7 +61,7 @@ def poses(clips, solver, model, params):
     """{(clip, track id): (frame indices (n,), root-relative joints (n,21,3) mm, root (n,3) mm)}."""
     seqs = {}
     for rel, (fps, K, frames) in clips.items():
-        est = PoseEstimator(solver, model, params)
+        est = PoseEstimator(solver, model, **params)
         for i, (hands, shapes) in enumerate(frames):
             est.set_shapes(shapes)
             for h in est.update(hands, K, i / fps):
@@ -128,7 +128,7 @@ def main():
             params = {"smooth": False} if c is None else {keys[0]: c, keys[1]: b}
             seqs = raw if c is None else poses(clips, solver, model, params)
             d = [score(seqs, raw, part, s) for s in args.sigma]
-            default = c == POSE_DEFAULTS[keys[0]] and b == POSE_DEFAULTS[keys[1]]
+            default = c == getattr(PoseSettings(), keys[0]) and b == getattr(PoseSettings(), keys[1])
             rows.append((part, c, b, default, d))
             name = "none (raw)" if c is None else f"{keys[0]} {c:g}, {keys[1]} {b:g}" + (" (default)" if default else "")
             print(f"{'joints rel. root' if part == 1 else 'root':16s} {name:42s} " +

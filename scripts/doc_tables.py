@@ -1,5 +1,6 @@
-"""The tables the docs take from the one place each thing is declared: the detector's settings
-(DetectorSettings' fields, defaults and the comments beside them) and `/hand/pose`'s fields
+"""The tables the docs take from the one place each thing is declared: the detector's and the
+ik node's settings (DetectorSettings' and PoseSettings' fields, defaults and the comments
+beside them) and `/hand/pose`'s fields
 (messages/HandPose.json and the header of messages/common.json: each property's
 `description`, `x-shape`, `x-unit`, `x-summary`). Each table sits between two marker lines.
 
@@ -19,6 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from handmocap.perception.detector import DetectorSettings  # noqa: E402
+from handmocap.perception.pose import PoseSettings  # noqa: E402
 
 MESSAGES = ROOT / "messages"
 
@@ -47,11 +49,11 @@ def field_docs(cls) -> dict[str, str]:
     return docs
 
 
-def settings_table() -> str:
-    """| setting | default | what it does | of DetectorSettings."""
-    defaults, docs = DetectorSettings(), field_docs(DetectorSettings)
+def settings_table(cls) -> str:
+    """| setting | default | what it does | of a settings dataclass (DetectorSettings, PoseSettings)."""
+    defaults, docs = cls(), field_docs(cls)
     rows = ["| setting | default | what it does |", "|---|---|---|"]
-    for f in dataclasses.fields(DetectorSettings):
+    for f in dataclasses.fields(cls):
         value = getattr(defaults, f.name)
         shown = "null" if value is None else str(value).lower() if isinstance(value, bool) else f"{value:g}" \
             if isinstance(value, float) else str(value)
@@ -78,7 +80,8 @@ def pose_table(summary=False) -> str:
     return "\n".join(rows)
 
 
-TABLES = {"detector settings": (ROOT / "docs" / "reference.md", settings_table),
+TABLES = {"detector settings": (ROOT / "docs" / "reference.md", lambda: settings_table(DetectorSettings)),
+          "pose settings": (ROOT / "docs" / "reference.md", lambda: settings_table(PoseSettings)),
           "HandPose fields": (ROOT / "docs" / "reference.md", pose_table),
           "HandPose summary": (ROOT / "README.md", lambda: pose_table(summary=True))}
 

@@ -86,11 +86,11 @@ def test_estimator_solves_every_hand_of_a_frame_in_one_batch_as_it_would_one_by_
     pair = [{**right[0], "track_id": 1}, {**left[1], "track_id": 2}]
     shapes = [{"track_id": tid, "beta": d["beta"][i], "rest_xyz": normalize_joints(MODEL.rest_joints(d["beta"][i]))}
               for i, tid in enumerate((1, 2))]
-    together = ik.PoseEstimator(SOLVER, MODEL, {"smooth": False})
+    together = ik.PoseEstimator(SOLVER, MODEL, smooth=False)
     together.set_shapes(shapes)
     both = together.update(pair, K, 0.0)
     for hand, out in zip(pair, both):
-        alone = ik.PoseEstimator(SOLVER, MODEL, {"smooth": False})
+        alone = ik.PoseEstimator(SOLVER, MODEL, smooth=False)
         alone.set_shapes(shapes)
         (single,) = alone.update([hand], K, 0.0)
         assert single["track_id"] == out["track_id"] and single["handedness"] == out["handedness"]
@@ -104,7 +104,7 @@ def test_estimator_uses_track_shapes_smooths_and_resets_lost_tracks():
     rng = np.random.default_rng(3)
     jittered = [{**hand, "uv": hand["uv"] + rng.normal(0, 2.0, (21, 2)).astype(np.float32),
                  "xyz_rel": hand["xyz_rel"] + rng.normal(0, 0.02, (21, 3)).astype(np.float32)} for _ in range(60)]
-    raw = ik.PoseEstimator(SOLVER, MODEL, {"smooth": False})
+    raw = ik.PoseEstimator(SOLVER, MODEL, smooth=False)
     smooth = ik.PoseEstimator(SOLVER, MODEL)
     beta = d["beta"][0]
     for est in (raw, smooth):
@@ -112,7 +112,7 @@ def test_estimator_uses_track_shapes_smooths_and_resets_lost_tracks():
     outs = {name: [est.update([h], K, i / 30.0)[0] for i, h in enumerate(jittered)]
             for name, est in (("raw", raw), ("smooth", smooth))}
     # the track's shape, at the size of the default hand length (bone ratios cannot show size)
-    sized = MODEL.sized(beta, ik.POSE_DEFAULTS["hand_length"])
+    sized = MODEL.sized(beta, ik.PoseSettings().hand_length)
     np.testing.assert_allclose(outs["smooth"][0]["beta"], sized.astype(np.float32), rtol=1e-6)
     assert np.all(np.delete(sized, MODEL.beta_names.index("hand_size")) == np.delete(beta, 0))
     for field in ("root", "quat"):
@@ -197,3 +197,21 @@ def test_a_topic_is_wanted_only_by_subscribers_that_name_it():
         assert settled((0, 1)) == (0, 1)              # gone; a later one makes joined 2 (faces again)
     finally:
         everything.close(), pub.close(), ctx.term()
+
+
+def test_pose_settings_are_declared_once_and_checked_where_declared():
+    """PoseSettings' fields are the ik node's params; a bad value is one error naming it, from
+    the launcher's check and from PoseEstimator alike; an unknown setting is a TypeError."""
+    import dataclasses
+
+    from handmocap.nodes import ik as ik_node
+    assert set(ik_node.SETTINGS) == {f.name for f in dataclasses.fields(ik.PoseSettings)} <= set(ik_node.PARAMS)
+    for bad, name in (({"rot_min_cutoff": 0}, "rot_min_cutoff"), ({"hand_length": 18}, "hand_length"),
+                      ({"smooth": "yes"}, "smooth"), ({"xy_from_keypoints": -1}, "xy_from_keypoints")):
+        with pytest.raises(ValueError, match=f"ik param {name}"):
+            ik_node.check_params(bad)
+        with pytest.raises(ValueError, match=name):
+            ik.PoseEstimator(SOLVER, MODEL, **bad)
+    with pytest.raises(TypeError, match="no setting smoothing"):
+        ik.PoseEstimator(SOLVER, MODEL, smoothing=False)
+    assert ik.PoseEstimator(SOLVER, MODEL, hand_length=0.2).settings.hand_length == 0.2

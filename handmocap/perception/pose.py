@@ -33,6 +33,10 @@ handedness="left") draws the left hand); `xyz` and `root` are the hand as seen.
 """
 from __future__ import annotations
 
+import dataclasses
+import math
+from dataclasses import dataclass
+
 import numpy as np
 
 from handmocap.perception.ik_solver import clamp_to_limits
@@ -43,17 +47,46 @@ from handmocap.perception.rotations import mirror_points, quat_normalize, quat_t
 from handmocap.perception.skeleton import DEFAULT_HAND_LENGTH_M, REF_BONE, ROOT
 from handmocap.perception.translation import camera_joints_from_keypoints, joints_through_keypoints, root_fitting_keypoints
 
-# Settings of PoseEstimator (the ik node's parameters): filter cut-offs in Hz (handmocap/perception/one_euro.py),
-# chosen on the detector's output on real clips by research/tune_smoothing.py (docs/models_history.md,
-# "Pose smoothing"): the root's min cut-off 0.5 Hz, first set on synthetic jitter, lagged
-# behind real motion (median 11 mm from the motion's zero-phase estimate, 6 mm unsmoothed); at
-# 2 Hz it is 7 mm with a jitter 7x below the unsmoothed output's. The rotations' were kept.
-# hand_length: the person's hand length in metres (wrist crease to middle fingertip, as a
-# ruler measures it); the metric size of every hand, as scale-normalized keypoints cannot show
-# size (its default: the adult average, skeleton.DEFAULT_HAND_LENGTH_M).
-POSE_DEFAULTS = {"clamp_to_limits": True, "smooth": True, "xy_from_keypoints": 0.5, "rot_min_cutoff": 1.0,
-                 "rot_beta": 1.5, "root_min_cutoff": 2.0, "root_beta": 2.0, "d_cutoff": 1.0, "reset_after_s": 0.5,
-                 "hand_length": DEFAULT_HAND_LENGTH_M}
+@dataclass(frozen=True)
+class PoseSettings:
+    """Every setting of a PoseEstimator (the ik node's params), with its default and, beside it,
+    what it does: the one place they are declared. __post_init__ refuses a value out of range
+    (ValueError naming it). Filter cut-offs in Hz (handmocap/perception/one_euro.py), chosen on
+    the detector's output on real clips by research/tune_smoothing.py (docs/models_history.md,
+    "Pose smoothing"): lower cut-offs smooth more and lag more."""
+    # finger angles clipped into anatomical limits (JointLimits), down each finger
+    clamp_to_limits: bool = True
+    # rotations and root smoothed per track by One Euro filters (False: every frame as read)
+    smooth: bool = True
+    # how far the x, y of the joints IKNet reads move from DetNet's 3D onto those the 2D
+    # keypoints imply through K (0: DetNet's as they are)
+    xy_from_keypoints: float = 0.5
+    rot_min_cutoff: float = 1.0         # Hz, the rotations' filter at rest (on quaternion components)
+    rot_beta: float = 1.5               # the rotations' cut-off rise with speed
+    # Hz, the root's filter at rest: 0.5 Hz, first set on synthetic jitter, lagged behind real
+    # motion (median 11 mm from the motion's zero-phase estimate); 2 Hz is 7 mm with a jitter 7x
+    # below the unsmoothed output's
+    root_min_cutoff: float = 2.0
+    root_beta: float = 2.0              # the root's cut-off rise with speed (per m/s)
+    d_cutoff: float = 1.0               # Hz, the filters' cut-off for the speed they adapt to
+    reset_after_s: float = 0.5          # a track unseen this long starts its filters afresh
+    # metres from the wrist crease to the middle fingertip, as a ruler measures it: the size of
+    # every hand (scale-normalized keypoints cannot show size); default the adult average
+    hand_length: float = DEFAULT_HAND_LENGTH_M
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.type == "bool":
+                if not isinstance(value, bool):
+                    raise ValueError(f"{f.name}: expected true or false, got {value!r}")
+            elif isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or \
+                    value < 0 or (f.name.endswith("cutoff") and value == 0):   # a 0 Hz cut-off divides by zero
+                raise ValueError(f"{f.name}: expected a number {'> 0' if f.name.endswith('cutoff') else '>= 0'}, "
+                                 f"got {value!r}")
+        if not 0.08 <= self.hand_length <= 0.30:   # 18 or 183 would be centimetres or millimetres
+            raise ValueError(f"hand_length: expected metres from the wrist crease to the middle fingertip "
+                             f"(adults: about 0.16 to 0.21), got {self.hand_length!r}")
 
 
 def posed_joints(quats, model, beta, rest=None):
@@ -125,7 +158,7 @@ def surest_per_side(hands):
     return out
 
 
-def joints_for_iknet(hand, K, xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints"]):
+def joints_for_iknet(hand, K, xy_from_keypoints=PoseSettings.xy_from_keypoints):
     """(21,3) the joints IKNet reads for one HandKeypoints hand (as seen, camera axes):
     xyz_rel with x, y moved `xy_from_keypoints` of the way onto the ones its uv implies (0: xyz_rel)."""
     if not xy_from_keypoints:
@@ -134,7 +167,7 @@ def joints_for_iknet(hand, K, xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints
 
 
 def pose_from_keypoints(hand, K, rest, solver, model, beta=None, limits=None,
-                        xy_from_keypoints=POSE_DEFAULTS["xy_from_keypoints"]):
+                        xy_from_keypoints=PoseSettings.xy_from_keypoints):
     """One HandKeypoints hand -> one HandPose hand, unsmoothed. rest: (21,3) rest joints of
     the person (None: the model's at beta); beta (10,) (None: the average hand); limits: a
     JointLimits to clip the finger angles into (None: IKNet's angles as they are);
@@ -148,9 +181,9 @@ def pose_from_keypoints(hand, K, rest, solver, model, beta=None, limits=None,
 class TrackSmoother:
     """One Euro filters of one track: quaternions (21,4) and root (3,)."""
 
-    def __init__(self, p):
-        self.quat = OneEuroFilter(p["rot_min_cutoff"], p["rot_beta"], p["d_cutoff"])
-        self.root = OneEuroFilter(p["root_min_cutoff"], p["root_beta"], p["d_cutoff"])
+    def __init__(self, s: PoseSettings):
+        self.quat = OneEuroFilter(s.rot_min_cutoff, s.rot_beta, s.d_cutoff)
+        self.root = OneEuroFilter(s.root_min_cutoff, s.root_beta, s.d_cutoff)
         self.last_t = None
 
     def quats(self, q, t):
@@ -161,12 +194,20 @@ class TrackSmoother:
 
 
 class PoseEstimator:
-    """Every hand of a keypoints message -> HandPose hands; shapes and smoothing per track."""
+    """Every hand of a keypoints message -> HandPose hands; shapes and smoothing per track.
+    settings: a PoseSettings (None: the defaults), with `changes` (its field names) applied on
+    top; TypeError naming an unknown one."""
 
-    def __init__(self, solver, model, params=None):
-        self.solver, self.model, self.p = solver, model, {**POSE_DEFAULTS, **(params or {})}
+    def __init__(self, solver, model, settings: PoseSettings | None = None, **changes):
+        try:
+            self.settings = dataclasses.replace(settings or PoseSettings(), **changes)
+        except TypeError:
+            unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(PoseSettings)})
+            raise TypeError(f"PoseEstimator has no setting {', '.join(unknown)} (PoseSettings' fields are "
+                            f"its settings)") from None
+        self.solver, self.model = solver, model
         self.shapes = {}          # track id -> (beta (10,), rest_xyz (21,3))
-        self.limits = JointLimits.for_model(model) if self.p["clamp_to_limits"] else None
+        self.limits = JointLimits.for_model(model) if self.settings.clamp_to_limits else None
         self.tracks = {}          # track id -> TrackSmoother
         self.average = np.zeros(model.num_betas)
 
@@ -179,7 +220,7 @@ class PoseEstimator:
         hands with non-finite joints are skipped."""
         seen = {h["track_id"] for h in hands}
         for tid in [tid for tid, s in self.tracks.items()
-                    if tid not in seen or t - s.last_t > self.p["reset_after_s"]]:
+                    if tid not in seen or t - s.last_t > self.settings.reset_after_s]:
             del self.tracks[tid]                                   # lost: start afresh
         hands = [h for h in hands if np.all(np.isfinite(h["xyz_rel"])) and np.all(np.isfinite(h["uv"]))]
         if not hands:
@@ -187,18 +228,18 @@ class PoseEstimator:
         betas, rests = [], []
         for hand in hands:
             beta, rest = self.shapes.get(hand["track_id"], (self.average, None))
-            beta = self.model.sized(beta, self.p["hand_length"])   # the shape fit leaves size at 0
+            beta = self.model.sized(beta, self.settings.hand_length)   # the shape fit leaves size at 0
             betas.append(beta)
             rests.append(self.model.rest_joints(beta) if rest is None else rest)
         # every hand in one IKNet run and one clamp: per-call overheads once per frame, not per hand
-        quats = solve_rotations(np.stack([joints_for_iknet(h, K, self.p["xy_from_keypoints"]) for h in hands]),
+        quats = solve_rotations(np.stack([joints_for_iknet(h, K, self.settings.xy_from_keypoints) for h in hands]),
                                 [h["handedness"] for h in hands], np.stack(rests), self.solver, self.limits)
         out = []
         for hand, beta, q in zip(hands, betas, quats):
-            if not self.p["smooth"]:
+            if not self.settings.smooth:
                 out.append(pose_fields(hand, q, beta, K, self.model))
                 continue
-            track = self.tracks.setdefault(hand["track_id"], TrackSmoother(self.p))
+            track = self.tracks.setdefault(hand["track_id"], TrackSmoother(self.settings))
             fields = pose_fields(hand, track.quats(q, t), beta, K, self.model)
             root = track.root(fields["root"], t)
             fields["xyz"] = (fields["xyz"] - fields["root"] + root).astype(np.float32)

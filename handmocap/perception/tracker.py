@@ -54,7 +54,7 @@ class HandTracker:
                                                       **detector_kwargs)
         self.shapes = ShapeEstimator(self.model)
         self.poses = PoseEstimator(IKSolver.load(iknet, threads=threads, model=self.model), self.model,
-                                   {"smooth": smooth, "clamp_to_limits": clamp_to_limits, "hand_length": hand_length})
+                                   smooth=smooth, clamp_to_limits=clamp_to_limits, hand_length=hand_length)
         self.vertices, self.fps = vertices, fps
         self.frame_index = 0
         self.last_keypoints = []
