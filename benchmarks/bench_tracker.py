@@ -219,7 +219,7 @@ def main():
     results["tracker_stages_cpu_ms_per_frame"] = stage_cpu_ms(tracker, frames)
 
     det = HandDetector.load(args.detnet, args.finder, threads=args.threads, max_hands=max_hands,
-                            side_detnet_path=args.side_detnet, **settings)
+                            side_detnet=args.side_detnet, **settings)
     for f in frames:
         det.process(f)
     results["detector"] = stats(timed(det.process, frames, passes))

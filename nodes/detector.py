@@ -116,8 +116,8 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     node.subscribe("/camera/image", "Image", mode="lossless" if p["every_frame"] else "latest")
     node.advertise("/hand/keypoints", "HandKeypoints")
     detector = HandDetector.load(p["detnet"], p["finder"], threads=int(p["threads"]),
-                                 grey_finder_path=p["grey_finder"], grey_detnet_path=p["grey_detnet"],
-                                 side_detnet_path=p["side_detnet"],
+                                 grey_finder=p["grey_finder"], grey_detnet=p["grey_detnet"],
+                                 side_detnet=p["side_detnet"],
                                  **{k: setting(k, p[k]) for k in TUNABLE})
     warm_up(detector, p)
     node.at_close(lambda: node.log.info("%d frames, %d finder runs, %d crops", detector.stats["frames"],

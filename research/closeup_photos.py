@@ -14,7 +14,7 @@ the picture too). A hand counts as found when an output's mean joint distance to
 below half the hand's joint-box side; the error column is that distance / side (median of
 the found); the side column is the share of the found published as the label's side
 (--real only). Settings: HandDetector.load(birth_confidence=0) (the photo setting before
-the fallback), + fallback_path="centre", detector.PHOTO_SETTINGS (that, and each new hand
+the fallback), + fallback="centre", detector.PHOTO_SETTINGS (that, and each new hand
 read on five crops), and the centre square alone (finder "none").
 """
 import argparse
@@ -92,7 +92,7 @@ def main():
           f"| error / hand size (median, found) | published side right |")
     print("|---|---|---|---|")
     for name, kwargs in (("finder, birth_confidence 0", {"birth_confidence": 0.0}),
-                         ("+ centre fallback", {"birth_confidence": 0.0, "fallback_path": CENTRE}),
+                         ("+ centre fallback", {"birth_confidence": 0.0, "fallback": CENTRE}),
                          ("PHOTO_SETTINGS (+ test_time_crops 4)", PHOTO_SETTINGS),
                          ("centre square only (finder none)", {"birth_confidence": 0.0, "finder_path": "none"})):
         found, err, right = score(HandDetector.load(args.detnet, **kwargs), images, labels, sides)

@@ -50,7 +50,7 @@ def main():
         for video in real_data.wild_clips(SHARED_DATA):
             if video.stem.split("__")[0] in HALF_OWNERS:
                 continue
-            det = detector.HandDetector.load(detnet_path=args.detnet)
+            det = detector.HandDetector.load(detnet=args.detnet)
             clips.append(eval_people.score_frames(det, eval_people.frames_of_clip(video),
                                                   fps=eval_people.clip_fps(video)))
             s = eval_people.summary(clips[-1])

@@ -65,7 +65,7 @@ def main():
     print("|---|---|---|---|---|---|")
     for finder_path in args.finder:
         finder = HandFinder.load(finder_path)
-        det = HandDetector.load(finder_path=finder_path, **PHOTO_SETTINGS)
+        det = HandDetector.load(finder=finder_path, **PHOTO_SETTINGS)
         for fraction in FRACTIONS:
             rng = np.random.default_rng(0)
             read, dist, ratio, n = 0, [], [], 0

@@ -20,7 +20,7 @@ clips in order (tracking), and on every 4th frame of them (--stills-every N) as 
 image (the detector reset before each, as `handeval predict` treats a folder of photos: one
 birth per hand).
 --compare K=V[,K=V] ...: the same table for any HandDetector settings against the defaults
-(HandDetector.load's keywords: finder_threshold=0.15,max_hands=1; fallback_path=F.onnx;
+(HandDetector.load's keywords: finder_threshold=0.15,max_hands=1; fallback=F.onnx;
 second_look=0.2), with the found hands' median and mean 2D error / hand size
 and the share of output hands on a labelled hand whose handedness is the label's.
 --per-clip: then the same per clip (tracked), with DetNet crops per frame, evictions and
@@ -152,7 +152,7 @@ def main():
     ap.add_argument("--shared", type=Path, default=SHARED_DATA)
     ap.add_argument("--compare", nargs="*", metavar="KEY=VALUE[,KEY=VALUE]",
                     help="instead of the threshold table: these HandDetector settings (e.g. second_look=0.2, "
-                         "fallback_path=F.onnx) against the defaults, with the found hands' 2D error")
+                         "fallback=F.onnx) against the defaults, with the found hands' 2D error")
     ap.add_argument("--per-clip", action="store_true",
                     help="then, per setting, each clip (tracked in order): hands found, false hands, handedness "
                          "right, DetNet crops per frame, evictions and handedness turns")

@@ -81,7 +81,7 @@ MATCH_IOU = 0.3             # a found box is a track's own hand from this overla
 # HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
 # so no birth threshold; a close-up the finder misses is tried on the centre square; each
 # hand read on its crop and 4 variants of it (chosen on training-side stills, docs/models_history.md)
-PHOTO_SETTINGS = {"birth_confidence": 0.0, "fallback_path": CENTRE, "test_time_crops": 4, "smooth_min_cutoff": None}
+PHOTO_SETTINGS = {"birth_confidence": 0.0, "fallback": CENTRE, "test_time_crops": 4, "smooth_min_cutoff": None}
 # HandDetector.load's keywords for video where accuracy is worth ~2.3x the time (offline
 # processing, a fast CPU): every tracked hand read on its crop and 4 variants on every frame
 # (chosen on training-side clips at three turns, docs/models_history.md; 20 ms a frame against 9
@@ -255,30 +255,28 @@ class HandDetector:
                       "side_rereads": 0, "grey_finder_runs": 0}
 
     @classmethod
-    def load(cls, detnet_path=None, finder_path=None, threads=1, fallback_path=None, grey_finder_path=None,
-             grey_detnet_path=None, side_detnet_path=None, **kwargs):
-        """Networks from files (None: the bundled ones; grey_finder_path / grey_detnet_path
-        "none": the one finder / DetNet on grey frames too, and none for grey frames where
-        finder_path / detnet_path names another file than the bundled one, unless given;
-        side_detnet_path: a DetNet whose handedness head gives the side, DetNetRunner's `side`).
-        threads: onnxruntime intra-op threads
-        per network, and OpenCV's thread count, which is process-wide: the crops and the
-        finder's resize are too small to gain from threads, whose hand-offs cost ~0.6 ms of
-        CPU per frame with OpenCV's default (one per core) here."""
+    def load(cls, detnet=None, finder=None, threads=1, fallback=None, grey_finder=None, grey_detnet=None,
+             side_detnet=None, **kwargs):
+        """Networks from files, named as HandTracker names them (None: the bundled ones;
+        grey_finder / grey_detnet "none": the one finder / DetNet on grey frames too, and none
+        for grey frames where finder / detnet names another file than the bundled one, unless
+        given; fallback: a finder file or CENTRE; side_detnet: a DetNet whose handedness head
+        gives the side, DetNetRunner's `side`). threads: onnxruntime intra-op threads per
+        network, and OpenCV's thread count, which is process-wide: the crops and the finder's
+        resize are too small to gain from threads, whose hand-offs cost ~0.6 ms of CPU per
+        frame with OpenCV's default (one per core) here."""
         cv2.setNumThreads(threads)
-        finder = HandFinder.load(finder_path, threads=threads) if finder_path != "none" else None
-        if grey_finder_path is None and finder_path is None:
-            grey_finder_path = GREY_PATH
-        grey = HandFinder.load(grey_finder_path, threads=threads) if grey_finder_path not in (None, "none") else None
-        if grey_detnet_path is None and detnet_path in (None, "int8"):
-            grey_detnet_path = DETNET_GREY
-        grey_detnet = DetNetRunner.load(grey_detnet_path, threads=threads) \
-            if grey_detnet_path not in (None, "none") else None
-        fallback = HandFinder.load(fallback_path, threads=threads) if fallback_path not in (None, CENTRE) \
-            else fallback_path
-        return cls(DetNetRunner.load(detnet_path, threads=threads, side_path=side_detnet_path), finder,
-                   fallback=fallback, grey_finder=grey,
-                   grey_detnet=grey_detnet, **kwargs)
+        if grey_finder is None and finder is None:
+            grey_finder = GREY_PATH
+        if grey_detnet is None and detnet in (None, "int8"):
+            grey_detnet = DETNET_GREY
+        load_finder = lambda path: HandFinder.load(path, threads=threads) if path not in (None, "none") else None  # noqa: E731
+        return cls(DetNetRunner.load(detnet, threads=threads, side_path=side_detnet),
+                   HandFinder.load(finder, threads=threads) if finder != "none" else None,
+                   fallback=fallback if fallback in (None, CENTRE) else load_finder(fallback),
+                   grey_finder=load_finder(grey_finder),
+                   grey_detnet=DetNetRunner.load(grey_detnet, threads=threads) if grey_detnet not in (None, "none") else None,
+                   **kwargs)
 
     def reset(self):
         self.tracks.clear()

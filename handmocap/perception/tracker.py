@@ -38,7 +38,7 @@ class HandTracker:
     of the 2D joints unless smooth_min_cutoff is given (off for single images). vertices:
     add each hand's mesh vertices (V,3) m camera frame. Other keywords go to HandDetector
     (max_hands, presence_threshold, min_confidence, birth_confidence, redetect_every,
-    crop_scale, fallback_path, ...). For unrelated photos: reset() before each, and
+    crop_scale, fallback, ...). For unrelated photos: reset() before each, and
     `HandTracker(**detector.PHOTO_SETTINGS)`: birth_confidence 0 (the default 0.3 is for video,
     where a doubtful hand gets another chance next frame), the centre square tried where
     the finder found nothing (a close-up) and each hand read on 4 variants of its crop as
@@ -50,7 +50,7 @@ class HandTracker:
         self.model = HandModel.load(model)
         if not smooth:
             detector_kwargs.setdefault("smooth_min_cutoff", None)    # nor the 2D joints
-        self.detector = detector or HandDetector.load(detnet, finder, threads=threads, side_detnet_path=side_detnet,
+        self.detector = detector or HandDetector.load(detnet, finder, threads=threads, side_detnet=side_detnet,
                                                       **detector_kwargs)
         self.shapes = ShapeEstimator(self.model)
         self.poses = PoseEstimator(IKSolver.load(iknet, threads=threads, model=self.model), self.model,

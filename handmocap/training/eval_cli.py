@@ -113,7 +113,7 @@ def predict(source, K=None, out=None, sequence=None, tracker=None, models=None, 
     n = frames.frame_count
     stills = {} if sequence else PHOTO_SETTINGS
     tracker = tracker or HandTracker(smooth=sequence, **{"max_hands": MAX_HANDS, **stills, **(models or {})})
-    tracker.poses.p["smooth"] = sequence
+    tracker.poses.settings = dataclasses.replace(tracker.poses.settings, smooth=sequence)   # a given tracker too
     pred = empty_prediction(n)
     unreadable = np.zeros(n, bool)
     count = 0
