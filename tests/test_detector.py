@@ -935,10 +935,11 @@ class FakePair:
 
     def __init__(self, keypoints, side):
         self.keypoints, self.side = keypoints, side
-        self.side_crops = []                # crops the side network read, per call
+        self.side_crops, self.keypoint_crops = [], []   # crops each network read, per call
 
-    def __call__(self, crops_rgb, read_side=True):
-        out = self.keypoints(crops_rgb)
+    def __call__(self, crops_rgb, read_side=True, side_only=0):
+        out = self.keypoints(crops_rgb[:len(crops_rgb) - side_only])
+        self.keypoint_crops.append(len(crops_rgb) - side_only)
         self.side_crops.append(len(crops_rgb) if read_side else 0)
         out["handedness"] = self.side(crops_rgb)["handedness"] if read_side else np.full(len(crops_rgb), np.nan)
         return out
@@ -947,7 +948,8 @@ class FakePair:
 def test_side_every_reads_the_side_network_on_births_and_mirror_votes_only():
     """With a side network and side_every=6 (= mirror_vote_every), a tracked hand's side is
     read on its first crops and on every 6th frame (both readings), and its side stays the
-    side network's, not the keypoint network's (biased the other way)."""
+    side network's, not the keypoint network's (biased the other way); the keypoint network
+    never reads a mirror vote's flipped crop."""
     frame = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((250, 300), 160, right=False))
     for every, reads in ((None, 13), (6, 3)):
         pair = FakePair(FakeDetNet(right_bias=6.0), FakeDetNet())
@@ -958,4 +960,6 @@ def test_side_every_reads_the_side_network_on_births_and_mirror_votes_only():
         # a birth reads its crop twice (turn, refine); then one frame in `every` (two crops: the vote)
         read_frames = sum(n > 0 for n in pair.side_crops)
         assert read_frames == reads + 1, (every, pair.side_crops)
+        # the flipped crop of a mirror vote goes to the side network alone
+        assert all(k == 1 for k in pair.keypoint_crops) and max(pair.side_crops) == 2
         assert det.tracks[0].right_logit < 0 and det.tracks[0].samples > 0

@@ -149,6 +149,18 @@ nodes:
     assert "error: required node ticker failed (exit code 2); stopping the graph" in r.stdout
     assert "failing on purpose after 20 messages" in r.stdout
 
+    # the same with respawn: an expected error (exit code 2) right after the start is a
+    # configuration that no retry mends: the graph stops as without respawn, once
+    lf3 = write(tmp_path, "g3.yaml", f"""
+nodes:
+  ticker: {{node: graphnodes.ticker, params: {{count: 1000, hz: 100, fail_after: 20}}, required: true, respawn: true,
+           respawn_delay: 0.1}}
+  sink: {{node: graphnodes.sink, params: {{mode: all, out: {tmp_path}/sink3.json}}}}
+""")
+    r = handlaunch([lf3], run_dir)
+    assert r.returncode == 1 and "respawning ticker" not in r.stdout, r.stdout
+    assert "error: required node ticker failed (exit code 2); stopping the graph" in r.stdout
+
 
 def wait_for_node(run_dir, name, not_pid=None, timeout=20):
     deadline = time.monotonic() + timeout

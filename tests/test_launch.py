@@ -226,3 +226,16 @@ def test_the_readme_arguments_exist_in_the_product_launch_files():
     assert demo["visualizer"].params["mesh"] is False and demo["replay"].params["loop"] is True
     webcam = {n.name: n for n in load_launch_file(root / "launch" / "webcam.yaml", {"mesh": False}).nodes}
     assert webcam["visualizer"].params["mesh"] is False
+
+
+@pytest.mark.parametrize("name", ["webcam", "teleop", "ros2", "depthai"])
+def test_live_graphs_respawn_their_perception_container_at_once(name):
+    """A live graph's perception container (source, detector, shape, ik) respawns after a
+    crash within 0.2 s (benchmarks/drill_respawn.py: poses back in under a second); the
+    offline ones (replay, demo) do not, a failed replay is a result."""
+    from handmocap.runtime.launch import processes
+    live = {p.name: p for p in processes(load_launch_file(ROOT / "launch" / f"{name}.yaml", {}).nodes)}
+    assert live["perception"].respawn and live["perception"].respawn_delay <= 0.2 and live["perception"].required
+    clip = str(ROOT / "data" / "demo" / "hand_clip.mp4")
+    offline = {p.name: p for p in processes(load_launch_file(ROOT / "launch" / "replay.yaml", {"input": clip}).nodes)}
+    assert not offline["perception"].respawn

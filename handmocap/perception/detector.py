@@ -412,8 +412,10 @@ class HandDetector:
         self.stats["crops"] += len(pixels)
         detnet = self.grey_detnet if self.grey_frames and self.grey_detnet is not None else self.detnet
         pixels = np.ascontiguousarray(pixels[..., ::-1])
-        # only a pair of networks (DetNetRunner `side`) has a side read to skip
-        out = detnet(pixels, read_side=read_side) if getattr(detnet, "side", None) is not None else detnet(pixels)
+        # only a pair of networks (DetNetRunner `side`) has a side read to skip, and reads the
+        # flipped crops (mirror votes, whose handedness alone is wanted) with the side network only
+        out = detnet(pixels, read_side=read_side, side_only=len(flipped)) if getattr(detnet, "side", None) is not None \
+            else detnet(pixels)
         if "uv_peak" not in out:            # a file exported before session 17
             out["uv_peak"] = out["uv"].copy()
         return out

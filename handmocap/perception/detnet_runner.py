@@ -61,9 +61,13 @@ class DetNetRunner:
             warnings.warn(stale, stacklevel=2)
         return cls(session, cls.load(side_path, threads) if side_path not in (None, "none") else None, path)
 
-    def __call__(self, crops_rgb, read_side=True):
+    def __call__(self, crops_rgb, read_side=True, side_only=0):
+        """side_only: with a side network, the last this many crops are read by it alone (the
+        mirror votes: only their handedness is wanted), so every output but `handedness` has
+        that many rows fewer."""
         x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
-        out = dict(zip(self.outputs, self.session.run(None, {"image": x})))
+        keypoints = x[:len(x) - side_only] if self.side is not None and side_only else x
+        out = dict(zip(self.outputs, self.session.run(None, {"image": keypoints})))
         if self.side is not None:
             out["handedness"] = self.side.session.run(["handedness"], {"image": x})[0] if read_side \
                 else np.full(len(x), np.nan, np.float32)

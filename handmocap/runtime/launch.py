@@ -19,7 +19,9 @@ A launch file:
         node: recorder
         params: {output: $(var bag)}
         remap: {/camera/image: /cam0/image}
-        respawn: true         # restart on failure, back-off from respawn_delay (s) doubling to 30 s
+        respawn: true         # restart on failure, back-off from respawn_delay (s) doubling to 30 s;
+                              # not an expected error (exit 2: a bad param, a missing file, a camera
+                              # that can't be opened) within CONFIG_ERROR_S of a start: no retry mends it
         env: {}
         bind: tcp://127.0.0.1:6000    # optional: listen here instead of the default ipc socket
         connect: [tcp://10.0.0.2:6000] # optional: publishers on other hosts
@@ -91,6 +93,10 @@ STARTUP_TIMEOUT_S = 120
 # the last frames yet): it is killed only after that, or it could lose them
 STOP_TIMEOUT_S = bus.PUBLISHER_LINGER_S + 5
 MAX_BACKOFF_S = 30
+# a respawning node that ends with an expected error (exit code 2: bad parameter, missing
+# file, a device that can't be opened) this soon after it started is not respawned: it would
+# fail the same way on every retry; later (a camera unplugged mid-run) it is
+CONFIG_ERROR_S = 10.0
 
 
 class LaunchError(Exception):
@@ -629,7 +635,7 @@ class Launcher:
                     return c.spec.name
                 continue
             how = f"killed by signal {-c.exit_code}" if c.exit_code < 0 else f"exit code {c.exit_code}"
-            if c.spec.respawn:
+            if c.spec.respawn and not (c.exit_code == 2 and now - c.started <= CONFIG_ERROR_S):
                 if now - c.started > 10:
                     c.backoff = c.spec.respawn_delay   # it ran a while: not a crash loop
                 self.print("handlaunch", f"{c.what} died ({how}); respawn in {c.backoff:.1f} s")
