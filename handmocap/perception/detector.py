@@ -149,8 +149,8 @@ class DetectorSettings:
     # two answers share the bias, which their mean cancels
     mirror_vote_every: int | None = 6
     # with a second network for the side (DetNetRunner `side`, the default pair), a tracked
-    # hand's side is read on a track's first crops and every this many frames only (None: every
-    # frame): spread out, a track's `handedness_memory` readings span longer than one view's
+    # hand's side is read on a track's first crops, its mirror votes and every this many frames
+    # only (None: every frame; above mirror_vote_every, the votes alone): spread out, a track's `handedness_memory` readings span longer than one view's
     # errors (held-back clips: side 87.7% against 81.7% read every frame; session 37)
     side_every: int | None = 6
     # a new track's reading is the per-coordinate median over its crop and this many variants
