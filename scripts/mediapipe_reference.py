@@ -8,6 +8,7 @@ Run with a throwaway environment that has MediaPipe (never a project dependency)
         [--K-file K.npy | --K fx,fy,cx,cy] [--sequence]
     handeval score --pred MP.npz --gt GT.npz          # scored exactly like our predictions
     /tmp/mpenv/bin/python scripts/mediapipe_reference.py --bench VIDEO [--frames 200] [--max-hands 2]   # ms per frame
+    /tmp/mpenv/bin/python scripts/mediapipe_reference.py --bench VIDEO --paced 30   # latency per frame at 30 fps
 
 mediapipe.solutions.hands (the legacy Hands solution bundled with the package, model
 complexity 1, up to 2 hands, confidences 0.5): static-image mode for a folder of
@@ -144,6 +145,27 @@ def bench(args):
                       "max_hands": args.max_hands, "size": list(images[0].shape[1::-1])}))
 
 
+def bench_paced(args):
+    """MediaPipe's tracking mode on a video's frames (decoded first) delivered on a `--paced`
+    fps clock, as a camera delivers them: each frame's latency = result - its due time.
+    Prints the latencies (ms, JSON), after a first pass that loads the models."""
+    import mediapipe as mp
+    images = list(frames(args.bench))[:args.frames]
+    with mp.solutions.hands.Hands(static_image_mode=False, max_num_hands=args.max_hands,
+                                  model_complexity=1) as hands:
+        for frame in images[:30]:
+            hands.process(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+        latencies, found = [], []
+        t0 = time.perf_counter() + 0.1
+        for i, frame in enumerate(images):
+            due = t0 + i / args.paced
+            time.sleep(max(0.0, due - time.perf_counter()))
+            result = hands.process(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+            latencies.append(1e3 * (time.perf_counter() - due))
+            found.append(len(result.multi_hand_landmarks or []))
+    print(json.dumps({"latency_ms": latencies, "hands_per_frame": float(np.mean(found)), "max_hands": args.max_hands}))
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--images")
@@ -156,8 +178,11 @@ def main():
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--max-hands", type=int, default=2, help="with --bench: max_num_hands (default %(default)s)")
     p.add_argument("--repeat", type=int, default=1, help="with --bench: timed passes (default %(default)s)")
+    p.add_argument("--paced", type=float, help="with --bench: frames on this fps clock; print each one's latency")
     args = p.parse_args()
-    if args.bench:
+    if args.bench and args.paced:
+        bench_paced(args)
+    elif args.bench:
         bench(args)
     elif args.images and args.out:
         predict(args)
