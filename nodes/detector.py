@@ -92,7 +92,8 @@ def warm_up(detector: HandDetector, params: dict) -> None:
         if detnet is None:
             continue
         try:
-            detnet(np.zeros((1, CROP, CROP, 3), np.uint8))
+            side = getattr(detnet, "crop_side", CROP)
+            detnet(np.zeros((1, side, side, 3), np.uint8))
         except Exception as e:   # onnxruntime's errors (wrong input name or shape) are no ValueError
             raise ValueError(f"DetNet model {name} does not take (N,128,128,3) crops: "
                              f"{str(e).splitlines()[0][:200]}") from None

@@ -17,7 +17,7 @@ import numpy as np
 from handmocap.perception.hand_finder import square
 from handmocap.perception.rotations import mirror_points
 
-CROP = 128
+CROP = 128                  # px: the crop side DetNet reads when its file does not say (DetNetRunner.crop_side)
 CROP_SCALE = 1.5            # crop side / side of the 21-joint box (synth: vertex box ~1.16x joint box, x 1.3)
 MIN_CROP_SIDE = 24.0        # px in the frame
 # (side factor, extra turn in degrees) of the crops a new track's reading is averaged over
@@ -148,9 +148,9 @@ def hand_angle(uv):
     return np.arctan2(v[..., 0], -v[..., 1])
 
 
-def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE, upright_step=None):
-    """The DetNet crop of a hand whose 2D joints are uv (21,2) frame px: the square around
-    their box times `scale`. upright_step (degrees): the crop turned by hand_angle rounded to
+def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE, upright_step=None, size=CROP):
+    """The DetNet crop (`size` px) of a hand whose 2D joints are uv (21,2) frame px: the square
+    around their box times `scale`. upright_step (degrees): the crop turned by hand_angle rounded to
     whole steps of it (90: quarter turns; 0: any angle), the box taken in the turned axes (as
     MediaPipe cuts its landmark crops); None: never turned."""
     angle = 0.0
@@ -163,7 +163,7 @@ def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE, upright_step=None):
     R = np.array([[c, s], [-s, c]])
     turned = uv @ R.T
     lo, hi = np.nanmin(turned, axis=0), np.nanmax(turned, axis=0)
-    return CropTransform.around(R.T @ ((lo + hi) / 2), float(np.max(hi - lo)) * scale, mirrored=mirrored,
+    return CropTransform.around(R.T @ ((lo + hi) / 2), float(np.max(hi - lo)) * scale, size, mirrored=mirrored,
                                 angle=angle)
 
 
@@ -175,14 +175,14 @@ def square_box(uv):
 def nearby_crops(crop, k):
     """The first `k` TEST_TIME_VARIANTS of a CropTransform: the same hand a little larger,
     smaller or turned (same centre and mirroring)."""
-    return [CropTransform.around(crop.centre, crop.side * scale, mirrored=crop.mirrored,
+    return [CropTransform.around(crop.centre, crop.side * scale, crop.size, mirrored=crop.mirrored,
                                  angle=crop.angle + math.radians(turn)) for scale, turn in TEST_TIME_VARIANTS[:k]]
 
 
-def crop_for_box(box, mirrored=False, scale=CROP_SCALE):
-    """The DetNet crop of a hand whose joint box is (4,) x0, y0, x1, y1 frame px."""
+def crop_for_box(box, mirrored=False, scale=CROP_SCALE, size=CROP):
+    """The DetNet crop (`size` px) of a hand whose joint box is (4,) x0, y0, x1, y1 frame px."""
     box = np.asarray(box, dtype=np.float64)
-    return CropTransform.around((box[:2] + box[2:]) / 2, float(np.max(box[2:] - box[:2])) * scale,
+    return CropTransform.around((box[:2] + box[2:]) / 2, float(np.max(box[2:] - box[:2])) * scale, size,
                                 mirrored=mirrored)
 
 

@@ -66,7 +66,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from handmocap.perception.crops import (CROP_SCALE, TEST_TIME_VARIANTS, CropTransform, box_overlap_of_smaller,
+from handmocap.perception.crops import (CROP, CROP_SCALE, TEST_TIME_VARIANTS, CropTransform, box_overlap_of_smaller,
                                         crop_for_box, crop_for_joints, crop_to_frame_xyz, frame_to_crop_xyz,
                                         nearby_crops, square_box)
 from handmocap.perception.detnet_runner import DETNET_GREY, DetNetRunner
@@ -236,6 +236,8 @@ class HandDetector:
         self.second_look = settings.second_look or 0.0
         self.smooth_min_cutoff = settings.smooth_min_cutoff or 0.0
         self.detnet, self.finder = detnet, finder
+        # px: the side of the crops cut for DetNet, as its file says (a fake runner: CROP)
+        self.crop_size = getattr(detnet, "crop_side", CROP)
         # the finder and the DetNet for grey frames (a mono or IR camera: hand_finder.is_grey,
         # checked whenever the finder runs; None: `finder` / `detnet` on every frame)
         self.grey_finder, self.grey_detnet = grey_finder, grey_detnet
@@ -337,7 +339,7 @@ class HandDetector:
                         self._reseed_believed(image, box, right_prob, t):
                     # the track's joints no longer match the hand the finder sees in its crop
                     # (a track sliding up the forearm): start the crop again from the finder's box
-                    t.crop = crop_for_box(box, not t.is_right, self.crop_scale)
+                    t.crop = crop_for_box(box, not t.is_right, self.crop_scale, self.crop_size)
                     t.velocity, t.uv, t.smoother = np.zeros(2), None, None
                     self.stats["reseeds"] += 1
                     reseeded.append(t)
@@ -355,7 +357,7 @@ class HandDetector:
 
     def _found_peaks(self, image, found):
         """(M,) DetNet's mean heatmap peak on the crop of each found (box, right_prob)."""
-        crops = [crop_for_box(box, right_prob < 0.5, self.crop_scale) for box, right_prob in found]
+        crops = [crop_for_box(box, right_prob < 0.5, self.crop_scale, self.crop_size) for box, right_prob in found]
         return self._run(image, crops, read_side=False)["confidence"].mean(axis=1)
 
     def _reseed_believed(self, image, box, right_prob, track):
@@ -365,7 +367,7 @@ class HandDetector:
             self._found_peaks(image, [(box, right_prob)])[0] >= track.confidence - self.reseed_margin
 
     def _new_track(self, box, right_prob):
-        track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale),
+        track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale, self.crop_size),
                       memory=self.handedness_memory)
         if self.handedness is not None:
             track.right_logit, track.fixed_side = (1.0 if self.handedness == "right" else -1.0), True
@@ -451,7 +453,7 @@ class HandDetector:
                 if out["presence"][i] >= self.presence_threshold:
                     t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
                     t.crop = crop_for_joints(t.crop.to_frame(out["uv_peak"][i]), not t.is_right, self.crop_scale,
-                                             self.upright_step)
+                                             self.upright_step, self.crop_size)
             again = self._run_voting(image_bgr, [self.tracks[i] for i in idx])   # a new track votes again here
             for k, i in enumerate(idx):
                 for key in out:
@@ -624,9 +626,10 @@ class HandDetector:
         displacement; its side changes by at most a factor `max_change` per frame (a hand
         does not change size that fast: a collapsing or exploding prediction must not take
         the crop with it)."""
-        crop = crop_for_joints(uv + 0.5 * track.velocity, not track.is_right, self.crop_scale, self.upright_step)
+        crop = crop_for_joints(uv + 0.5 * track.velocity, not track.is_right, self.crop_scale, self.upright_step,
+                               self.crop_size)
         side = float(np.clip(crop.side, track.crop.side / max_change, track.crop.side * max_change))
-        return CropTransform.around(crop.centre, side, mirrored=crop.mirrored, angle=crop.angle)
+        return CropTransform.around(crop.centre, side, crop.size, mirrored=crop.mirrored, angle=crop.angle)
 
     @staticmethod
     def _plausible(uv, shape):

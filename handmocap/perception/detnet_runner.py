@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from handmocap.perception.crops import CROP
 from handmocap.perception.onnx_models import open_session, stale_quantization
 
 DETNET_FLOAT32 = Path(__file__).resolve().parents[2] / "models" / "detnet.onnx"   # `handtrain detnet` writes it
@@ -42,6 +43,9 @@ class DetNetRunner:
     def __init__(self, session, side=None, path=None):
         self.session, self.side, self.path = session, side, path     # path: the file, where loaded from one
         self.outputs = [o.name for o in session.get_outputs()]
+        # px: the crop side the file was exported for (its input's fixed side), else CROP
+        side_px = session.get_inputs()[0].shape[-1]
+        self.crop_side = side_px if isinstance(side_px, int) else CROP
 
     @classmethod
     def load(cls, path=None, threads=1, side_path=None):

@@ -21,10 +21,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from handmocap.perception.crops import CROP
 from handmocap.perception.skeleton import NUM_JOINTS, PARENTS
 from handmocap.training.efficientnet_lite import TAP_CHANNELS, LiteTrunk, normalize
 
-CROP = 128
 
 
 def conv_bn(cin, cout, k=3, stride=1, groups=1, dilation=1, relu=True):

@@ -41,7 +41,7 @@ it, cut out along its joints (`hand_occluders`: two hands touching or crossing).
 import cv2
 import numpy as np
 
-from handmocap.perception.crops import hand_angle
+from handmocap.perception.crops import CROP, hand_angle
 from handmocap.perception.skeleton import BONES
 from handmocap.training import real_data
 from handmocap.training.detnet_data import CTX, CTX_SCALE, HARD_NEGATIVES, WILD_SOURCE
@@ -139,11 +139,11 @@ class BatchMaker:
         show_left, mirror = self._present(n, s["handedness"][idx] == 0, rng)
         angle = self._angles(s["uv"][idx], rng)
         scale = rng.uniform(0.95, 1.05, n)
-        shift = rng.uniform(-0.05, 0.05, (n, 2)) * 128
-        images, uv = np.empty((n, 128, 128, 3), np.uint8), np.empty((n, 21, 2), np.float32)
+        shift = rng.uniform(-0.05, 0.05, (n, 2)) * CROP
+        images, uv = np.empty((n, CROP, CROP, 3), np.uint8), np.empty((n, 21, 2), np.float32)
         c = 63.5
         for i in range(n):
-            M = real_data.crop_affine(c + shift[i, 0], c + shift[i, 1], 128 * scale[i], 128, angle[i], mirror[i])
+            M = real_data.crop_affine(c + shift[i, 0], c + shift[i, 1], CROP * scale[i], CROP, angle[i], mirror[i])
             images[i] = real_data.warp(s["image"][idx[i]], M)
             uv[i] = real_data.apply_affine(M, s["uv"][idx[i]])
         xyz = rotate_mirror_3d(s["xyz_rel"][idx], angle, mirror).astype(np.float32)
@@ -162,14 +162,14 @@ class BatchMaker:
             from_wild = rng.random(n) < self.wild_share
             idx = np.where(from_wild, wild[rng.integers(0, len(wild), n)], other[rng.integers(0, len(other), n)])
         show_left, mirror = self._present(n, r["right"][idx].astype(bool), rng)
-        images, uv = np.empty((n, 128, 128, 3), np.uint8), np.empty((n, 21, 2), np.float32)
+        images, uv = np.empty((n, CROP, CROP, 3), np.uint8), np.empty((n, 21, 2), np.float32)
         side0 = (CTX - 1) / CTX_SCALE * 1.3           # the detector's crop side in context px
         angles = np.empty(n)
         for i in range(n):
             side = side0 * rng.uniform(*self.real_scale)
             cx, cy = (CTX - 1) / 2 + rng.uniform(-self.real_shift, self.real_shift, 2) * side
             angles[i] = self._angles(r["uv"][idx[i]][None], rng)[0]
-            M = real_data.crop_affine(cx, cy, side, 128, angles[i], mirror[i])
+            M = real_data.crop_affine(cx, cy, side, CROP, angles[i], mirror[i])
             images[i] = real_data.warp(r["image"][idx[i]], M)
             uv[i] = real_data.apply_affine(M, r["uv"][idx[i]])
         weight = r["weight"][idx].astype(np.float32)
@@ -191,7 +191,7 @@ class BatchMaker:
             n_real = n_other if len(self.neg_train) else 0
         images = [self.real["neg"][self.neg_train[rng.integers(0, len(self.neg_train), n_real)]]] if n_real else []
         if n_other - n_real:
-            images.append(self.procedural.sample(rng, n_other - n_real, 128)[0])
+            images.append(self.procedural.sample(rng, n_other - n_real, CROP)[0])
         for (pool, train, _), k in zip(self.hard, counts):
             if k:
                 images.append(pool[train[rng.integers(0, len(train), k)]])
@@ -226,12 +226,12 @@ def degrade(images, hand, share, rng):
     for i in np.flatnonzero(hand & (rng.random(len(images)) < share)):
         kind = rng.integers(3)
         if kind == 0:
-            side = int(128 * rng.uniform(0.15, 0.45))
-            x, y, sx, sy = rng.integers(0, 128 - side, 4)
+            side = int(CROP * rng.uniform(0.15, 0.45))
+            x, y, sx, sy = rng.integers(0, CROP - side, 4)
             images[i, y:y + side, x:x + side] = images[rng.integers(len(images)), sy:sy + side, sx:sx + side]
         elif kind == 1:
-            small = max(8, int(128 * rng.uniform(0.25, 0.6)))
-            images[i] = cv2.resize(cv2.resize(images[i], (small, small), interpolation=cv2.INTER_AREA), (128, 128),
+            small = max(8, int(CROP * rng.uniform(0.25, 0.6)))
+            images[i] = cv2.resize(cv2.resize(images[i], (small, small), interpolation=cv2.INTER_AREA), (CROP, CROP),
                                    interpolation=cv2.INTER_LINEAR)
         else:
             images[i] = np.clip(images[i] + rng.normal(0, rng.uniform(2, 8), images[i].shape), 0, 255).astype(np.uint8)
@@ -260,7 +260,7 @@ def motion_blur(images, hand, share, rng):
 PALM = (0, 1, 5, 9, 13, 17)      # joints whose polygon is the palm (MP order)
 
 
-def hand_mask(uv, size=128, forearm=True):
+def hand_mask(uv, size=CROP, forearm=True):
     """Soft silhouette (size,size) float32 in [0, 1] of a hand drawn from its 2D joints uv
     (21,2) crop px: the palm's polygon, each bone as a line 0.09 x the hand's size thick
     (skeleton.BONES), and (forearm) the forearm as a thick line from the wrist away from
@@ -300,7 +300,7 @@ def hand_occluders(images, uv, hand, share, rng, real, pool):
         M[:, 2] += centre - src_centre
         if rng.random() < 0.5:                      # mirrored about the new centre: the other side
             M = np.array([[-1.0, 0, 2 * centre[0]], [0, 1.0, 0]]) @ np.vstack([M, [0, 0, 1]])
-        occ = cv2.warpAffine(real["image"][j], M, (128, 128), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        occ = cv2.warpAffine(real["image"][j], M, (CROP, CROP), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         occ_uv = real["uv"][j] @ M[:, :2].T + M[:, 2]
         alpha = hand_mask(occ_uv)[..., None]
         images[i] = (images[i] * (1.0 - alpha) + occ * alpha + 0.5).astype(np.uint8)

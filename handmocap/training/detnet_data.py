@@ -13,6 +13,7 @@ import numpy as np
 
 from handmocap.perception.skeleton import normalize_joints
 from handmocap.training import real_data
+from handmocap.perception.crops import CROP
 
 
 DATA_DIR = Path("runs/detnet_data")
@@ -118,8 +119,8 @@ def build_real_cache(shared, path, seed=0, log=print):
                     side = float(np.clip(base * rng.uniform(0.6, 1.6), 32, min(h, w)))
                     x0, y0 = rng.uniform(0, w - side), rng.uniform(0, h - side)
                     if not _boxes_overlap((x0, y0, x0 + side, y0 + side), grown):
-                        M = real_data.crop_affine(x0 + side / 2, y0 + side / 2, side, 128)
-                        negs.append(real_data.warp(image, M, 128, replicate=True))
+                        M = real_data.crop_affine(x0 + side / 2, y0 + side / 2, side, CROP)
+                        negs.append(real_data.warp(image, M, CROP, replicate=True))
                         neg_held.append(bool(held[f]))
                         neg_arm.append(False)
                         break
@@ -129,7 +130,7 @@ def build_real_cache(shared, path, seed=0, log=print):
                         continue
                     box, others = arm_box(arm), [g for j, g in enumerate(grown) if j != k]
                     if not _boxes_overlap(box, others) and _inside_share(box, w, h) >= 0.8:   # mostly inside the frame: not a streak of repeated edge pixels
-                        negs.append(real_data.warp(image, arm, 128, replicate=True))
+                        negs.append(real_data.warp(image, arm, CROP, replicate=True))
                         neg_held.append(bool(held[f]))
                         neg_arm.append(True)
         log(f"  {video.name}: {len(hands['image'])} hands, {len(negs)} negatives so far")
@@ -153,7 +154,7 @@ def build_real_cache(shared, path, seed=0, log=print):
         add_hand(s["image"], s["uv"], s["handedness"] == "right", 1.0, False, "scenes")
     log(f"  images/scenes: {len(hands['image'])} hands")
     arrays = {k: np.asarray(v) for k, v in hands.items()}
-    arrays["neg"], arrays["neg_held"] = np.asarray(negs, np.uint8).reshape(-1, 128, 128, 3), np.asarray(neg_held)
+    arrays["neg"], arrays["neg_held"] = np.asarray(negs, np.uint8).reshape(-1, CROP, CROP, 3), np.asarray(neg_held)
     arrays["neg_arm"] = np.asarray(neg_arm, bool)
     write_npz(path, arrays)
     return arrays
@@ -184,11 +185,11 @@ def arm_crop(uv, rng, scale=1.3, reaches=(0.7, 0.85, 1.0, 1.2)):
     for reach in reaches:                     # crop edge beyond the wrist, in crop sides
         c = uv[0] + d * side * (reach + rng.uniform(-0.05, 0.1))
         if not np.any(np.all(np.abs(uv - c) < side / 2 * 1.25, axis=1)):   # margin: the crop turns by up to 30 deg
-            return real_data.crop_affine(c[0], c[1], side, 128, angle_deg=rng.uniform(-30, 30))
+            return real_data.crop_affine(c[0], c[1], side, CROP, angle_deg=rng.uniform(-30, 30))
     return None
 
 
-def arm_box(M, size=128):
+def arm_box(M, size=CROP):
     """(4,) x0 y0 x1 y1 image px bounding the crop of the (2,3) affine M (image -> crop)."""
     inv = cv2.invertAffineTransform(M)
     corners = np.array([[0, 0], [size, 0], [0, size], [size, size]], float) @ inv[:, :2].T + inv[:, 2]
@@ -206,7 +207,7 @@ def part_crop(uv, rng, scale=1.3, min_side=40.0):
     if side < min_side:
         return None
     c = uv[rng.integers(1, 21)] + rng.uniform(-0.25, 0.25, 2) * side
-    return real_data.crop_affine(c[0], c[1], side, 128, angle_deg=rng.uniform(-180, 180))
+    return real_data.crop_affine(c[0], c[1], side, CROP, angle_deg=rng.uniform(-180, 180))
 
 
 def build_part_cache(shared, path, seed=0, log=print):
@@ -219,7 +220,7 @@ def build_part_cache(shared, path, seed=0, log=print):
     def add(image, uv, held):
         M = part_crop(uv, rng)
         if M is not None:
-            parts.append(real_data.warp(image, M, 128, replicate=True))
+            parts.append(real_data.warp(image, M, CROP, replicate=True))
             held_out.append(held)
 
     for seq in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, shared):
@@ -238,7 +239,7 @@ def build_part_cache(shared, path, seed=0, log=print):
 
 def _save_crops(path, kind, crops, held_out):
     """{kind: (m,128,128,3) uint8, kind_held: (m,) bool}, also written to the .npz `path`."""
-    arrays = {kind: np.asarray(crops, np.uint8).reshape(-1, 128, 128, 3), f"{kind}_held": np.asarray(held_out, bool)}
+    arrays = {kind: np.asarray(crops, np.uint8).reshape(-1, CROP, CROP, 3), f"{kind}_held": np.asarray(held_out, bool)}
     write_npz(path, arrays)
     return arrays
 
@@ -296,12 +297,12 @@ def exit_crop(image, uv, rng, others=(), scale=1.3):
     centre[1 - axis] = uv[0, 1 - axis] + rng.uniform(-0.25, 0.25) * side
     shift = np.zeros(2)
     shift[axis] = lo                                       # frame px -> cut-frame px
-    M = real_data.crop_affine(centre[0], centre[1], side, 128, angle_deg=rng.uniform(-180, 180))
+    M = real_data.crop_affine(centre[0], centre[1], side, CROP, angle_deg=rng.uniform(-180, 180))
     for other in others:
         if np.any(np.all(np.abs(real_data.apply_affine(M, other - shift) - 63.5) < 80, axis=1)):
             return None
     kept = image[:, lo:hi] if axis == 0 else image[lo:hi]
-    return real_data.warp(np.ascontiguousarray(kept), M, 128, replicate=True)
+    return real_data.warp(np.ascontiguousarray(kept), M, CROP, replicate=True)
 
 
 def for_training_frames(shared, add_frame, progress, every_found_reliable=False):
@@ -350,7 +351,7 @@ def build_arm_cache(shared, path, seed=0, log=print):
                 box = arm_box(elbow)
                 if _boxes_overlap(box, [grown_box(o) for o in others]) or _inside_share(box, w, h) < 0.6:
                     elbow = None
-            for c in (crop, None if elbow is None else real_data.warp(image, elbow, 128, replicate=True)):
+            for c in (crop, None if elbow is None else real_data.warp(image, elbow, CROP, replicate=True)):
                 if c is not None:
                     crops.append(c)
                     held_out.append(held)
@@ -373,7 +374,7 @@ def near_crop(image, uv, rng, others=(), scale=1.3):
     h, w = image.shape[:2]
     if _boxes_overlap(box, [grown_box(o) for o in (uv, *others)]) or _inside_share(box, w, h) < 0.8:
         return None
-    return real_data.warp(image, real_data.crop_affine(cx, cy, side, 128, angle_deg=rng.uniform(-30, 30)), 128,
+    return real_data.warp(image, real_data.crop_affine(cx, cy, side, CROP, angle_deg=rng.uniform(-30, 30)), CROP,
                           replicate=True)
 
 

@@ -10,6 +10,7 @@ from handmocap.perception.skeleton import ROOT
 from handmocap.training import real_data
 from handmocap.training.detnet_batches import rotate_mirror_3d
 from handmocap.training.detnet_data import CTX, CTX_SCALE, HARD_NEGATIVES, HELD_BACK_SOURCE, load_synth
+from handmocap.perception.crops import CROP
 
 
 PALM_M = 0.093               # |wrist - middle MCP| that real held-out 3D errors are quoted at (temugeb's median)
@@ -74,7 +75,7 @@ def real_val_set(real):
     c = (CTX - 1) / 2
     images, uv = [], []
     for i in idx:
-        M = real_data.crop_affine(c, c, side, 128, 0.0, not real["right"][i])
+        M = real_data.crop_affine(c, c, side, CROP, 0.0, not real["right"][i])
         images.append(real_data.warp(real["image"][i], M))
         uv.append(real_data.apply_affine(M, real["uv"][i]))
     out = {"image": np.asarray(images), "uv": np.asarray(uv, np.float32), "source": real["source"][idx],

@@ -4,6 +4,8 @@ residual blocks as the identity), an exported ONNX file made trainable again
 """
 import numpy as np
 
+from handmocap.perception.crops import CROP
+
 
 def load_matching(net, state):
     """Load the tensors of `state` whose name and shape match `net`; -> the module names left fresh."""
@@ -54,7 +56,7 @@ def state_from_onnx(path, images):
     hooks = [m.register_forward_hook(lambda m, i, o: called.append(m))
              for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
     with torch.no_grad():
-        net(torch.zeros(1, 3, 128, 128))
+        net(torch.zeros(1, 3, CROP, CROP))
     for h in hooks:
         h.remove()
     convs = [n for n in model.graph.node if n.op_type == "Conv"]          # the graph keeps the call order

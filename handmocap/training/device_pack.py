@@ -27,6 +27,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from handmocap.perception.crops import CROP
 
 PACK_DIR = Path("runs/device/pack")
 HAND_KEYS = ("uv", "right", "weight", "held", "source", "xyz", "has_3d")
@@ -55,7 +56,7 @@ def encode_jpegs(images, quality=85):
 def decode_jpegs(data, offsets):
     """Inverse of encode_jpegs: (n,H,W,3) uint8 (the channel order they were encoded in)."""
     if len(offsets) < 2:
-        return np.zeros((0, 128, 128, 3), np.uint8)
+        return np.zeros((0, CROP, CROP, 3), np.uint8)
     return np.stack([cv2.imdecode(data[offsets[i]:offsets[i + 1]], cv2.IMREAD_COLOR) for i in range(len(offsets) - 1)])
 
 

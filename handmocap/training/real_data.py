@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from handmocap.training.pose_data import SHARED_DATA
+from handmocap.perception.crops import CROP
 
 TRAIN_VIDEOS = (
     "video/webcam/alimostafa_hand.mp4", "video/webcam/huytung228_1hand.mp4",
@@ -316,7 +317,7 @@ def crop_box(uv, scale=1.3):
     return (lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, float(max(hi - lo).max() * scale)
 
 
-def crop_affine(cx, cy, side, out=128, angle_deg=0.0, mirror=False):
+def crop_affine(cx, cy, side, out=CROP, angle_deg=0.0, mirror=False):
     """2x3 affine from image px to crop px (pixel centres at integers): the square of `side`
     centred on (cx, cy), rotated by angle (counter-clockwise in the crop), optionally mirrored."""
     s = out / side
@@ -329,7 +330,7 @@ def crop_affine(cx, cy, side, out=128, angle_deg=0.0, mirror=False):
     return np.hstack([R, t[:, None]])
 
 
-def warp(image, M, out=128, replicate=False):
+def warp(image, M, out=CROP, replicate=False):
     """Apply a crop_affine (bilinear). Outside the image: reflected, or with replicate=True
     the edge pixels repeated, as the detector's crops (crops.CropTransform.cut) repeat them."""
     import cv2
