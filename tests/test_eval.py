@@ -255,3 +255,16 @@ def test_the_mediapipe_reference_venv_is_found_or_built_or_said_absent(tmp_path,
     assert eval_cli.reference_python() == target and target.is_file()
     assert "building" in capsys.readouterr().out
     assert subprocess.run([str(target), "-c", "import six"]).returncode == 0
+
+
+def test_detector_keywords_are_what_handdetector_load_takes():
+    """handeval's model arguments reach HandDetector.load under its own keyword names (the
+    tracker's), without iknet and the ones not given."""
+    import inspect
+
+    from handmocap.perception.detector import HandDetector
+    kw = eval_cli.detector_keywords({"detnet": "a.onnx", "side_detnet": None, "finder": "f.onnx", "iknet": "i.onnx",
+                                     "max_hands": 1})
+    assert kw == {"detnet": "a.onnx", "finder": "f.onnx", "max_hands": 1}
+    params = inspect.signature(HandDetector.load).parameters
+    assert all(k in params for k in kw if k != "max_hands")

@@ -525,13 +525,9 @@ MODEL_ARGS = ("detnet", "finder", "iknet", "side_detnet")
 
 
 def detector_keywords(models):
-    """HandTracker keywords (model_paths) as HandDetector.load's: detnet -> detnet_path,
-    finder -> finder_path (iknet is not the detector's)."""
-    out = {k: v for k, v in (models or {}).items() if k not in MODEL_ARGS}
-    for k in ("detnet", "finder", "side_detnet"):
-        if (models or {}).get(k):
-            out[f"{k}_path"] = models[k]
-    return out
+    """HandTracker keywords (model_paths) as HandDetector.load's: the same names, those given
+    (iknet is not the detector's)."""
+    return {k: v for k, v in (models or {}).items() if k != "iknet" and (k not in MODEL_ARGS or v)}
 
 
 # ----------------------------------------------------------------------------- cli

@@ -207,7 +207,7 @@ TRAINING_CLIPS = "training people's wild clips (tracked; DetNet trained on every
 
 
 def run(shared, models=None, per_clip=True, jitter=0, log=print, training=False):
-    """Score the detector (HandDetector.load keywords `models`: detnet_path, finder_path and
+    """Score the detector (HandDetector.load keywords `models`: detnet, finder, side_detnet and
     settings) on every held-back person; -> (markdown table, {set: summary}). jitter: the
     clips again this many times with their frames moved by -1/0/+1 (jitter_rows).
     training=True: the training people's video/wild clips instead (no photos), to choose
