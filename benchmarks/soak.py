@@ -24,6 +24,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from drill_slow_subscriber import rss_mb  # noqa: E402  (VmRSS of a process, MB)
+
 REAL_CLIP = ROOT.parent / "shared" / "data" / "video" / "webcam" / "lujunwang_hand.mp4"
 DEMO_CLIP = ROOT / "data" / "demo" / "hand_clip.mp4"
 
@@ -36,16 +39,6 @@ def node_files(run_dir: Path) -> dict:
         except (OSError, ValueError):
             pass
     return out
-
-
-def rss_mb(pid: int) -> float | None:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        return None
-    return None
 
 
 def main():
