@@ -95,7 +95,7 @@ def warm_up(detector: HandDetector, params: dict) -> None:
             side = getattr(detnet, "crop_side", CROP)
             detnet(np.zeros((1, side, side, 3), np.uint8))
         except Exception as e:   # onnxruntime's errors (wrong input name or shape) are no ValueError
-            raise ValueError(f"DetNet model {name} does not take (N,128,128,3) crops: "
+            raise ValueError(f"DetNet model {name} does not take (N,{side},{side},3) crops: "
                              f"{str(e).splitlines()[0][:200]}") from None
     for finder, name, default in ((detector.finder, "finder", FINDER_PATH),
                                   (detector.grey_finder, "grey_finder", GREY_FINDER_PATH)):

@@ -129,7 +129,7 @@ BAD_INPUTS = {
     "corrupt DetNet": (lambda d: {"detector_params": f", detnet: {(d / 'bad.onnx').write_bytes(b'xx' * 99) and d / 'bad.onnx'}"},
                        "detector", ["bad.onnx", "cannot be loaded", "corrupt"]),
     "another network as DetNet": (lambda d: {"detector_params": f", detnet: {ROOT / 'models' / 'finder.onnx'}"},
-                                  "detector", ["finder.onnx", "does not take (N,128,128,3) crops"]),
+                                  "detector", ["finder.onnx", "is not a DetNet", "its outputs are"]),
     "camera that can't be opened": (lambda d: {"source_entry": "camera: {node: camera, params: {device: /dev/video99}, "
                                                                "required: true}"},
                                     "camera", ["/dev/video99", "no such device"]),

@@ -19,6 +19,7 @@ DETNET_LITE0 = DETNET_FLOAT32.with_name("detnet_lite0_int8.onnx")
 # network's handedness head (`side_every` frames apart): tracked on the held-back people's clips,
 # side 87.7% against lite0's own 70.6% and int8's 82.9% (docs/experiment_log.md, "Session 37")
 DETNET_PATH, DETNET_SIDE_PATH = DETNET_LITE0, DETNET_INT8
+DETNET_OUTPUTS = ("uv", "xyz", "confidence", "presence", "handedness")   # what every DetNet file gives
 DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32, "lite0": DETNET_LITE0}  # short names: detnet param
 # DetNet fine-tuned on grey crops (`handtrain detnet --grey 1`), its int8 copy: run on grey frames
 DETNET_GREY = DETNET_FLOAT32.with_name("detnet_grey_int8.onnx")
@@ -43,6 +44,10 @@ class DetNetRunner:
     def __init__(self, session, side=None, path=None):
         self.session, self.side, self.path = session, side, path     # path: the file, where loaded from one
         self.outputs = [o.name for o in session.get_outputs()]
+        missing = [o for o in DETNET_OUTPUTS if o not in self.outputs]
+        if missing:    # another network's file (a finder, IKNet): one clear error, not a KeyError per frame
+            raise ValueError(f"{path or 'this model'} is not a DetNet: its outputs are {', '.join(self.outputs)}, "
+                             f"not {', '.join(DETNET_OUTPUTS)} (`handtrain detnet` makes one)")
         # px: the crop side the file was exported for (its input's fixed side), else CROP
         side_px = session.get_inputs()[0].shape[-1]
         self.crop_side = side_px if isinstance(side_px, int) else CROP
