@@ -7,8 +7,8 @@ earlier recording as it was), `topics` (list; empty =
 every topic of the graph), `raw` and `jpeg_quality`: images (Image messages in bgr8, rgb8 or
 mono8) are stored as JPEG of that quality (benchmarks/bench_recording.py measures the size),
 unless `raw` is true or jpeg_quality null (lossless, byte for byte). Subscriptions are
-keep-all. Each message is stored with its receive time as MCAP log time and its header
-stamp as publish time. The bag is finished properly (summary, footer) on SIGINT/SIGTERM and
+keep-all. Each message is stored with its receive time as MCAP log time (`log_time: stamp`:
+its header stamp, for a replay on the source's timeline) and its header stamp as publish time. The bag is finished properly (summary, footer) on SIGINT/SIGTERM and
 when every recorded input has ended; a one-line summary is logged at the end.
 
 Splits, as rosbag2's: with `split_s` (seconds of recording) or `split_mb` (MB) the bag is a
@@ -23,7 +23,7 @@ from handmocap.runtime.bag import output_path, record
 from handmocap.runtime.node import Node, check_bool_param, check_jpeg_param, check_number_param, run
 
 PARAMS = {"output": "out.mcap", "topics": [], "overwrite": False, "raw": False, "jpeg_quality": 90,
-          "split_s": None, "split_mb": None}
+          "split_s": None, "split_mb": None, "log_time": "receipt"}
 
 
 def is_split(params: dict) -> bool:
@@ -38,6 +38,8 @@ def check_params(params: dict) -> None:
     check_bool_param("recorder", "overwrite", overwrite)
     check_bool_param("recorder", "raw", params.get("raw", PARAMS["raw"]))
     check_jpeg_param("recorder", params.get("jpeg_quality", PARAMS["jpeg_quality"]))
+    if params.get("log_time", PARAMS["log_time"]) not in ("receipt", "stamp"):
+        raise ValueError(f"recorder param log_time: expected receipt or stamp, got {params.get('log_time')!r}")
     for key in ("split_s", "split_mb"):
         check_number_param("recorder", key, params.get(key), positive=True, null=True)
     split = is_split(params)
@@ -53,7 +55,7 @@ def main(argv: list[str] | None = None, name: str = "recorder") -> None:
     p = node.params
     try:
         record(node, str(p["output"]), [p["topics"]] if isinstance(p["topics"], str) else list(p["topics"]),
-               bool(p["overwrite"]), bool(p["raw"]), p["jpeg_quality"], p["split_s"], p["split_mb"])
+               bool(p["overwrite"]), bool(p["raw"]), p["jpeg_quality"], p["split_s"], p["split_mb"], p["log_time"])
     finally:
         node.close()
 

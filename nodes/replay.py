@@ -12,6 +12,13 @@ bag's own /camera/info, or from a default field of view (camera_info.DEFAULT_HFO
 the message marks with source "default-fov". It is sent with every frame, so late subscribers
 get it at once (a latched topic by repetition). `jpeg_quality` (1-100) publishes JPEG images
 instead of raw bgr8 (null), as a network camera would.
+
+`stamps`: "capture" (default) stamps each frame with the time it is published, as a camera
+does; "source" with the source's own timeline (frame i at i / fps, a bag's frames at their
+recorded times), placed so that the last frame's stamp is the first one's publish time: at
+rate 0 the graph runs faster than the clip, and a bag recorded by stamp (the recorder's
+`log_time: stamp`) then plays back at the clip's speed, not the processing's. Not with `loop`.
+"auto": "source" at rate 0 without loop, else "capture" (launch/replay.yaml).
 """
 from __future__ import annotations
 
@@ -30,7 +37,8 @@ AHEAD = 3   # at rate 0, frames sent and not yet taken by every subscriber befor
 
 PARAMS = {"source": None, "rate": 1.0, "fps": None, "start": 0.0, "loop": False,
           "calibration": None, "frame_id": "camera", "jpeg_quality": None,
-          "duration": None}
+          "duration": None, "stamps": "capture"}
+STAMPS = ("capture", "source", "auto")
 
 
 def check_params(params: dict) -> None:
@@ -38,6 +46,10 @@ def check_params(params: dict) -> None:
     that exists, numbers that are numbers, a calibration file that reads (so a mistyped input
     starts nothing, and the recorder's earlier bag stays as it was)."""
     source = params.get("source")
+    if params.get("stamps", PARAMS["stamps"]) not in STAMPS:
+        raise ValueError(f"replay param stamps: expected capture, source or auto, got {params.get('stamps')!r}")
+    if params.get("stamps") == "source" and params.get("loop"):
+        raise ValueError("replay param stamps: source stamps a clip's own timeline once; not with loop:=true")
     if not source:
         raise ValueError("replay param source: none given; a video file, an image folder or a .mcap bag")
     if not Path(str(source)).expanduser().exists():
@@ -49,6 +61,16 @@ def check_params(params: dict) -> None:
     check_number_param("replay", "duration", params.get("duration"), positive=True, null=True)
     check_jpeg_param("replay", params.get("jpeg_quality"))
     camera_info.check_calibration_param("replay", params.get("calibration"))
+
+
+def source_span_s(source: Path, frames, start_s: float) -> float:
+    """Seconds from the first frame replayed to the last: a video's or folder's frame count over
+    its fps (`frames`), a bag's /camera/image log time span (frames None)."""
+    if frames is None:
+        from handmocap.runtime.bag import iter_messages
+        times = [ns for _, t, _, ns in iter_messages(source) if t == "Image"]
+        return max((times[-1] - times[0]) / 1e9 - start_s, 0.0) if times else 0.0
+    return max(frames.frame_count - 1 - frames.start_frame, 0) / frames.fps
 
 
 def bag_frames(path: Path, start_s: float, skip: int = 0):
@@ -131,6 +153,7 @@ def replay(node: Node) -> None:
     calib = camera_info.load_calibration(p["calibration"]) if p["calibration"] else None
     rate = float(p["rate"])
     is_bag = source.suffix == ".mcap"
+    by_source = p["stamps"] == "source" or (p["stamps"] == "auto" and rate == 0 and not p["loop"])
     progress = Progress(node)
     resume = 0 if p["loop"] else progress.resume()   # a looping replay starts its loop afresh
     if resume:
@@ -192,6 +215,10 @@ def replay(node: Node) -> None:
                     own_info = camera_info.camera_info_message(intr.K, intr.distortion, w, h, intr.source)
                 info = own_info
             stamp = time.time_ns()
+            if by_source:       # the clip's timeline, ending at the first frame's publish time
+                if sent == 0:
+                    origin = stamp - int(1e9 * (source_span_s(source, None if is_bag else frames, float(p["start"]))))
+                stamp = origin + int(1e9 * (t_src - t_first))
             node.publish("/camera/image", image_message(frame, p["jpeg_quality"]), stamp_ns=stamp, frame_id=p["frame_id"])
             node.publish("/camera/info", info, stamp_ns=stamp, frame_id=p["frame_id"])
             sent += 1

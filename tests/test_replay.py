@@ -107,3 +107,32 @@ def test_an_image_folder_includes_its_subfolders_sorted_by_path(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="no images .* subfolders included"):
         ImageFolderFrames(tmp_path / "empty")
+
+
+def test_a_bag_recorded_at_rate_0_keeps_the_clips_timing(tmp_path, run_dir):
+    """replay.yaml at rate 0 processes the demo clip faster than real time; its frames are
+    stamped on the clip's own timeline (1/30 s apart, the last at the first's publish time) and
+    the recorder logs by stamp, so the bag spans the clip's 89/30 s, and handbag play would
+    take that long, not the processing time."""
+    from handmocap.runtime import codec
+    from handmocap.runtime.bag import bag_info, iter_messages
+    bag = tmp_path / "r.mcap"
+    r = handlaunch([ROOT / "launch/replay.yaml", f"input:={ROOT / 'data/demo/hand_clip.mp4'}", f"bag:={bag}"],
+                   run_dir, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    info = bag_info(bag)
+    assert abs((info["end_ns"] - info["start_ns"]) / 1e9 - 89 / 30) < 0.002, info
+    stamps = np.array([codec.decode(p, t)["header"]["stamp_ns"] for _, t, p, _ in iter_messages(bag, ["/camera/image"])])
+    assert len(stamps) == 90 and np.allclose(np.diff(stamps) / 1e9, 1 / 30, atol=1e-5)
+    poses = [codec.decode(p, t)["header"]["stamp_ns"] for _, t, p, _ in iter_messages(bag, ["/hand/pose"])]
+    assert sorted(poses) == sorted(stamps.tolist())          # each pose carries its frame's stamp
+
+
+def test_source_stamps_refuse_a_loop():
+    from handmocap.nodes import replay
+    clip = str(ROOT / "data/demo/hand_clip.mp4")
+    with pytest.raises(ValueError, match="stamps"):
+        replay.check_params({"source": clip, "stamps": "source", "loop": True})
+    with pytest.raises(ValueError, match="capture, source or auto"):
+        replay.check_params({"source": clip, "stamps": "media"})
+    replay.check_params({"source": clip, "stamps": "auto", "loop": True})

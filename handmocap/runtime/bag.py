@@ -487,14 +487,17 @@ def summary_line(counts: dict, path: Path) -> str:
 
 
 def record(node, output: str, topics: list[str], overwrite: bool = False, raw: bool = False,
-           jpeg_quality: int | None = 90, split_s: float | None = None, split_mb: float | None = None) -> None:
+           jpeg_quality: int | None = 90, split_s: float | None = None, split_mb: float | None = None,
+           log_time: str = "receipt") -> None:
     """Record `topics` (empty: every topic) of the graph `node` is in to the bag `output` until
     the node stops (SIGINT/SIGTERM) or every recorded input has ended: the recorder node and
     `handbag record`. Subscriptions are keep-all (a bag is complete: publishers wait for it);
     images not in JPEG are stored as JPEG of `jpeg_quality` unless `raw` (or quality None).
     The bag is made (or an earlier one replaced) by the first message, not at start: a graph
-    that fails at once leaves neither an empty bag nor a replaced recording. FileExistsError
-    (before anything is subscribed) as output_path; the node is left open."""
+    that fails at once leaves neither an empty bag nor a replaced recording. log_time: each
+    message's MCAP log time is its receipt ("receipt") or its header stamp ("stamp": a replay
+    on the source's timeline then plays back at the clip's speed). FileExistsError (before
+    anything is subscribed) as output_path; the node is left open."""
     from handmocap.runtime.frames import compressed
     split = split_s is not None or split_mb is not None
     path = output_path(output, overwrite, split)
@@ -518,7 +521,8 @@ def record(node, output: str, topics: list[str], overwrite: bool = False, raw: b
             if msg.type == "Image" and not raw and jpeg_quality and msg.data["encoding"] != "jpeg":
                 payload = codec.encode(compressed(msg.data, int(jpeg_quality)), "Image")
             try:
-                bag.write(msg.topic, msg.type, payload, msg.recv_ns, msg.stamp_ns)
+                bag.write(msg.topic, msg.type, payload, msg.stamp_ns if log_time == "stamp" else msg.recv_ns,
+                          msg.stamp_ns)
             except ValueError as e:   # one channel holds one type: keep the first, skip the rest
                 if msg.topic not in refused:
                     refused.add(msg.topic)
