@@ -63,6 +63,13 @@ def wait(what, predicate, timeout_s=60.0, step=0.005):
     raise TimeoutError(f"no {what} within {timeout_s} s")
 
 
+def kill_container(run_dir: Path) -> tuple[int, int]:
+    """SIGKILL the perception container (the process ik's node file names): (its pid, the time ns)."""
+    pid, when = node_file(run_dir, "ik")["pid"], time.time_ns()
+    os.kill(pid, signal.SIGKILL)
+    return pid, when
+
+
 def one_round(clip: Path, delay: float, work: Path) -> dict:
     """Run the graph, kill the container once; the figures of this round (seconds)."""
     from handmocap.runtime import codec
@@ -75,9 +82,7 @@ def one_round(clip: Path, delay: float, work: Path) -> dict:
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait("60 poses", lambda: published(run_dir, "ik", "/hand/pose") >= 60)
-        victim = node_file(run_dir, "ik")["pid"]
-        kill_ns = time.time_ns()
-        os.kill(victim, signal.SIGKILL)
+        victim, kill_ns = kill_container(run_dir)
         # the new process: its pid in the node file (written once its nodes are up)
         wait("a new container", lambda: node_file(run_dir, "ik").get("pid") not in (None, victim))
         up_ns = time.time_ns()
