@@ -68,16 +68,18 @@ def setting(name: str, value):
 
 def check_params(params: dict) -> None:
     """The launcher's check of a graph's detector params before any process starts: the model
-    files exist and each HandDetector setting given reads as `setting` reads it (ValueError
-    naming it)."""
+    files exist, each HandDetector setting given reads as `setting` reads it, and together
+    they pass DetectorSettings' own check (ValueError naming the setting)."""
     check_file_param("detector", "detnet", params.get("detnet"), tuple(DETNET_NAMES), "handtrain detnet")
     check_file_param("detector", "side_detnet", params.get("side_detnet"), (*DETNET_NAMES, "none"), "handtrain detnet")
     check_file_param("detector", "finder", params.get("finder"), ("none",), "handtrain finder")
     check_file_param("detector", "grey_finder", params.get("grey_finder"), ("none",), "handtrain finder --grey 0.2")
     check_file_param("detector", "grey_detnet", params.get("grey_detnet"), ("none",), "handtrain detnet --grey 1")
-    for name in TUNABLE:
-        if name in params:
-            setting(name, params[name])
+    given = {name: setting(name, params[name]) for name in TUNABLE if name in params}
+    try:
+        DetectorSettings(**given)           # the ranges the settings declare (variant counts, ...)
+    except ValueError as e:
+        raise ValueError(f"detector param {e}") from None
     check_number_param("detector", "threads", params.get("threads", PARAMS["threads"]), minimum=1, integer=True)
     check_bool_param("detector", "every_frame", params.get("every_frame", PARAMS["every_frame"]))
 

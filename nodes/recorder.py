@@ -19,16 +19,11 @@ message arrives.
 """
 from __future__ import annotations
 
-from handmocap.runtime.bag import output_path, record
+from handmocap.runtime.bag import is_split, output_path, record
 from handmocap.runtime.node import Node, check_bool_param, check_jpeg_param, check_number_param, run
 
 PARAMS = {"output": "out.mcap", "topics": [], "overwrite": False, "raw": False, "jpeg_quality": 90,
           "split_s": None, "split_mb": None, "log_time": "receipt"}
-
-
-def is_split(params: dict) -> bool:
-    """Whether the recorder's params ask for a split recording (`split_s` or `split_mb`)."""
-    return params.get("split_s") is not None or params.get("split_mb") is not None
 
 
 def check_params(params: dict) -> None:
@@ -42,7 +37,7 @@ def check_params(params: dict) -> None:
         raise ValueError(f"recorder param log_time: expected receipt or stamp, got {params.get('log_time')!r}")
     for key in ("split_s", "split_mb"):
         check_number_param("recorder", key, params.get(key), positive=True, null=True)
-    split = is_split(params)
+    split = is_split(params.get("split_s"), params.get("split_mb"))
     try:
         output_path(str(params.get("output", PARAMS["output"])), overwrite, split)
     except FileExistsError as e:

@@ -865,6 +865,13 @@ def test_detector_node_params_take_null_and_booleans_as_the_class_does():
     assert setting("handedness", "right") == "right" and setting("handedness", None) is None
     with pytest.raises(ValueError, match="handedness"):
         setting("handedness", "Rigth")
+    # the launcher's check runs the settings' own ranges too, before any process starts
+    from handmocap.nodes.detector import check_params
+    with pytest.raises(ValueError, match="detector param test_time_crops must be 0..6"):
+        check_params({"test_time_crops": 99})
+    with pytest.raises(ValueError, match="detector param smooth_min_cutoff and smooth_beta"):
+        check_params({"smooth_beta": -1.0})
+    check_params({"test_time_crops": 4, "handedness": "left"})
 
 
 def test_one_settings_dataclass_for_the_detector_the_node_and_handeval():

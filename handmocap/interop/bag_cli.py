@@ -17,7 +17,7 @@ import os
 import sys
 from pathlib import Path
 
-from handmocap.runtime.bag import NotABag, bag_info, checked_info, play_messages, playable_topics, record
+from handmocap.runtime.bag import NotABag, bag_info, checked_info, is_split, play_messages, playable_topics, record
 
 SUBSCRIBER_WAIT_S = 5.0   # how long play waits for the graph's subscribers to connect
 
@@ -30,7 +30,7 @@ class CliError(Exception):
 def cmd_record(args) -> None:
     from handmocap.runtime.node import Node
     out = Path(args.output).expanduser()
-    if out.exists() and not args.overwrite and args.split_s is None and args.split_mb is None:
+    if out.exists() and not args.overwrite and not is_split(args.split_s, args.split_mb):
         raise CliError(f"{out} already exists (remove it, choose another -o, or pass --overwrite)")
     node = Node(f"bagrec{os.getpid()}", argv=[])
     try:

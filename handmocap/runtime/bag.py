@@ -447,6 +447,11 @@ def bag_info(path: str | os.PathLike) -> dict:
 IDLE_TICK_S = 0.5   # when nothing arrives this long, the recorder closes the open chunk if it is old
 
 
+def is_split(split_s: float | None, split_mb: float | None) -> bool:
+    """Whether a recording is split into files (by seconds `split_s` or megabytes `split_mb`)."""
+    return split_s is not None or split_mb is not None
+
+
 def output_path(output: str, overwrite: bool, split: bool = False) -> Path:
     """The bag path `output`; FileExistsError names the file if it exists and may not be replaced
     (with `split`: its first split)."""
@@ -469,7 +474,7 @@ def output_path(output: str, overwrite: bool, split: bool = False) -> Path:
 def open_output(output: str, overwrite: bool, split_s=None, split_mb=None):
     """A BagWriter on `output` (parent folders made), or a SplitBagWriter with `split_s` or
     `split_mb` (an earlier recording's splits under that name removed); FileExistsError as output_path."""
-    split = split_s is not None or split_mb is not None
+    split = is_split(split_s, split_mb)
     path = output_path(output, overwrite, split)
     path.parent.mkdir(parents=True, exist_ok=True)
     if not split:
@@ -499,7 +504,7 @@ def record(node, output: str, topics: list[str], overwrite: bool = False, raw: b
     on the source's timeline then plays back at the clip's speed). FileExistsError (before
     anything is subscribed) as output_path; the node is left open."""
     from handmocap.runtime.frames import compressed
-    split = split_s is not None or split_mb is not None
+    split = is_split(split_s, split_mb)
     path = output_path(output, overwrite, split)
     for topic in topics or [None]:
         node.subscribe(topic, None, mode="lossless")

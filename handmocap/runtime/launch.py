@@ -93,9 +93,10 @@ STARTUP_TIMEOUT_S = 120
 # the last frames yet): it is killed only after that, or it could lose them
 STOP_TIMEOUT_S = bus.PUBLISHER_LINGER_S + 5
 MAX_BACKOFF_S = 30
-# a respawning node that ends with an expected error (exit code 2: bad parameter, missing
-# file, a device that can't be opened) this soon after it started is not respawned: it would
-# fail the same way on every retry; later (a camera unplugged mid-run) it is
+# a node that ends this soon after it started failed while starting: with an expected error
+# (exit code 2: bad parameter, missing file, a device that can't be opened) it is not
+# respawned, as it would fail the same way on every retry (later, a camera unplugged mid-run,
+# it is); a crash this soon is a crash loop, whose respawn back-off keeps doubling
 CONFIG_ERROR_S = 10.0
 
 
@@ -636,7 +637,7 @@ class Launcher:
                 continue
             how = f"killed by signal {-c.exit_code}" if c.exit_code < 0 else f"exit code {c.exit_code}"
             if c.spec.respawn and not (c.exit_code == 2 and now - c.started <= CONFIG_ERROR_S):
-                if now - c.started > 10:
+                if now - c.started > CONFIG_ERROR_S:
                     c.backoff = c.spec.respawn_delay   # it ran a while: not a crash loop
                 self.print("handlaunch", f"{c.what} died ({how}); respawn in {c.backoff:.1f} s")
                 c.restart_at = now + c.backoff
