@@ -258,3 +258,48 @@ def test_wrong_values_reach_no_subscriber_and_count_no_false_loss(tmp_path, run_
     assert len(images) == 90 and images <= {m["header"]["stamp_ns"] for m, _ in msgs["/hand/pose"]}
     assert "not-finite" in out and "stamp-future" in out          # refused, and said (once per kind)
     assert "lost" not in out, [line for line in out.splitlines() if "lost" in line]
+
+
+def _peak_rss_mb(pid: int) -> float:
+    """A live process's peak resident set (VmHWM), MB."""
+    for line in open(f"/proc/{pid}/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError(f"no VmHWM for {pid}")
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="peak RSS is read from /proc")
+def test_oversized_messages_are_refused_unread_and_the_graph_goes_on(tmp_path, run_dir):
+    """Issue 49's drill, size part: into the looping demo chain a node sends ten 80 MiB payloads
+    on /hand/keypoints and on /hand/shape. zmq refuses each before reading it (ZMQ_MAXMSGSIZE):
+    no subscriber's peak RSS grows by more than 20 MB, each says it dropped an oversized
+    message, and poses go on (the reset connection is made again)."""
+    bag = tmp_path / "oversize.mcap"
+    lf = tmp_path / "g.yaml"
+    lf.write_text(chain_yaml(DEMO_CLIP, bag, rate=1.0, loop=True, extra_nodes=(
+        "  value_forger: {node: graphnodes.value_forger, params: {count: 40, hz: 10, oversize: 10}}")))
+    proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    subscribers = ("shape", "ik", "recorder")
+    try:
+        wait_until("30 poses", lambda: published(run_dir, "ik", "/hand/pose") >= 30)
+        pids = {n: node_file(run_dir, n)["pid"] for n in subscribers}
+        before = {n: _peak_rss_mb(pid) for n, pid in pids.items()}
+        forger = wait_until("the forger", lambda: (node_file(run_dir, "value_forger") or {}).get("pid"))
+        wait_until("the forger's end", lambda: not os.path.exists(f"/proc/{forger}"), timeout_s=120)
+        after = {n: _peak_rss_mb(pid) for n, pid in pids.items()}
+        poses = published(run_dir, "ik", "/hand/pose")
+        wait_until("30 poses after it", lambda: published(run_dir, "ik", "/hand/pose") >= poses + 30)
+        os.kill(node_file(run_dir, "replay")["pid"], signal.SIGTERM)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    growth = {n: after[n] - before[n] for n in subscribers}
+    assert all(g <= 20 for g in growth.values()), growth
+    for n in subscribers:
+        assert any(f"[{n}]" in line and "dropped an oversized message" in line for line in out.splitlines()), \
+            (n, out[-3000:])
+    assert "Traceback" not in out

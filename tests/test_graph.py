@@ -96,7 +96,6 @@ nodes:
 def test_malformed_messages_are_dropped_and_the_node_keeps_serving(tmp_path, run_dir):
     out = tmp_path / "sink.json"
     lf = write(tmp_path, "g.yaml", f"""
-env: {{HANDMOCAP_MAX_MESSAGE_BYTES: "1000000"}}
 nodes:
   fuzzer: {{node: graphnodes.fuzzer, params: {{valid: 40}}}}
   sink: {{node: graphnodes.sink, params: {{mode: all, out: {out}}}}}
@@ -105,10 +104,12 @@ nodes:
     assert r.returncode == 0, r.stdout + r.stderr
     res = sink_result(out)
     assert res["seqs"] == list(range(40))
-    assert res["dropped"] == 39 * 8
+    # (an oversized one never gets this far between processes: zmq refuses it unread, which
+    # test_drills' oversized drill shows; the codec's own size check is test_codec's)
+    assert res["dropped"] == 39 * 7
     warnings = [line for line in r.stdout.splitlines() if line.startswith("[sink] WARNING dropped")]
     # one line per (topic, cause), not one per message
-    causes = ["(msgpack:", "(schema:", "(array-size:", "(unknown-type:", "(oversized:", "(2 frames, expected 3)"]
+    causes = ["(msgpack:", "(schema:", "(array-size:", "(unknown-type:", "(2 frames, expected 3)"]
     assert len(warnings) == len(causes)
     assert all(any(c in w for w in warnings) for c in causes)
     assert "Traceback" not in r.stdout

@@ -46,6 +46,9 @@ from pathlib import Path
 
 import numpy as np
 import zmq
+from zmq.utils.monitor import recv_monitor_message
+
+from handmocap.runtime.codec import MAX_MESSAGE_BYTES
 
 EOS = b"_eos"
 CONTROL = b"\0"   # topic-frame prefix of control messages (ends of stream), on the lossless socket
@@ -55,6 +58,11 @@ QUEUE_MESSAGES = int(os.environ.get("HANDMOCAP_QUEUE", "32"))   # see Queues abo
 QUEUE_MESSAGES_SMALL = 1024   # a queue where no frame comes through it
 RECONNECT_MS = 10   # a subscriber retries a publisher not bound yet (it binds at its first send) this often
 WAIT_LOG_S = 5.0   # a publisher held by a lossless subscriber says so after this long
+# the largest message part a subscriber socket where no image comes takes (ZMQ_MAXMSGSIZE; a
+# two-hand /hand/pose is ~2.7 kB); where images may come, the codec's MAX_MESSAGE_BYTES. zmq
+# reads the size first and drops the connection before reading a byte of a larger part, so an
+# 80 MiB message costs nothing (Subscriber.reconnect makes the connection again)
+MAX_SMALL_MESSAGE_BYTES = 4 * 1024 * 1024
 STALE_S = 5.0   # a node file whose heartbeat is older than this, or whose pid is gone, is dead
 
 
@@ -345,6 +353,7 @@ class Subscriber:
         self.ctx = ctx
         self.keys = keys   # handmocap.runtime.keys.Keys: tcp connections go through CURVE sockets of their own
         self.socks: dict[tuple[str, bool], zmq.Socket] = {}   # (mode or "control", tcp) -> socket
+        self.monitors: dict[zmq.Socket, zmq.Socket] = {}      # socket -> its DISCONNECTED events (reconnect)
         self.prefixes: dict[str, list[bytes]] = {m: [] for m in self.MODES}
         self.connected: dict[str, set[str]] = {m: set() for m in (*self.MODES, "control")}
         self.frames: set[str] = set()   # modes whose socket may carry images (a short receive queue)
@@ -355,6 +364,8 @@ class Subscriber:
             s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES if mode in self.frames else QUEUE_MESSAGES_SMALL)   # Queues
             s.setsockopt(zmq.LINGER, 0)
             s.setsockopt(zmq.RECONNECT_IVL, RECONNECT_MS)
+            s.setsockopt(zmq.MAXMSGSIZE, self.max_message_bytes(mode))
+            self.monitors[s] = s.get_monitor_socket(zmq.EVENT_DISCONNECTED)
             if tcp:
                 from handmocap.runtime import keys as curve
                 curve.client(s, self.keys)
@@ -378,6 +389,31 @@ class Subscriber:
                 s.subscribe(prefix)
                 if frames:
                     s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES)
+                    s.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
+
+    def max_message_bytes(self, mode: str) -> int:
+        """The ZMQ_MAXMSGSIZE of a socket of this mode (set before it connects, as its queue)."""
+        return MAX_MESSAGE_BYTES if mode in self.frames else MAX_SMALL_MESSAGE_BYTES
+
+    def reconnect(self) -> list[str]:
+        """Make again each connection that ended since the last call, -> their endpoints. A
+        message over a socket's MAXMSGSIZE ends its connection for good (libzmq takes it for a
+        protocol error and does not retry), where a publisher that exits only pauses it; made
+        again, either resumes as soon as the publisher is there."""
+        ended = []
+        for s, monitor in self.monitors.items():
+            while True:
+                try:
+                    endpoint = recv_monitor_message(monitor, zmq.NOBLOCK)["endpoint"].decode()
+                except zmq.Again:
+                    break
+                try:
+                    s.disconnect(endpoint)
+                except zmq.ZMQError:
+                    pass   # libzmq forgot it already
+                s.connect(endpoint)
+                ended.append(endpoint)
+        return ended
 
     def connect_control(self, endpoint: str) -> None:
         """Take the control messages (ends of stream) of the publisher whose lossless socket
@@ -394,5 +430,8 @@ class Subscriber:
         return True
 
     def close(self) -> None:
+        for s, monitor in self.monitors.items():
+            s.disable_monitor()
+            monitor.close()
         for s in self.socks.values():
             s.close()

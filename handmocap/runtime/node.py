@@ -44,6 +44,7 @@ from handmocap.runtime import keys
 from handmocap.runtime.keys import Keys
 
 SCAN_S = 0.2          # how often subscribers look for new publishers
+RESET_JUDGE_S = 1.0   # an ended connection whose publisher lives on this long after was ended by zmq
 POLL_MS = 100         # longest a receive blocks before the loop looks at scans, ticks and stop
 READY_TIMEOUT_S = 60  # how long a publisher waits for its graph to start
 LOST_LOG_S = 10.0     # at most one line per topic this often about messages a keep-all input lost
@@ -197,6 +198,7 @@ class Node:
         self._zero_copy: dict = {}              # socket -> receive without copy (its last payload was large)
         self._publishers: dict[str, set[str]] = defaultdict(set)   # topic -> node names seen
         self._pub_pids: dict[str, int] = {}
+        self._resets: dict[str, float] = {}   # endpoint -> when its connection ended (judged RESET_JUDGE_S later)
         self._ended: dict[str, set[str]] = defaultdict(set)        # topic -> names that sent EOS
         self._file_lock = threading.Lock()
         self._next_scan = 0.0
@@ -635,6 +637,7 @@ class Node:
         if graph_complete and not self._graph_complete:
             self._add_graph_publishers(ready_file)
         files = bus.read_node_files(self.dir, alive_only=False)
+        self._judge_resets(files, now)
         for info in files.values():
             if info.name == self.name or not info.publishes:
                 continue
@@ -665,6 +668,27 @@ class Node:
                     self._publishers[topic].add(info.name)
         self._graph_complete = self._graph_complete or graph_complete
         return True
+
+    def _judge_resets(self, files: dict, now: float) -> None:
+        """Connections that ended are made again at once (bus.Subscriber.reconnect); one whose
+        publisher still lives, under the same pid and before its end of stream, RESET_JUDGE_S
+        later was ended by zmq over a message part above the socket's size bound: dropped
+        unread, counted and logged as such (a publisher that exits or is respawned ends its
+        connections too, and is no fault)."""
+        for endpoint in self.sub.reconnect():
+            self._resets.setdefault(endpoint, now)
+        for endpoint, since in list(self._resets.items()):
+            if now - since < RESET_JUDGE_S:
+                continue
+            del self._resets[endpoint]
+            for info in files.values():
+                if endpoint in (info.endpoint, info.lossless) and info.alive and not info.ended \
+                        and self._pub_pids.get(info.name) == info.pid \
+                        and not any(info.name in names for names in self._ended.values()):
+                    self.drop("?", "oversized-unread", f"{info.name} sent a message part over this socket's bound "
+                              f"of {bus.MAX_MESSAGE_BYTES} bytes (images) or {bus.MAX_SMALL_MESSAGE_BYTES} "
+                              f"(others); zmq refused it before reading it and the connection was made again",
+                              "an oversized message")
 
     def _launched_subscribers(self) -> dict | None:
         """{topic: [node names]} of the launched graph's subscribers (from the launcher's ready

@@ -212,9 +212,11 @@ def summary_line(name, s):
 COLOURS = ((200, 90, 30), (40, 140, 240), (60, 170, 60), (30, 30, 200), (150, 60, 150))   # BGR
 
 
-def plot_curves(curves, path, title="", xlabel="error threshold (mm)", ylabel="PCK"):
+def plot_curves(curves, path, title="", xlabel="error threshold (mm)", ylabel="PCK", auc=True):
     """PNG (OpenCV drawing, no plotting library) of PCK curves: curves = {label:
-    (thresholds, pck (T,))}; y from 0 to 1, x over the thresholds' range."""
+    (thresholds, pck (T,))}; y from 0 to 1, x over the thresholds' range. auc: each label
+    with its curve's area (PCK curves; False for other rising curves, e.g. recall against
+    false boxes)."""
     import cv2
     w, h, left, right, top, bottom = 560, 420, 60, 20, 30, 50
     img = np.full((h, w, 3), 255, np.uint8)
@@ -244,7 +246,7 @@ def plot_curves(curves, path, title="", xlabel="error threshold (mm)", ylabel="P
         cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, colour, 2, cv2.LINE_AA)
         for p in pts:
             cv2.circle(img, tuple(int(v) for v in p), 3, colour, -1, cv2.LINE_AA)
-        text = f"{label} (AUC {metrics.auc(t, c):.3f})"     # bottom right: PCK curves rise, so it is empty there
+        text = f"{label} (AUC {metrics.auc(t, c):.3f})" if auc else label   # bottom right: rising curves leave it empty
         tw = cv2.getTextSize(text, font, 0.45, 1)[0][0]
         cv2.putText(img, text, (w - right - 10 - tw, h - bottom - 12 - 18 * i), font, 0.45,
                     colour, 1, cv2.LINE_AA)

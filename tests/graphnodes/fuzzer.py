@@ -1,6 +1,7 @@
 """Test node: interleaves `valid` good Blob messages with malformed frames of every kind on
 `topic` (garbage bytes, truncated msgpack, wrong schema, wrong array size, wrong type name,
-wrong frame count, oversized), all through the node's real socket, `pause_s` between rounds."""
+wrong frame count, and `oversize` bytes where it is not 0), all through the node's real socket,
+`pause_s` between rounds."""
 import random
 import time
 
@@ -10,7 +11,7 @@ import numpy as np
 from handmocap.runtime import codec
 from handmocap.runtime.node import Node, run
 
-PARAMS = {"topic": "/test/blob", "valid": 50, "seed": 0, "oversize": 2_000_000, "pause_s": 0.02}
+PARAMS = {"topic": "/test/blob", "valid": 50, "seed": 0, "oversize": 0, "pause_s": 0.02}
 
 
 def malformed(rng: random.Random, oversize: int):
@@ -23,7 +24,8 @@ def malformed(rng: random.Random, oversize: int):
     yield "unknown-type", [b"", b"NoSuchType", good]
     yield "type-mismatch", [b"", b"Image", good]
     yield "frames", [b"", good]
-    yield "oversized", [b"", b"Blob", b"\x00" * oversize]
+    if oversize:   # (0: none; over a socket's ZMQ_MAXMSGSIZE it ends the connection, not only the message)
+        yield "oversized", [b"", b"Blob", b"\x00" * oversize]
 
 
 def main():

@@ -2,7 +2,9 @@
 `hz` for `count` rounds, each through the node's real socket with a forged header:
   a HandShape whose beta is NaN, HandKeypoints with a NaN score and with a stamp of 2**64 - 1
   (all three must be refused by every subscriber), and a valid HandKeypoints from "another
-  stream" (seq restarting at 0, frame_id camera2), which must not count as a loss."""
+  stream" (seq restarting at 0, frame_id camera2), which must not count as a loss. With
+  `oversize` > 0, after the rounds it sends that many payloads of `oversize_mib` MiB on both
+  topics, `hz` apart (each subscriber must refuse them unread and keep its other inputs)."""
 import time
 
 import numpy as np
@@ -10,7 +12,7 @@ import numpy as np
 from handmocap.runtime import codec
 from handmocap.runtime.node import Node, run
 
-PARAMS = {"count": 30, "hz": 20.0}
+PARAMS = {"count": 30, "hz": 20.0, "oversize": 0, "oversize_mib": 80}
 
 
 def hand(score=0.9):
@@ -37,6 +39,16 @@ def main():
         node.pub.send(keypoints, "HandKeypoints", codec.encode({"header": codec.header(i + 1, "camera2", now),
                                                                 "width": 640, "height": 480, "hands": []}))
         time.sleep(1 / float(node.params["hz"]))
+    huge = b"\0" * (int(node.params["oversize_mib"]) << 20)
+    for _ in range(int(node.params["oversize"])):
+        node.pub.send(keypoints, "HandKeypoints", huge)
+        node.pub.send(shape, "HandShape", huge)
+        time.sleep(1 / float(node.params["hz"]))
+    if int(node.params["oversize"]):
+        # its subscribers make their reset connections again within a scan (node.SCAN_S): its end
+        # of stream, sent sooner, would find none of them and the graph would wait for it
+        time.sleep(1.0)
+    node.log.info("sent every forged message")
     node.close()
 
 
