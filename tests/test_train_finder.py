@@ -98,3 +98,23 @@ def test_export_only_exports_at_the_side_the_checkpoint_was_trained_at(tmp_path)
     main(p.parse_args(["--export-only", "--run-dir", str(tmp_path), "--export", str(tmp_path / "f.onnx")]))
     dims = onnx.load(str(tmp_path / "f.onnx")).graph.input[0].type.tensor_type.shape.dim
     assert [d.dim_value for d in dims[2:]] == [256, 256]
+
+
+def test_a_lite0_finder_keeps_the_file_interface_and_its_checkpoint_says_its_backbone(tmp_path):
+    """The lite0 finder takes what the scratch one does ((N,3,S,S) RGB in [0,1], the ImageNet
+    scaling inside) and gives (N,5,S/8,S/8); its checkpoint's `backbone` makes --export-only
+    build a lite0 network without being told (a scratch one could not load its weights)."""
+    import argparse
+    import pytest
+    torch = pytest.importorskip("torch", reason="a lite0 finder needs the training extra (torch)")
+    from handmocap.perception.hand_finder import HandFinder
+    from handmocap.training.train_finder import add_arguments, build_model, frozen_blocks, main
+    net = build_model("lite0")
+    assert net(torch.rand(2, 3, 192, 192)).shape == (2, 5, 24, 24)
+    assert len(frozen_blocks(net, 3)) == 5 and frozen_blocks(build_model(), 3) == []
+    torch.save({"model": net.state_dict(), "iter": 1, "size": 192, "backbone": "lite0"}, tmp_path / "last.pt")
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    main(p.parse_args(["--export-only", "--run-dir", str(tmp_path), "--export", str(tmp_path / "f.onnx")]))
+    finder = HandFinder.load(tmp_path / "f.onnx")
+    assert finder.size == 192 and finder.raw(np.zeros((480, 640, 3), np.uint8))[0].shape == (5, 24, 24)
