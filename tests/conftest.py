@@ -89,14 +89,14 @@ DEMO_TRUTH = ROOT / "data" / "demo" / "hand_clip.npz"  # its ground truth (scrip
 
 
 def chain_yaml(source, bag, rate=1.0, loop=False, detector="", extra_nodes="", replay_params="", source_entry=None,
-               detector_params=""):
+               detector_params="", recorder_params=""):
     """Launch-file text of launch/demo.yaml's chain, replay -> detector -> shape -> ik ->
     recorder, written by the tests themselves (demo.yaml is the product's and changes; its
     visualizer is not under test here). `detector`: extra keys of the detector entry (e.g.
     "respawn: true"); `extra_nodes`: more node entries, one per line, two-space indented;
     `replay_params`: more replay params (", calibration: FILE"); `source_entry`: another source
     node's entry instead of replay's ("camera: {node: camera, ...}"); `detector_params`: more
-    detector params (", detnet: FILE")."""
+    detector params (", detnet: FILE"); `recorder_params`: more recorder params (", split_s: 1")."""
     source_entry = source_entry or (f'replay: {{node: replay, params: {{source: "{source}", rate: {rate}, '
                                     f'loop: {str(loop).lower()}{replay_params}}}, required: true}}')
     return f"""
@@ -105,7 +105,7 @@ nodes:
   detector: {{node: detector, params: {{every_frame: true{detector_params}}}, required: true{', ' + detector if detector else ''}}}
   shape: {{node: shape}}
   ik: {{node: ik, required: true}}
-  recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true, raw: true}}, required: true}}
+  recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true, raw: true{recorder_params}}}, required: true}}
 {extra_nodes}"""
 
 
