@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import math
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import cv2
@@ -111,6 +112,11 @@ class DetectorSettings:
     crop_scale: float = CROP_SCALE      # crop side / the hand's 21-joint box side
     # the finder's score a box needs to be proposed; lower it for a dim or distant camera
     finder_threshold: float = 0.3
+    # while hands are tracked, the finder runs beside their crops on a thread of its own (another
+    # core: onnxruntime lets go of the GIL) and its boxes are taken on the next frame, so no frame
+    # pays for the finder and DetNet one after the other (a new hand is born a frame later);
+    # False: on the frame itself, before the crops. With no track it always runs on the frame
+    finder_beside: bool = True
     # a track is lost below this mean heatmap peak too: the presence head stays sure on a crop
     # that slid onto the forearm, the heatmap peaks do drop there (0: off)
     min_confidence: float = 0.1
@@ -252,6 +258,8 @@ class HandDetector:
         self.next_id = 0
         self.frames_since_find = 0
         self.lost_last_frame = False
+        self._found_beside = None   # FoundHands of the finder run beside the last frame's crops
+        self._beside_pool = None    # its thread (made on first use)
         self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
                       "evictions": 0, "handedness_turns": 0, "second_looks": 0,
                       "side_rereads": 0, "grey_finder_runs": 0}
@@ -284,6 +292,7 @@ class HandDetector:
         self.tracks.clear()
         self.frames_since_find = 0
         self.lost_last_frame = False
+        self._found_beside = None
 
     # -------------------------------------------------------------- finding
     def _should_find(self):
@@ -291,25 +300,34 @@ class HandDetector:
                 or (self.frames_since_find >= self.redetect_every
                     and (len(self.tracks) < self.max_hands or self.reseed_iou > 0)))
 
-    def _find(self, image, finder=None):
-        """New tracks for found hands that no track covers, and the tracks re-seeded: both
-        are refined from their first prediction. finder: another than self.finder."""
-        self.stats["finder_runs"] += 1
-        self.frames_since_find = 0
-        h, w = image.shape[:2]
+    def _frame_finder(self, finder=None):
+        """The finder to run on this frame: `finder` when given, else the grey one on grey
+        frames, else self.finder (None or CENTRE: the centre square); counts a grey run."""
         if finder is None and self.grey_finder is not None and self.grey_frames:
-            finder = self.grey_finder
             self.stats["grey_finder_runs"] += 1
-        finder = finder or self.finder
-        centre = finder is None or finder == CENTRE
+            return self.grey_finder
+        return finder or self.finder
+
+    def _boxes_wanted(self):
+        # with every slot taken, one box more than the tracks: a hand they do not hold may evict one
+        return self.max_hands + (self.evict_margin is not None and len(self.tracks) >= self.max_hands)
+
+    def _find(self, image, finder=None, found=None):
+        """New tracks for found hands that no track covers, and the tracks re-seeded: both
+        are refined from their first prediction. finder: another than self.finder; found:
+        the FoundHands of a finder run beside the last frame's crops, instead of a run now."""
+        h, w = image.shape[:2]
+        centre = False
+        if found is None:
+            self.stats["finder_runs"] += 1
+            self.frames_since_find = 0
+            finder = self._frame_finder(finder)
+            centre = finder is None or finder == CENTRE
+            found = [] if centre else finder.find(image, self.finder_threshold, self._boxes_wanted())
+        found = [(f.box, f.score, f.right_prob) for f in found]
         if centre:
             half = min(h, w) / 2 / self.crop_scale      # the joint box whose crop is the centre square
             found = [(np.array([w / 2 - half, h / 2 - half, w / 2 + half, h / 2 + half]), 0.5, 0.5)]
-        else:
-            # with every slot taken, one box more than the tracks: a hand they do not hold may evict one
-            full = self.evict_margin is not None and len(self.tracks) >= self.max_hands
-            found = [(f.box, f.score, f.right_prob) for f in finder.find(
-                image, self.finder_threshold, self.max_hands + full)]
         if self.handedness is not None:             # the given side, not the finder's guess
             found = [(box, score, float(self.handedness == "right")) for box, score, _ in found]
         new, reseeded, fresh = [], [], []
@@ -431,10 +449,25 @@ class HandDetector:
         searched = self._should_find()
         if searched and (self.grey_finder is not None or self.grey_detnet is not None):
             self.grey_frames = is_grey(image_bgr)       # a camera's frames do not turn grey between finder runs
-        hands = self._track(image_bgr, self._find(image_bgr) if searched else [])
+        beside = None
+        if searched and self.finder_beside and self.tracks:
+            finder = self._frame_finder()
+            if hasattr(finder, "find_prepared"):        # a HandFinder (not CENTRE, not a test's stand-in)
+                if self._beside_pool is None:
+                    self._beside_pool = ThreadPoolExecutor(1, thread_name_prefix="finder")
+                self.stats["finder_runs"] += 1
+                self.frames_since_find = 0
+                beside = self._beside_pool.submit(finder.find_prepared, *finder.prepare(image_bgr),
+                                                  self.finder_threshold, self._boxes_wanted())
+                searched = False
+        found, self._found_beside = self._found_beside, None
+        new = self._find(image_bgr) if searched else self._find(image_bgr, found=found) if found is not None else []
+        hands = self._track(image_bgr, new)
         if searched and not self.tracks and self.fallback is not None:   # nothing became a track
             self.stats["fallback_runs"] += 1
             hands = self._track(image_bgr, self._find(image_bgr, self.fallback))
+        if beside is not None:                          # taken on the next frame, joined on this one
+            self._found_beside = beside.result()
         return hands
 
     def _track(self, image_bgr, new):

@@ -162,15 +162,26 @@ class HandFinder:
     def load(cls, path=None, threads=1, **kwargs):
         return cls(open_session(path or DEFAULT_PATH, "hand finder", "handtrain finder", threads), **kwargs)
 
+    def prepare(self, image_bgr):
+        """The network input (1,3,size,size) float32 of one BGR frame (H,W,3) uint8 and its
+        Letterbox: made on the caller's thread, whose frame buffer may not outlive the call;
+        find_prepared may then run on another."""
+        boxed, lb = letterbox(image_bgr, self.size)
+        return to_input_tensor(boxed[None, ..., ::-1]), lb
+
     def raw(self, image_bgr):
         """(5, size/STRIDE, size/STRIDE) network output for one BGR frame, and its Letterbox."""
-        boxed, lb = letterbox(image_bgr, self.size)
-        x = to_input_tensor(boxed[None, ..., ::-1])
+        x, lb = self.prepare(image_bgr)
         return self.session.run(None, {self.input_name: x})[0][0], lb
 
     def find(self, image_bgr, threshold=None, max_hands=None):
         """Hands in a BGR frame (H,W,3) uint8, best first: list of FoundHand (frame px)."""
-        maps, lb = self.raw(image_bgr)
+        return self.find_prepared(*self.prepare(image_bgr), threshold, max_hands)
+
+    def find_prepared(self, x, lb, threshold=None, max_hands=None):
+        """find() on what prepare() made (onnxruntime lets go of the GIL while it runs, so
+        this can run beside other work)."""
+        maps = self.session.run(None, {self.input_name: x})[0][0]
         out = []
         for box, score, right in decode(maps, self.threshold if threshold is None else threshold,
                                         self.max_hands if max_hands is None else max_hands, input_size=self.size):
