@@ -99,6 +99,9 @@ def add_arguments(p):
     p.add_argument("--val-every", type=int, default=1000, help="validate every n iterations (default %(default)s)")
     p.add_argument("--resume", action="store_true")
     p.add_argument("--export-only", action="store_true")
+    p.add_argument("--int8", type=Path, metavar="OUT",
+                   help="also write a static int8 copy of the exported finder here, calibrated on CALIB_FRAMES "
+                        "training frames made as training batches are (seed CALIB_SEED)")
     p.add_argument("--val-only", action="store_true", help="validate RUN_DIR/last.pt on the held-out sets and stop")
     p.add_argument("--onnx", type=Path, help="with --val-only: validate this exported finder instead")
 
@@ -429,6 +432,27 @@ def evaluate_thresholds(maps_of, images, boxes, right, thresholds):
             for th, (hits, false, ok, total) in zip(thresholds, counts)]
 
 
+CALIB_SEED = 31_415_926     # own seed: not training ([seed, it]), validation or evaluation
+CALIB_FRAMES = 512
+# the lite0 network's ops (ReLU6 is Clip, "SAME" padding Pad, the top-down path's Resize): left
+# float each costs a dequantize and requantize; the last 1x1 conv stays float32, its five
+# channels (logit, offsets, log side, side logit) have ranges one uint8 scale serves badly
+QUANTIZED_OPS = ["Conv", "Add", "Relu", "Clip", "Pad", "Resize"]
+KEEP_FLOAT = ("/head/head.2/",)
+
+
+def quantize(src, out, batches, n=CALIB_FRAMES):
+    """Write the static int8 copy of the exported finder `src` to `out`, calibrated on n frames
+    of `batches` (Batches; seed CALIB_SEED)."""
+    from handmocap.perception.onnx_models import quantize_static_int8
+    frames = np.concatenate([batches.make(np.random.default_rng([CALIB_SEED, i]), 64)[0] for i in range(-(-n // 64))])
+    quantize_static_int8(src, out, "image", frames[:n], 32, QUANTIZED_OPS,
+                         keep_float=lambda node: any(k in node.name for k in KEEP_FLOAT), reduce_range=True,
+                         note=f"static int8 QDQ ({', '.join(QUANTIZED_OPS)}; the last conv float32), {n} "
+                              f"calibration frames (seed {CALIB_SEED})")
+    print(f"wrote {out} ({Path(out).stat().st_size / 1e3:.0f} kB)")
+
+
 def export(model, path, size=INPUT_SIZE):
     import torch
     model.eval()
@@ -454,6 +478,9 @@ def main(args):
         state = torch.load(ckpt, weights_only=False)   # our own file
         model.load_state_dict(state["model"])
         export(model, args.export, state.get("size", INPUT_SIZE))   # the side it was trained at
+        if args.int8:
+            args.size = state.get("size", INPUT_SIZE)
+            quantize(args.export, args.int8, training_batches(args))
         return
     n_shards = shard_count(args.synth[0])
     have_real = (args.data / "video").is_dir()
@@ -482,21 +509,7 @@ def main(args):
             maps_of = torch_maps(model)
         print(json.dumps({name: evaluate(maps_of, *v) for name, v in val_sets.items()}, indent=1))
         return
-    synth = concat(load_synth(args.synth[0], range(n_shards - 1)),
-                   *(load_synth(d, range(shard_count(d))) for d in args.synth[1:]))
-    if have_real:
-        real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, size=args.real_size,
-                                       part=args.real_part),
-                      load_howiema_frames(args.data, held_out=False, size=args.real_size),
-                      *([load_real_frames(args.data, real_data.wild_clips(args.data, drops=real_data.WILD_DROPS),
-                                          stride=args.real_stride, size=args.real_size)]
-                        if args.wild else []))
-    else:
-        real = (np.zeros((0,)), None, None)
-    negatives = background_crops(Path(__file__).resolve().parents[2])
-    print(f"synthetic {len(synth[0])} (+{len(val_sets['synth'][0])} val), real {len(real[0])}, "
-          f"negatives {len(negatives)}")
-    batches = Batches(real, synth, negatives, args.real_zoom, args.rot90, args.grey, args.size)
+    batches = training_batches(args)
     frozen = frozen_blocks(model, args.freeze_blocks)
     for m in frozen:
         m.requires_grad_(False)
@@ -552,6 +565,26 @@ def main(args):
     print(json.dumps(results, indent=1))
     (args.run_dir / "val.json").write_text(json.dumps(results, indent=1))
     export(model, args.export, args.size)
+
+
+def training_batches(args):
+    """Batches of the training data the arguments name (synthetic frames but the first
+    folder's last shard, the training people's real frames, background crops)."""
+    n_shards = shard_count(args.synth[0])
+    synth = concat(load_synth(args.synth[0], range(n_shards - 1)),
+                   *(load_synth(d, range(shard_count(d))) for d in args.synth[1:]))
+    if (args.data / "video").is_dir():
+        real = concat(load_real_frames(args.data, TRAIN_VIDEOS, stride=args.real_stride, size=args.real_size,
+                                       part=args.real_part),
+                      load_howiema_frames(args.data, held_out=False, size=args.real_size),
+                      *([load_real_frames(args.data, real_data.wild_clips(args.data, drops=real_data.WILD_DROPS),
+                                          stride=args.real_stride, size=args.real_size)]
+                        if args.wild else []))
+    else:
+        real = (np.zeros((0,)), None, None)
+    negatives = background_crops(Path(__file__).resolve().parents[2])
+    print(f"synthetic {len(synth[0])}, real {len(real[0])}, negatives {len(negatives)}")
+    return Batches(real, synth, negatives, args.real_zoom, args.rot90, args.grey, args.size)
 
 
 def turned(images, boxes, right):
