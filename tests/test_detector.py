@@ -970,3 +970,26 @@ def test_side_every_reads_the_side_network_on_births_and_mirror_votes_only():
         # the flipped crop of a mirror vote goes to the side network alone
         assert all(k == 1 for k in pair.keypoint_crops) and max(pair.side_crops) == 2
         assert det.tracks[0].right_logit < 0 and det.tracks[0].samples > 0
+
+
+def test_the_finder_runs_beside_the_tracked_crops_on_a_thread_of_its_own():
+    """finder_beside (the default): with a hand tracked, the finder's network runs on the
+    detector's "finder" thread while DetNet reads the crops, and the hand is tracked on every
+    frame of the demo clip as it is with the finder in turn; with no track it runs on the frame."""
+    import threading
+    from handmocap.runtime.frames import read_video
+    frames = [f for _, f in zip(range(40), read_video(str(CLIP)))]
+    counts = {}
+    for beside in (True, False):
+        det = HandDetector.load(max_hands=2, finder_beside=beside)
+        threads, run = [], det.finder.find_prepared
+
+        def recorded(*args, run=run, threads=threads):
+            threads.append(threading.current_thread().name)
+            return run(*args)
+        det.finder.find_prepared = recorded
+        counts[beside] = [len(det.process(f)) for f in frames]
+        assert det.stats["finder_runs"] >= 4
+        on_thread = [t.startswith("finder") for t in threads]
+        assert (on_thread[0], any(on_thread)) == (False, beside)     # the first, with no track yet: on the frame
+    assert counts[True] == counts[False] and min(counts[True]) == 1

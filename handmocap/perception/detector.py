@@ -300,11 +300,11 @@ class HandDetector:
                 or (self.frames_since_find >= self.redetect_every
                     and (len(self.tracks) < self.max_hands or self.reseed_iou > 0)))
 
-    def _frame_finder(self, finder=None):
+    def _frame_finder(self, finder=None, count=True):
         """The finder to run on this frame: `finder` when given, else the grey one on grey
-        frames, else self.finder (None or CENTRE: the centre square); counts a grey run."""
+        frames, else self.finder (None or CENTRE: the centre square); `count`: a grey run."""
         if finder is None and self.grey_finder is not None and self.grey_frames:
-            self.stats["grey_finder_runs"] += 1
+            self.stats["grey_finder_runs"] += count
             return self.grey_finder
         return finder or self.finder
 
@@ -451,8 +451,9 @@ class HandDetector:
             self.grey_frames = is_grey(image_bgr)       # a camera's frames do not turn grey between finder runs
         beside = None
         if searched and self.finder_beside and self.tracks:
-            finder = self._frame_finder()
+            finder = self._frame_finder(count=False)
             if hasattr(finder, "find_prepared"):        # a HandFinder (not CENTRE, not a test's stand-in)
+                self._frame_finder()                    # (counted once it runs)
                 if self._beside_pool is None:
                     self._beside_pool = ThreadPoolExecutor(1, thread_name_prefix="finder")
                 self.stats["finder_runs"] += 1
