@@ -235,7 +235,7 @@ def plot_curves(curves, path, title="", xlabel="error threshold (mm)", ylabel="P
         xv = x0 + k / 5 * (x1 - x0)
         a, b = px([xv, xv], [0, 1])
         cv2.line(img, tuple(a), tuple(b), (225, 225, 225), 1)
-        cv2.putText(img, f"{xv:g}", (int(a[0]) - 10, h - bottom + 16), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(img, f"{xv:.3g}", (int(a[0]) - 10, h - bottom + 16), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.rectangle(img, tuple(px(x0, 1)), tuple(px(x1, 0)), (0, 0, 0), 1)
     cv2.putText(img, xlabel, (w // 2 - 80, h - 12), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(img, f"{ylabel}  {title}", (left, 20), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
