@@ -6,13 +6,15 @@
     handtrain finder --export-only
     handtrain finder --val-only --run-dir runs/finder_v2   # a run's last.pt on the held-out sets
     handtrain finder --val-only --onnx models/finder.onnx  # an exported finder on them
-(the shipped finder's full command is in docs/models_history.md)
+    handtrain finder --backbone lite0 --size 192 --synth S --wild   # EfficientNet-Lite0 from ImageNet weights
+    handtrain finder --export-only --int8 F_INT8 --synth S --wild  # + a static int8 copy, calibrated on training frames
+(the shipped finders' full commands are in models/README.md, "Hand finder")
 
 Data (each batch half real, half synthetic):
 * real frames of shared/data/video (webcam, dex_retargeting, tfjs_asl_hand; every n-th
   frame where MediaPipe found a hand, the first 85% of each clip, or all of it with
-  `--real-part all`; with `--wild` also every n-th frame of the video/wild clips of the
-  people not held back) with the boxes of MediaPipe's 2D pseudo-labels, and howiema_lstm_pm
+  `--real-part all`; with `--wild` also every n-th frame of the video/wild and video/wild3
+  clips of the people not held back) with the boxes of MediaPipe's 2D pseudo-labels, and howiema_lstm_pm
   subject 001 (human labels) but for sequences L8 and R8; VAL_VIDEOS, the clips' last 15%
   and L8/R8 are held out for validation; temugeb_stereo and howiema 040 (evaluation) are
   never read;
