@@ -42,6 +42,7 @@ def test_killed_detector_respawns_and_poses_resume(tmp_path, run_dir):
     assert graph.returncode == 0 and "all nodes finished" in out, out
     assert "node detector died (killed by signal 9); respawn in 0.2 s" in out and "respawning detector" in out
     assert "Traceback" not in out
+    assert "oversized" not in out       # a respawned publisher's ended connection is no oversized message
 
     msgs = read_bag(bag)
     images = np.array([m["header"]["stamp_ns"] for m, _ in msgs["/camera/image"]])

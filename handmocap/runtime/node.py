@@ -198,7 +198,7 @@ class Node:
         self._zero_copy: dict = {}              # socket -> receive without copy (its last payload was large)
         self._publishers: dict[str, set[str]] = defaultdict(set)   # topic -> node names seen
         self._pub_pids: dict[str, int] = {}
-        self._resets: dict[str, float] = {}   # endpoint -> when its connection ended (judged RESET_JUDGE_S later)
+        self._resets: dict[str, tuple] = {}   # endpoint -> (when its connection ended, {publisher: pid then})
         self._ended: dict[str, set[str]] = defaultdict(set)        # topic -> names that sent EOS
         self._file_lock = threading.Lock()
         self._next_scan = 0.0
@@ -671,21 +671,22 @@ class Node:
 
     def _judge_resets(self, files: dict, now: float) -> None:
         """Connections that ended are made again at once (bus.Subscriber.reconnect); one whose
-        publisher still lives, under the same pid and before its end of stream, RESET_JUDGE_S
-        later was ended by zmq over a message part above the socket's size bound: dropped
-        unread, counted and logged as such (a publisher that exits or is respawned ends its
-        connections too, and is no fault)."""
+        publisher, the very process it was then (pid), still lives RESET_JUDGE_S later, before
+        its end of stream, was ended by zmq over a message part above the socket's size bound:
+        dropped unread, counted and logged as such. A publisher that exits, or is killed and
+        respawned (a new pid), ends its connections too, and is no fault."""
         for endpoint in self.sub.reconnect():
-            self._resets.setdefault(endpoint, now)
-        for endpoint, since in list(self._resets.items()):
+            at_reset = {i.name: i.pid for i in files.values() if endpoint in (i.endpoint, i.lossless)}
+            self._resets.setdefault(endpoint, (now, at_reset))
+        for endpoint, (since, at_reset) in list(self._resets.items()):
             if now - since < RESET_JUDGE_S:
                 continue
             del self._resets[endpoint]
-            for info in files.values():
-                if endpoint in (info.endpoint, info.lossless) and info.alive and not info.ended \
-                        and self._pub_pids.get(info.name) == info.pid \
-                        and not any(info.name in names for names in self._ended.values()):
-                    self.drop("?", "oversized-unread", f"{info.name} sent a message part over this socket's bound "
+            for name, pid in at_reset.items():
+                info = files.get(name)
+                if info is not None and info.pid == pid and info.alive and not info.ended \
+                        and not any(name in names for names in self._ended.values()):
+                    self.drop("?", "oversized-unread", f"{name} sent a message part over this socket's bound "
                               f"of {bus.MAX_MESSAGE_BYTES} bytes (images) or {bus.MAX_SMALL_MESSAGE_BYTES} "
                               f"(others); zmq refused it before reading it and the connection was made again",
                               "an oversized message")
