@@ -1,6 +1,6 @@
 """Hand finders alone on the held-back people's clips: recall against false boxes a frame.
 
-    python scripts/finder_pr.py models/finder.onnx runs/finder_s38/finder.onnx --png research/finder_pr.png
+    python scripts/finder_pr.py models/finder.onnx models/finder_lite0_int8.onnx --png docs/finder_pr.png
 
 Each finder reads every 2nd frame of the held-back clips (real_data.WILD_HELD_BACK of
 video/wild, WILD3_HELD_BACK of video/wild3), letterboxed into its own input side, with
@@ -15,11 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
+from handmocap.perception.detector import DetectorSettings
 from handmocap.training import real_data, train_finder
 from handmocap.training.eval_cli import plot_curves
 
 THRESHOLDS = np.round(np.concatenate([np.arange(0.05, 0.3, 0.05), np.arange(0.3, 0.91, 0.1)]), 2)
-DEFAULT_THRESHOLD = 0.3      # DetectorSettings.finder_threshold
+DEFAULT_THRESHOLD = DetectorSettings.finder_threshold     # the detector's, one of THRESHOLDS
 FALSE_BOUND = 0.10           # issue 47: recall at <= 0.10 false boxes a frame
 
 

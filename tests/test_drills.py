@@ -253,6 +253,12 @@ def test_wrong_values_reach_no_subscriber_and_count_no_false_loss(tmp_path, run_
     assert "lost" not in out, [line for line in out.splitlines() if "lost" in line]
 
 
+def _wait_for_the_forger_to_end(run_dir) -> None:
+    """Until the value_forger node's process (its pid from its node file) has exited."""
+    forger = wait_until("the forger", lambda: (node_file(run_dir, "value_forger") or {}).get("pid"))
+    wait_until("the forger's end", lambda: not os.path.exists(f"/proc/{forger}"), timeout_s=120)
+
+
 def _peak_rss_mb(pid: int) -> float:
     """A live process's peak resident set (VmHWM), MB."""
     for line in open(f"/proc/{pid}/status"):
@@ -276,8 +282,7 @@ def test_oversized_messages_are_refused_unread_and_the_graph_goes_on(tmp_path, r
         wait_until("30 poses", lambda: published(run_dir, "ik", "/hand/pose") >= 30)
         pids = {n: node_file(run_dir, n)["pid"] for n in subscribers}
         before = {n: _peak_rss_mb(pid) for n, pid in pids.items()}
-        forger = wait_until("the forger", lambda: (node_file(run_dir, "value_forger") or {}).get("pid"))
-        wait_until("the forger's end", lambda: not os.path.exists(f"/proc/{forger}"), timeout_s=120)
+        _wait_for_the_forger_to_end(run_dir)
         after = {n: _peak_rss_mb(pid) for n, pid in pids.items()}
         poses = published(run_dir, "ik", "/hand/pose")
         wait_until("30 poses after it", lambda: published(run_dir, "ik", "/hand/pose") >= poses + 30)
@@ -321,8 +326,7 @@ def test_every_fault_at_once_on_a_live_graph(tmp_path, run_dir, clip):
         wait_until("30 poses", lambda: published(run_dir, "ik", "/hand/pose") >= 30)
         pids = {n: node_file(run_dir, n)["pid"] for n in nodes}
         before = {n: _peak_rss_mb(pid) for n, pid in pids.items()}
-        forger = wait_until("the forger", lambda: (node_file(run_dir, "value_forger") or {}).get("pid"))
-        wait_until("the forger's end", lambda: not os.path.exists(f"/proc/{forger}"), timeout_s=120)
+        _wait_for_the_forger_to_end(run_dir)
         kill_ns = time.time_ns()
         os.kill(pids["detector"], signal.SIGKILL)
         respawned = wait_until("a new detector", lambda: (node_file(run_dir, "detector") or {}).get("pid")

@@ -302,13 +302,18 @@ class HandDetector:
                 or (self.frames_since_find >= self.redetect_every
                     and (len(self.tracks) < self.max_hands or self.reseed_iou > 0)))
 
-    def _frame_finder(self, finder=None, count=True):
+    def _frame_finder(self, finder=None):
         """The finder to run on this frame: `finder` when given, else the grey one on grey
-        frames, else self.finder (None or CENTRE: the centre square); `count`: a grey run."""
+        frames, else self.finder (None or CENTRE: the centre square)."""
         if finder is None and self.grey_finder is not None and self.grey_frames:
-            self.stats["grey_finder_runs"] += count
             return self.grey_finder
         return finder or self.finder
+
+    def _count_finder_run(self, finder):
+        """A finder run on this frame (a grey one counted too): the finder's period starts again."""
+        self.stats["finder_runs"] += 1
+        self.stats["grey_finder_runs"] += finder is not None and finder is self.grey_finder
+        self.frames_since_find = 0
 
     def _boxes_wanted(self):
         # with every slot taken, one box more than the tracks: a hand they do not hold may evict one
@@ -321,9 +326,8 @@ class HandDetector:
         h, w = image.shape[:2]
         centre = False
         if found is None:
-            self.stats["finder_runs"] += 1
-            self.frames_since_find = 0
             finder = self._frame_finder(finder)
+            self._count_finder_run(finder)
             centre = finder is None or finder == CENTRE
             found = [] if centre else finder.find(image, self.finder_threshold, self._boxes_wanted())
         found = [(f.box, f.score, f.right_prob) for f in found]
@@ -453,18 +457,21 @@ class HandDetector:
             self.grey_frames = is_grey(image_bgr)       # a camera's frames do not turn grey between finder runs
         beside = None
         if searched and self.finder_beside and self.tracks:
-            finder = self._frame_finder(count=False)
+            finder = self._frame_finder()
             if hasattr(finder, "find_prepared"):        # a HandFinder (not CENTRE, not a test's stand-in)
-                self._frame_finder()                    # (counted once it runs)
                 if self._beside_pool is None:
                     self._beside_pool = ThreadPoolExecutor(1, thread_name_prefix="finder")
-                self.stats["finder_runs"] += 1
-                self.frames_since_find = 0
+                self._count_finder_run(finder)
                 beside = self._beside_pool.submit(finder.find_prepared, *finder.prepare(image_bgr),
                                                   self.finder_threshold, self._boxes_wanted())
                 searched = False
         found, self._found_beside = self._found_beside, None
-        new = self._find(image_bgr) if searched else self._find(image_bgr, found=found) if found is not None else []
+        if searched:
+            new = self._find(image_bgr)
+        elif found is not None:                         # the boxes of the run beside the last frame
+            new = self._find(image_bgr, found=found)
+        else:
+            new = []
         hands = self._track(image_bgr, new)
         if searched and not self.tracks and self.fallback is not None:   # nothing became a track
             self.stats["fallback_runs"] += 1

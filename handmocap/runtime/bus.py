@@ -389,7 +389,7 @@ class Subscriber:
                 s.subscribe(prefix)
                 if frames:
                     s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES)
-                    s.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
+                    s.setsockopt(zmq.MAXMSGSIZE, self.max_message_bytes(mode))
 
     def max_message_bytes(self, mode: str) -> int:
         """The ZMQ_MAXMSGSIZE of a socket of this mode (set before it connects, as its queue)."""

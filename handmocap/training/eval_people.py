@@ -219,12 +219,12 @@ def run(shared, models=None, per_clip=True, jitter=0, log=print, training=False)
     from handmocap.perception.detector import PHOTO_SETTINGS, HandDetector
     models = dict(models or {})
     video_det = HandDetector.load(**models)
-    rows, results, every_clip = [HEAD], {}, []
+    rows, results, every_clip, videos_of = [HEAD], {}, [], {}
     groups = ({TRAINING_CLIPS: real_data.WILD_DROPS} if training
               else {CLIPS: ("wild",), WILD3_CLIPS: ("wild3",)})
     for name, drops in groups.items():
-        clips = []
-        for video in real_data.wild_clips(shared, held_back=not training, drops=drops):
+        clips, videos_of[name] = [], real_data.wild_clips(shared, held_back=not training, drops=drops)
+        for video in videos_of[name]:
             clips.append(score_frames(video_det, frames_of_clip(video), fps=clip_fps(video)))
             scene = real_data.HELD_BACK_SCENES.get(video.stem)
             if per_clip:
@@ -240,7 +240,7 @@ def run(shared, models=None, per_clip=True, jitter=0, log=print, training=False)
         results["11K Hands photos (37 people, stills)"] = summary(photos)
         results["all held-back people"] = summary(merge(every_clip + [photos]))
     name = TRAINING_CLIPS if training else CLIPS
-    videos = real_data.wild_clips(shared, held_back=not training, drops=groups[name])
+    videos = videos_of[name]
     rows += [row(f"**{k}**", v) for k, v in results.items()]
     if jitter:
         runs = [results[name]]

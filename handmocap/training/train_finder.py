@@ -435,10 +435,8 @@ def evaluate_thresholds(maps_of, images, boxes, right, thresholds):
 
 CALIB_SEED = 31_415_926     # own seed: not training ([seed, it]), validation or evaluation
 CALIB_FRAMES = 512
-# the lite0 network's ops (ReLU6 is Clip, "SAME" padding Pad, the top-down path's Resize): left
-# float each costs a dequantize and requantize; the last 1x1 conv stays float32, its five
-# channels (logit, offsets, log side, side logit) have ranges one uint8 scale serves badly
-QUANTIZED_OPS = ["Conv", "Add", "Relu", "Clip", "Pad", "Resize"]
+# the last 1x1 conv stays float32: its five channels (logit, offsets, log side, side logit)
+# have ranges one uint8 scale serves badly (the other ops quantized are DetNet's lite0 ones)
 KEEP_FLOAT = ("/head/head.2/",)
 
 
@@ -446,6 +444,7 @@ def quantize(src, out, batches, n=CALIB_FRAMES):
     """Write the static int8 copy of the exported finder `src` to `out`, calibrated on n frames
     of `batches` (Batches; seed CALIB_SEED)."""
     from handmocap.perception.onnx_models import quantize_static_int8
+    from handmocap.training.quantize_detnet import QUANTIZED_OPS
     frames = np.concatenate([batches.make(np.random.default_rng([CALIB_SEED, i]), 64)[0] for i in range(-(-n // 64))])
     quantize_static_int8(src, out, "image", frames[:n], 32, QUANTIZED_OPS,
                          keep_float=lambda node: any(k in node.name for k in KEEP_FLOAT), reduce_range=True,
@@ -472,8 +471,10 @@ def main(args):
     torch.manual_seed(args.seed)
     args.run_dir.mkdir(parents=True, exist_ok=True)
     ckpt = args.run_dir / "last.pt"
-    if (args.export_only or args.val_only or args.resume) and ckpt.is_file():   # the run's own network
-        args.backbone = torch.load(ckpt, weights_only=False).get("backbone", "scratch")   # our own file
+    state = None   # the run's own checkpoint, where one is read (our own file)
+    if (args.export_only or args.val_only or args.resume) and ckpt.is_file():
+        state = torch.load(ckpt, weights_only=False)
+        args.backbone = state.get("backbone", "scratch")     # the run's own network
     init = torch.load(args.init_from, weights_only=False) if args.init_from else None   # our own file
     if init is not None:
         args.backbone, args.size = init.get("backbone", "scratch"), init.get("size", args.size)
@@ -481,7 +482,7 @@ def main(args):
     if init is not None:
         model.load_state_dict({k: v.float() for k, v in init["model"].items()})
     if args.export_only:
-        state = torch.load(ckpt, weights_only=False)   # our own file
+        state = state or torch.load(ckpt, weights_only=False)   # (no checkpoint: torch's own error names it)
         model.load_state_dict(state["model"])
         export(model, args.export, state.get("size", INPUT_SIZE))   # the side it was trained at
         if args.int8:
@@ -511,7 +512,7 @@ def main(args):
         if args.onnx:
             maps_of = onnx_maps(args.onnx)
         else:
-            model.load_state_dict(torch.load(ckpt, weights_only=False)["model"])   # our own file
+            model.load_state_dict((state or torch.load(ckpt, weights_only=False))["model"])
             maps_of = torch_maps(model)
         print(json.dumps({name: evaluate(maps_of, *v) for name, v in val_sets.items()}, indent=1))
         return
@@ -526,8 +527,7 @@ def main(args):
                                            args.backbone_lr)) if g]
     opt = torch.optim.AdamW([{"params": g} for g, _ in groups], lr=args.lr, weight_decay=1e-4)
     start = 0
-    if args.resume and ckpt.is_file():
-        state = torch.load(ckpt, weights_only=False)   # our own file
+    if args.resume and state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["opt"])
         start = state["iter"]

@@ -11,7 +11,7 @@ def warmup_cosine_lr(it: int, base_lr: float, total: int, warmup: int = 0, floor
     return base_lr * (floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t)))
 
 
-def add_pretrained_arguments(p, note=""):
+def add_pretrained_arguments(p):
     """The fine-tuning arguments of a network whose backbone starts from ImageNet weights
     (efficientnet_lite.LiteTrunk): --freeze-blocks and --backbone-lr, for DetNet's and the
     finder's trainers alike."""

@@ -39,12 +39,12 @@ def main():
         node.pub.send(keypoints, "HandKeypoints", codec.encode({"header": codec.header(i + 1, "camera2", now),
                                                                 "width": 640, "height": 480, "hands": []}))
         time.sleep(1 / float(node.params["hz"]))
-    huge = b"\0" * (int(node.params["oversize_mib"]) << 20)
-    for _ in range(int(node.params["oversize"])):
-        node.pub.send(keypoints, "HandKeypoints", huge)
-        node.pub.send(shape, "HandShape", huge)
-        time.sleep(1 / float(node.params["hz"]))
     if int(node.params["oversize"]):
+        huge = b"\0" * (int(node.params["oversize_mib"]) << 20)
+        for _ in range(int(node.params["oversize"])):
+            node.pub.send(keypoints, "HandKeypoints", huge)
+            node.pub.send(shape, "HandShape", huge)
+            time.sleep(1 / float(node.params["hz"]))
         # its subscribers make their reset connections again within a scan (node.SCAN_S): its end
         # of stream, sent sooner, would find none of them and the graph would wait for it
         time.sleep(1.0)
