@@ -61,7 +61,7 @@ WAIT_LOG_S = 5.0   # a publisher held by a lossless subscriber says so after thi
 # the largest message part a subscriber socket where no image comes takes (ZMQ_MAXMSGSIZE; a
 # two-hand /hand/pose is ~2.7 kB); where images may come, the codec's MAX_MESSAGE_BYTES. zmq
 # reads the size first and drops the connection before reading a byte of a larger part, so an
-# 80 MiB message costs nothing (Subscriber.reconnect makes the connection again)
+# 80 MiB message costs nothing (the node makes that connection again: Subscriber.connect_again)
 MAX_SMALL_MESSAGE_BYTES = 4 * 1024 * 1024
 STALE_S = 5.0   # a node file whose heartbeat is older than this, or whose pid is gone, is dead
 
@@ -395,25 +395,29 @@ class Subscriber:
         """The ZMQ_MAXMSGSIZE of a socket of this mode (set before it connects, as its queue)."""
         return MAX_MESSAGE_BYTES if mode in self.frames else MAX_SMALL_MESSAGE_BYTES
 
-    def reconnect(self) -> list[str]:
-        """Make again each connection that ended since the last call, -> their endpoints. A
-        message over a socket's MAXMSGSIZE ends its connection for good (libzmq takes it for a
-        protocol error and does not retry), where a publisher that exits only pauses it; made
-        again, either resumes as soon as the publisher is there."""
+    def ended_connections(self) -> list[tuple[zmq.Socket, str]]:
+        """(socket, endpoint) of each connection that ended since the last call. libzmq makes
+        one whose publisher exited or was respawned again by itself; one it ended over a
+        message part above the socket's MAXMSGSIZE (a protocol error) it never retries, and
+        that one alone is for connect_again: a disconnect drops what the connection delivered
+        and was not read yet, a publisher's last messages and its end of stream."""
         ended = []
         for s, monitor in self.monitors.items():
             while True:
                 try:
-                    endpoint = recv_monitor_message(monitor, zmq.NOBLOCK)["endpoint"].decode()
+                    ended.append((s, recv_monitor_message(monitor, zmq.NOBLOCK)["endpoint"].decode()))
                 except zmq.Again:
                     break
-                try:
-                    s.disconnect(endpoint)
-                except zmq.ZMQError:
-                    pass   # libzmq forgot it already
-                s.connect(endpoint)
-                ended.append(endpoint)
         return ended
+
+    @staticmethod
+    def connect_again(s: zmq.Socket, endpoint: str) -> None:
+        """Make a connection libzmq ended for good (see ended_connections) again."""
+        try:
+            s.disconnect(endpoint)
+        except zmq.ZMQError:
+            pass   # libzmq forgot it already
+        s.connect(endpoint)
 
     def connect_control(self, endpoint: str) -> None:
         """Take the control messages (ends of stream) of the publisher whose lossless socket

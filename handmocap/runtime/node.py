@@ -198,7 +198,7 @@ class Node:
         self._zero_copy: dict = {}              # socket -> receive without copy (its last payload was large)
         self._publishers: dict[str, set[str]] = defaultdict(set)   # topic -> node names seen
         self._pub_pids: dict[str, int] = {}
-        self._resets: dict[str, tuple] = {}   # endpoint -> (when its connection ended, {publisher: pid then})
+        self._resets: dict[tuple, tuple] = {}   # (socket, endpoint) -> (when it ended, {publisher: pid then})
         self._ended: dict[str, set[str]] = defaultdict(set)        # topic -> names that sent EOS
         self._file_lock = threading.Lock()
         self._next_scan = 0.0
@@ -670,22 +670,24 @@ class Node:
         return True
 
     def _judge_resets(self, files: dict, now: float) -> None:
-        """Connections that ended are made again at once (bus.Subscriber.reconnect); one whose
-        publisher, the very process it was then (pid), still lives RESET_JUDGE_S later, before
-        its end of stream, was ended by zmq over a message part above the socket's size bound:
-        dropped unread, counted and logged as such. A publisher that exits, or is killed and
-        respawned (a new pid), ends its connections too, and is no fault."""
-        for endpoint in self.sub.reconnect():
+        """A connection that ended (bus.Subscriber.ended_connections) whose publisher, the very
+        process it was then (pid), still lives RESET_JUDGE_S later, before its end of stream,
+        was ended by zmq over a message part above the socket's size bound: dropped unread,
+        counted and logged as such, and the connection made again (libzmq will not). A
+        publisher that exits, or is killed and respawned (a new pid), ends its connections
+        too: no fault, and libzmq makes them again itself."""
+        for s, endpoint in self.sub.ended_connections():
             at_reset = {i.name: i.pid for i in files.values() if endpoint in (i.endpoint, i.lossless)}
-            self._resets.setdefault(endpoint, (now, at_reset))
-        for endpoint, (since, at_reset) in list(self._resets.items()):
+            self._resets.setdefault((s, endpoint), (now, at_reset))
+        for (s, endpoint), (since, at_reset) in list(self._resets.items()):
             if now - since < RESET_JUDGE_S:
                 continue
-            del self._resets[endpoint]
+            del self._resets[(s, endpoint)]
             for name, pid in at_reset.items():
                 info = files.get(name)
                 if info is not None and info.pid == pid and info.alive and not info.ended \
                         and not any(name in names for names in self._ended.values()):
+                    self.sub.connect_again(s, endpoint)
                     self.drop("?", "oversized-unread", f"{name} sent a message part over this socket's bound "
                               f"of {bus.MAX_MESSAGE_BYTES} bytes (images) or {bus.MAX_SMALL_MESSAGE_BYTES} "
                               f"(others); zmq refused it before reading it and the connection was made again",

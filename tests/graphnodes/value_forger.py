@@ -45,9 +45,10 @@ def main():
             node.pub.send(keypoints, "HandKeypoints", huge)
             node.pub.send(shape, "HandShape", huge)
             time.sleep(1 / float(node.params["hz"]))
-        # its subscribers make their reset connections again within a scan (node.SCAN_S): its end
-        # of stream, sent sooner, would find none of them and the graph would wait for it
-        time.sleep(1.0)
+        # its subscribers make their reset connections again once they see it still alive
+        # (node.RESET_JUDGE_S, then a scan): its end of stream, sent sooner, would find none of
+        # them and the graph would wait for it
+        time.sleep(2.0)
     node.log.info("sent every forged message")
     node.close()
 
