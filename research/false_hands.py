@@ -5,8 +5,13 @@ the frame), box side (px), side and presence; every 15th is drawn (labels green,
 hand red, the frame's other outputs blue) as OUT/<clip>_<frame>.png.
 
     python research/false_hands.py Kirichovka__want [--out runs/false_hands] [--detnet F] [--set KEY=VALUE ...]
+    python research/false_hands.py held-back --montage runs/false_hands/v9.png [--finder F]
 
-A clip of video/wild, held-back or training (by its stem).
+A clip of video/wild or video/wild3, held-back or training (by its stem), or `held-back`: every
+held-back clip of both drops, one after the other. --montage also draws up to --per-clip
+false hands of each clip (evenly over its false hands; the scene three times the hand's size
+around it, the false hand's joints red, MediaPipe's green) into one picture to look at: which
+"false" hands are hands MediaPipe missed, and which are not hands at all.
 """
 import argparse
 from pathlib import Path
@@ -22,36 +27,75 @@ from handmocap.training.pose_data import SHARED_DATA
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("clip", help="stem of a video/wild clip")
+    p.add_argument("clip", help="stem of a video/wild or video/wild3 clip, or held-back (all of those clips)")
     p.add_argument("--shared", type=Path, default=SHARED_DATA)
     p.add_argument("--out", type=Path, default=Path("runs/false_hands"))
+    p.add_argument("--montage", type=Path, help="draw up to --per-clip false hands of each clip into this PNG")
+    p.add_argument("--per-clip", type=int, default=6)
     add_model_arguments(p)
     args = p.parse_args()
-    clips = [v for held in (True, False) for v in real_data.wild_clips(args.shared, held) if v.stem == args.clip]
+    every = [v for held in (True, False) for v in real_data.wild_clips(args.shared, held, drops=real_data.WILD_DROPS)]
+    clips = (real_data.wild_clips(args.shared, True, drops=real_data.WILD_DROPS) if args.clip == "held-back"
+             else [v for v in every if v.stem == args.clip])
     if not clips:
-        raise SystemExit(f"no clip {args.clip} in {args.shared / 'video' / 'wild'}")
+        raise SystemExit(f"no clip {args.clip} in {args.shared / 'video'} {'/'.join(real_data.WILD_DROPS)}")
     args.out.mkdir(parents=True, exist_ok=True)
     detector = HandDetector.load(**detector_keywords(model_paths(args)))
+    tiles = []
+    for clip in clips:
+        found = false_hands(detector, clip, args.out if args.montage is None else None)
+        print(f"{clip.stem}: {len(found)} false hands in {found.frames} frames", flush=True)
+        picks = np.linspace(0, len(found) - 1, min(args.per_clip, len(found))).round().astype(int) if found else []
+        tiles += [tile(*found[i], f"{clip.stem[:20]} {found[i][0]}") for i in picks]
+    if args.montage is not None and tiles:
+        tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % 8)
+        cv2.imwrite(str(args.montage), np.vstack([np.hstack(tiles[k:k + 8]) for k in range(0, len(tiles), 8)]))
+        print(f"wrote {args.montage} ({len(tiles)} tiles)")
+
+
+class FalseHands(list):
+    """(frame, image BGR, false hand's uv (21,2), labels (k,21,2)) of one clip; .frames read."""
+    frames = 0
+
+
+def false_hands(detector, clip, draw_to=None):
+    """Every false hand of the detector on one clip, printed as a row; with draw_to, every 15th
+    drawn whole (labels green, the false hand red, the frame's other outputs blue)."""
     detector.reset()
-    false = 0
+    found = FalseHands()
     print("frame track distance box_px side presence")
-    for f, (image, labels, _, _) in enumerate(eval_people.frames_of_clip(clips[0])):
+    for f, (image, labels, _, _) in enumerate(eval_people.frames_of_clip(clip)):
         hands = detector.process(image)
+        found.frames = f + 1
         for hand in hands:
             _, dist = eval_people.nearest_label(hand["uv"], labels)
             if dist < eval_people.ON_HAND:
                 continue
-            false += 1
+            found.append((f, image, hand["uv"], labels))
             print(f, hand["track_id"], round(dist, 2) if np.isfinite(dist) else -1,
                   round(float(np.ptp(hand["uv"], 0).max())), hand["handedness"], round(float(hand["score"]), 2))
-            if false % 15 == 1:
+            if draw_to is not None and len(found) % 15 == 1:
                 drawn = image.copy()
                 for uv, colour in [(uv, (0, 255, 0)) for uv in labels] + \
                         [(h["uv"], (0, 0, 255) if h is hand else (255, 0, 0)) for h in hands]:
                     for x, y in uv:
                         cv2.circle(drawn, (int(x), int(y)), 2, colour, -1)
-                cv2.imwrite(str(args.out / f"{args.clip}_{f}.png"), drawn)
-    print(f"{false} false hands in {f + 1} frames")
+                cv2.imwrite(str(draw_to / f"{clip.stem}_{f}.png"), drawn)
+    return found
+
+
+def tile(frame, image, uv, labels, title, side=160):
+    """The scene three times the false hand's size around it, `side` px square, the false hand's
+    joints red and the labels' green, titled."""
+    centre, size = uv.mean(0), max(float(np.ptp(uv, 0).max()), 16.0) * 3
+    a = side / size
+    M = np.array([[a, 0, side / 2 - a * centre[0]], [0, a, side / 2 - a * centre[1]]])
+    out = cv2.warpAffine(image, M, (side, side), borderValue=(90, 90, 90))
+    for points, colour in [(label, (0, 255, 0)) for label in labels] + [(uv, (0, 0, 255))]:
+        for x, y in points @ M[:, :2].T + M[:, 2]:
+            cv2.circle(out, (int(x), int(y)), 1, colour, -1)
+    cv2.putText(out, title, (2, 10), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (255, 255, 255), 1)
+    return out
 
 
 if __name__ == "__main__":

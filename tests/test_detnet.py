@@ -967,6 +967,29 @@ def test_a_side_detnet_gives_the_handedness_and_nothing_else():
     assert not np.array_equal(alone_kp["handedness"], alone_side["handedness"])
 
 
+def test_the_side_network_reads_beside_the_keypoints_and_gives_the_same_outputs():
+    """side_beside: the pair's side network runs on a thread of its own while the keypoint
+    network reads (a frame that reads the side costs the longer run, not both); every output
+    is what the pair gives in turn, mirror votes (side_only) included."""
+    pytest.importorskip("onnxruntime")
+    import threading
+    from handmocap.perception.detnet_runner import DetNetRunner
+    crops = (np.random.default_rng(3).random((4, 128, 128, 3)) * 255).astype(np.uint8)
+    beside, in_turn = DetNetRunner.load(), DetNetRunner.load()
+    beside.side_beside, in_turn.side_beside = True, False
+    threads, run = [], beside.side.session.run
+
+    def recorded(*args):
+        threads.append(threading.current_thread().name)
+        return run(*args)
+    beside.side.session = type("Recorded", (), {"run": staticmethod(recorded)})()
+    for kwargs in ({}, {"side_only": 2}):
+        a, b = beside(crops, **kwargs), in_turn(crops, **kwargs)
+        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    assert len(threads) == 2 and all(t.startswith("detnet-side") for t in threads)
+    assert np.isnan(beside(crops, read_side=False)["handedness"]).all() and len(threads) == 2
+
+
 def test_the_default_detnet_is_lite0_with_the_int8_networks_side_and_a_named_one_runs_alone():
     """DetNetRunner.load(): lite0's keypoints, the int8 network's handedness (the pair the
     held-back clips chose, session 37); a named network, or side_path "none", runs alone."""

@@ -112,13 +112,12 @@ class DetectorSettings:
     crop_scale: float = CROP_SCALE      # crop side / the hand's 21-joint box side
     # the finder's score a box needs to be proposed; lower it for a dim or distant camera
     finder_threshold: float = 0.3
-    # while hands are tracked, the finder runs beside their crops on a thread of its own (another
-    # core: onnxruntime lets go of the GIL) and its boxes are taken on the next frame, so no frame
-    # pays for the finder and DetNet one after the other; a new hand is born, and a track re-seeded,
-    # from a box a frame old. Off by default: on the held-back clips the side fell from 87.7% to
-    # 84.2% with it (4 runs each, session 38), for at most the finder's 0.4 ms on a finder frame.
-    # With no track the finder always runs on the frame itself
-    finder_beside: bool = False
+    # while hands are tracked, the finder's periodic run goes on a thread of its own (another core:
+    # onnxruntime and OpenCV let go of the GIL) while DetNet reads the tracked hands' crops of the
+    # same frame; its boxes are then taken as a run in turn's would be (a re-seeded or evicted
+    # track is read again), so a finder frame costs about the longer of the two, not their sum.
+    # With no track the finder runs on the frame first, as it must
+    finder_beside: bool = True
     # a track is lost below this mean heatmap peak too: the presence head stays sure on a crop
     # that slid onto the forearm, the heatmap peaks do drop there (0: off)
     min_confidence: float = 0.1
@@ -260,8 +259,7 @@ class HandDetector:
         self.next_id = 0
         self.frames_since_find = 0
         self.lost_last_frame = False
-        self._found_beside = None   # FoundHands of the finder run beside the last frame's crops
-        self._beside_pool = None    # its thread (made on first use)
+        self._beside_pool = None    # the finder's thread when it runs beside the crops (made on first use)
         self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
                       "evictions": 0, "handedness_turns": 0, "second_looks": 0,
                       "side_rereads": 0, "grey_finder_runs": 0}
@@ -294,7 +292,6 @@ class HandDetector:
         self.tracks.clear()
         self.frames_since_find = 0
         self.lost_last_frame = False
-        self._found_beside = None
 
     # -------------------------------------------------------------- finding
     def _should_find(self):
@@ -322,7 +319,7 @@ class HandDetector:
     def _find(self, image, finder=None, found=None):
         """New tracks for found hands that no track covers, and the tracks re-seeded: both
         are refined from their first prediction. finder: another than self.finder; found:
-        the FoundHands of a finder run beside the last frame's crops, instead of a run now."""
+        the FoundHands of a finder run beside this frame's crops, instead of a run now."""
         h, w = image.shape[:2]
         centre = False
         if found is None:
@@ -455,38 +452,31 @@ class HandDetector:
         searched = self._should_find()
         if searched and (self.grey_finder is not None or self.grey_detnet is not None):
             self.grey_frames = is_grey(image_bgr)       # a camera's frames do not turn grey between finder runs
-        beside = None
-        if searched and self.finder_beside and self.tracks:
-            finder = self._frame_finder()
-            if hasattr(finder, "find_prepared"):        # a HandFinder (not CENTRE, not a test's stand-in)
-                if self._beside_pool is None:
-                    self._beside_pool = ThreadPoolExecutor(1, thread_name_prefix="finder")
-                self._count_finder_run(finder)
-                beside = self._beside_pool.submit(finder.find_prepared, *finder.prepare(image_bgr),
-                                                  self.finder_threshold, self._boxes_wanted())
-                searched = False
-        found, self._found_beside = self._found_beside, None
-        if searched:
-            new = self._find(image_bgr)
-        elif found is not None:                         # the boxes of the run beside the last frame
-            new = self._find(image_bgr, found=found)
+        finder = self._frame_finder() if searched else None
+        if searched and self.finder_beside and self.tracks and hasattr(finder, "find"):   # not CENTRE
+            if self._beside_pool is None:
+                self._beside_pool = ThreadPoolExecutor(1, thread_name_prefix="finder")
+            self._count_finder_run(finder)
+            running = self._beside_pool.submit(finder.find, image_bgr, self.finder_threshold, self._boxes_wanted())
+            tracks = list(self.tracks)
+            read = self._run_voting(image_bgr, tracks)  # the tracked crops while the finder runs
+            hands = self._track(image_bgr, self._find(image_bgr, found=running.result()), (tracks, read))
         else:
-            new = []
-        hands = self._track(image_bgr, new)
+            hands = self._track(image_bgr, self._find(image_bgr) if searched else [])
         if searched and not self.tracks and self.fallback is not None:   # nothing became a track
             self.stats["fallback_runs"] += 1
             hands = self._track(image_bgr, self._find(image_bgr, self.fallback))
-        if beside is not None:                          # taken on the next frame, joined on this one
-            self._found_beside = beside.result()
         return hands
 
-    def _track(self, image_bgr, new):
+    def _track(self, image_bgr, new, read=None):
         """DetNet on every track's crop (the `new` ones re-cut once, from their own first
-        prediction): the frame's hands."""
+        prediction): the frame's hands. read: (tracks, DetNet's outputs on their crops) read
+        already on this frame, beside the finder; those of them still tracked and not in `new`
+        (re-seeded) keep that reading."""
         self.lost_last_frame = False
         if not self.tracks:
             return []
-        out = self._run_voting(image_bgr, self.tracks)
+        out = self._run_voting(image_bgr, self.tracks) if read is None else self._read_with(image_bgr, new, *read)
         idx = [i for i, t in enumerate(self.tracks) if t in new]
         if self.upright_step is not None and idx:
             self._turn_new_tracks(image_bgr, idx, out)
@@ -560,6 +550,15 @@ class HandDetector:
         if self.opposite_hands is not None and self.handedness is None:
             self._one_left_one_right()
         return sorted(hands, key=lambda h: h["track_id"])
+
+    def _read_with(self, image_bgr, new, read_tracks, read):
+        """DetNet's outputs on every track's crop in self.tracks' order: those of `read_tracks`
+        (outputs `read`) as read, but for the tracks in `new`; the others read now."""
+        row = {id(t): k for k, t in enumerate(read_tracks) if not any(t is n for n in new)}
+        rest = [t for t in self.tracks if id(t) not in row]
+        now, later = (self._run_voting(image_bgr, rest) if rest else {}), {id(t): k for k, t in enumerate(rest)}
+        rows = [(read, row[id(t)]) if id(t) in row else (now, later[id(t)]) for t in self.tracks]
+        return {key: np.stack([o[key][r] for o, r in rows]) for key in read}
 
     def _run_voting(self, image_bgr, tracks):
         """DetNet's outputs on the crops of `tracks`; the crops of those due a mirror vote

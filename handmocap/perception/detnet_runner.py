@@ -2,7 +2,9 @@
 a batch of crops, optionally with a second network's handedness head (the default pair)."""
 from __future__ import annotations
 
+import os
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -39,10 +41,16 @@ class DetNetRunner:
     side: another DetNetRunner whose handedness head answers instead of this one's (on the
     same crops): one network's keypoints with another's side. Called with read_side=False,
     such a pair skips the side network and gives handedness NaN (no reading); a single
-    network always reads its own head, which costs nothing more."""
+    network always reads its own head, which costs nothing more.
+    side_beside: the side network reads its crops on a thread of its own while this one reads
+    the keypoints (onnxruntime lets go of the GIL), so a frame that reads the side costs the
+    longer of the two runs, not their sum; the outputs are the same. Default: where the
+    machine has more than one core."""
 
-    def __init__(self, session, side=None, path=None):
+    def __init__(self, session, side=None, path=None, side_beside=None):
         self.session, self.side, self.path = session, side, path     # path: the file, where loaded from one
+        self.side_beside = (os.cpu_count() or 1) > 1 if side_beside is None else side_beside
+        self._side_pool = None          # its thread, made on the first side read
         self.outputs = [o.name for o in session.get_outputs()]
         missing = [o for o in DETNET_OUTPUTS if o not in self.outputs]
         if missing:    # another network's file (a finder, IKNet): one clear error, not a KeyError per frame
@@ -76,8 +84,14 @@ class DetNetRunner:
         that many rows fewer."""
         x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
         keypoints = x[:len(x) - side_only] if self.side is not None and side_only else x
+        side = None
+        if self.side is not None and read_side and self.side_beside:
+            if self._side_pool is None:
+                self._side_pool = ThreadPoolExecutor(1, thread_name_prefix="detnet-side")
+            side = self._side_pool.submit(self.side.session.run, ["handedness"], {"image": x})
         out = dict(zip(self.outputs, self.session.run(None, {"image": keypoints})))
         if self.side is not None:
-            out["handedness"] = self.side.session.run(["handedness"], {"image": x})[0] if read_side \
+            out["handedness"] = (side.result() if side is not None else
+                                 self.side.session.run(["handedness"], {"image": x}))[0] if read_side \
                 else np.full(len(x), np.nan, np.float32)
         return out
