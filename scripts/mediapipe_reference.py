@@ -129,18 +129,21 @@ def bench(args):
     a third on a shared 2-core machine)."""
     import mediapipe as mp
     images = list(frames(args.bench))[:args.frames]
-    times, found = [], []
+    times, cpu, found = [], [], []
     with mp.solutions.hands.Hands(static_image_mode=False, max_num_hands=args.max_hands,
                                   model_complexity=1) as hands:
         for frame in images:                 # a warm-up pass: models load
             hands.process(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
         for _ in range(args.repeat):
             for frame in images:
-                t = time.perf_counter()      # the BGR -> RGB conversion counts: a camera gives BGR frames
+                t, c = time.perf_counter(), time.process_time()  # the BGR -> RGB conversion counts: a camera gives BGR frames
                 result = hands.process(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
                 times.append(time.perf_counter() - t)
+                cpu.append(time.process_time() - c)
                 found.append(len(result.multi_hand_landmarks or []))
+    # median_cpu_ms: every thread of the process (above median_ms where MediaPipe's graph works on several cores)
     print(json.dumps({"median_ms": 1e3 * float(np.median(times)), "p90_ms": 1e3 * float(np.percentile(times, 90)),
+                      "median_cpu_ms": 1e3 * float(np.median(cpu)),
                       "frames": len(images), "passes": args.repeat, "hands_per_frame": float(np.mean(found)),
                       "max_hands": args.max_hands, "size": list(images[0].shape[1::-1])}))
 
@@ -148,12 +151,16 @@ def bench(args):
 def bench_paced(args):
     """MediaPipe's tracking mode on a video's frames (decoded first) delivered on a `--paced`
     fps clock, as a camera delivers them: each frame's latency = result - its due time.
-    Prints the latencies (ms, JSON), after a first pass that loads the models."""
+    Prints the latencies (ms, JSON), after a first pass that loads the models. With --stream
+    each frame is decoded when it is due instead (its decoding then counts in its latency, and
+    the process holds one frame, as a camera driver does: benchmarks/bench_memory.py)."""
+    import itertools
+
     import mediapipe as mp
-    images = list(frames(args.bench))[:args.frames]
+    images = itertools.islice(frames(args.bench), args.frames) if args.stream else list(frames(args.bench))[:args.frames]
     with mp.solutions.hands.Hands(static_image_mode=False, max_num_hands=args.max_hands,
                                   model_complexity=1) as hands:
-        for frame in images[:30]:
+        for frame in itertools.islice(frames(args.bench), 30):
             hands.process(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
         latencies, found = [], []
         t0 = time.perf_counter() + 0.1
@@ -179,6 +186,7 @@ def main():
     p.add_argument("--max-hands", type=int, default=2, help="with --bench: max_num_hands (default %(default)s)")
     p.add_argument("--repeat", type=int, default=1, help="with --bench: timed passes (default %(default)s)")
     p.add_argument("--paced", type=float, help="with --bench: frames on this fps clock; print each one's latency")
+    p.add_argument("--stream", action="store_true", help="with --paced: decode each frame when it is due, not all first")
     args = p.parse_args()
     if args.bench and args.paced:
         bench_paced(args)

@@ -967,27 +967,40 @@ def test_a_side_detnet_gives_the_handedness_and_nothing_else():
     assert not np.array_equal(alone_kp["handedness"], alone_side["handedness"])
 
 
-def test_the_side_network_reads_beside_the_keypoints_and_gives_the_same_outputs():
-    """side_beside: the pair's side network runs on a thread of its own while the keypoint
-    network reads (a frame that reads the side costs the longer run, not both); every output
-    is what the pair gives in turn, mirror votes (side_only) included."""
+def test_a_second_thread_reads_the_side_or_half_the_crops_and_the_outputs_are_the_same():
+    """beside: the pair's side network runs on a thread of its own while the keypoint network
+    reads; with no side to read, half of two or more crops go to that thread; every run reads
+    at most MAX_BATCH (2) crops. Every output is what the runner gives in turn, mirror votes
+    (side_only) included."""
     pytest.importorskip("onnxruntime")
     import threading
     from handmocap.perception.detnet_runner import DetNetRunner
-    crops = (np.random.default_rng(3).random((4, 128, 128, 3)) * 255).astype(np.uint8)
+    crops = (np.random.default_rng(3).random((5, 128, 128, 3)) * 255).astype(np.uint8)
     beside, in_turn = DetNetRunner.load(), DetNetRunner.load()
-    beside.side_beside, in_turn.side_beside = True, False
-    threads, run = [], beside.side.session.run
+    beside.beside, in_turn.beside = True, False
+    threads = []
 
-    def recorded(*args):
-        threads.append(threading.current_thread().name)
-        return run(*args)
-    beside.side.session = type("Recorded", (), {"run": staticmethod(recorded)})()
-    for kwargs in ({}, {"side_only": 2}):
+    def recorded(session):
+        class Recorded:
+            def __getattr__(self, name):
+                return getattr(session, name)
+
+            def run(self, *args):
+                threads.append((session, threading.current_thread().name, len(args[1]["image"])))
+                return session.run(*args)
+        return Recorded()
+    keypoint_session, side_session = beside.session, beside.side.session
+    beside.session, beside.side.session = recorded(keypoint_session), recorded(side_session)
+    for kwargs in ({}, {"side_only": 2}, {"read_side": False}):
         a, b = beside(crops, **kwargs), in_turn(crops, **kwargs)
-        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
-    assert len(threads) == 2 and all(t.startswith("detnet-side") for t in threads)
-    assert np.isnan(beside(crops, read_side=False)["handedness"]).all() and len(threads) == 2
+        assert a.keys() == b.keys()
+        for k in a:
+            np.testing.assert_allclose(a[k], b[k], atol=1e-5, equal_nan=True, err_msg=k)
+    on_thread = lambda t: t[1].startswith("detnet-beside")   # noqa: E731
+    sides = [t for t in threads if t[0] is side_session]
+    assert all(map(on_thread, sides)) and [t[2] for t in sides] == [2, 2, 1] * 2   # both side reads, beside
+    split = [t for t in threads if t[0] is keypoint_session][5:]     # (2 + 1 crops twice before)
+    assert sorted((on_thread(t), t[2]) for t in split) == [(False, 2), (True, 1), (True, 2)]   # 2 here, 3 there
 
 
 def test_the_default_detnet_is_lite0_with_the_int8_networks_side_and_a_named_one_runs_alone():

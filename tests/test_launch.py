@@ -239,3 +239,13 @@ def test_live_graphs_respawn_their_perception_container_at_once(name):
     clip = str(ROOT / "data" / "demo" / "hand_clip.mp4")
     offline = {p.name: p for p in processes(load_launch_file(ROOT / "launch" / "replay.yaml", {"input": clip}).nodes)}
     assert not offline["perception"].respawn
+
+
+def test_the_launcher_runs_without_numpy_or_the_codec():
+    """handlaunch only starts and watches processes: it imports no numpy, OpenCV, onnxruntime
+    or msgpack, so the supervisor of every graph stays small (benchmarks/bench_memory.py)."""
+    heavy = ("numpy", "cv2", "onnxruntime", "msgpack", "handmocap.runtime.codec")
+    r = subprocess.run([sys.executable, "-c", "import sys, handmocap.runtime.launch; "
+                        f"print([m for m in {heavy!r} if m in sys.modules])"],
+                       capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr

@@ -25,6 +25,16 @@ DETNET_OUTPUTS = ("uv", "xyz", "confidence", "presence", "handedness")   # what 
 DETNET_NAMES = {"int8": DETNET_INT8, "float32": DETNET_FLOAT32, "lite0": DETNET_LITE0}  # short names: detnet param
 # DetNet fine-tuned on grey crops (`handtrain detnet --grey 1`), its int8 copy: run on grey frames
 DETNET_GREY = DETNET_FLOAT32.with_name("detnet_grey_int8.onnx")
+# crops per onnxruntime run: its memory arena keeps the largest run's activations for good (a
+# 14-crop read, a new hand's turns, held lite0 65 MB more than 2-crop reads; benchmarks/bench_memory.py),
+# and a CPU reads a crop no faster in a larger batch
+MAX_BATCH = 2
+
+
+def run_in_batches(session, names, x):
+    """session.run(names) over crops x (N,3,S,S) float32, MAX_BATCH at a time: its outputs, concatenated."""
+    parts = [session.run(names, {"image": x[k:k + MAX_BATCH]}) for k in range(0, len(x), MAX_BATCH)]
+    return parts[0] if len(parts) == 1 else [np.concatenate(p) for p in zip(*parts)]
 
 
 def detnet_path(path=None) -> Path:
@@ -42,15 +52,17 @@ class DetNetRunner:
     same crops): one network's keypoints with another's side. Called with read_side=False,
     such a pair skips the side network and gives handedness NaN (no reading); a single
     network always reads its own head, which costs nothing more.
-    side_beside: the side network reads its crops on a thread of its own while this one reads
-    the keypoints (onnxruntime lets go of the GIL), so a frame that reads the side costs the
-    longer of the two runs, not their sum; the outputs are the same. Default: where the
+    beside: a second thread reads beside the caller's (onnxruntime lets go of the GIL): the
+    side network's crops while this one reads the keypoints, or, with no side to read, half of
+    two or more crops while the caller's thread reads the other half. A frame then costs about
+    the longer of the two runs, not their sum, where a second core is free (a crop costs the
+    same read alone or in a batch on a CPU); the outputs are the same. Default: where the
     machine has more than one core."""
 
-    def __init__(self, session, side=None, path=None, side_beside=None):
+    def __init__(self, session, side=None, path=None, beside=None):
         self.session, self.side, self.path = session, side, path     # path: the file, where loaded from one
-        self.side_beside = (os.cpu_count() or 1) > 1 if side_beside is None else side_beside
-        self._side_pool = None          # its thread, made on the first side read
+        self.beside = (os.cpu_count() or 1) > 1 if beside is None else beside
+        self._pool = None               # the second thread, made on first use
         self.outputs = [o.name for o in session.get_outputs()]
         missing = [o for o in DETNET_OUTPUTS if o not in self.outputs]
         if missing:    # another network's file (a finder, IKNet): one clear error, not a KeyError per frame
@@ -84,14 +96,22 @@ class DetNetRunner:
         that many rows fewer."""
         x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
         keypoints = x[:len(x) - side_only] if self.side is not None and side_only else x
-        side = None
-        if self.side is not None and read_side and self.side_beside:
-            if self._side_pool is None:
-                self._side_pool = ThreadPoolExecutor(1, thread_name_prefix="detnet-side")
-            side = self._side_pool.submit(self.side.session.run, ["handedness"], {"image": x})
-        out = dict(zip(self.outputs, self.session.run(None, {"image": keypoints})))
+        read_side = read_side and self.side is not None
+        side = half = None
+        if self.beside and (read_side or len(keypoints) >= 2):
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(1, thread_name_prefix="detnet-beside")
+            if read_side:
+                side = self._pool.submit(run_in_batches, self.side.session, ["handedness"], x)
+            else:
+                half = len(keypoints) // 2
+                rest = self._pool.submit(run_in_batches, self.session, None, keypoints[half:])
+                keypoints = keypoints[:half]
+        out = dict(zip(self.outputs, run_in_batches(self.session, None, keypoints)))
+        if half is not None:
+            out = {name: np.concatenate([out[name], more]) for name, more in zip(self.outputs, rest.result())}
         if self.side is not None:
             out["handedness"] = (side.result() if side is not None else
-                                 self.side.session.run(["handedness"], {"image": x}))[0] if read_side \
+                                 run_in_batches(self.side.session, ["handedness"], x))[0] if read_side \
                 else np.full(len(x), np.nan, np.float32)
         return out

@@ -1,7 +1,27 @@
 """The one way the project opens its ONNX models (CPU, onnxruntime; no torch at run time)."""
 import hashlib
 import re
+import threading
 from pathlib import Path
+
+
+_shared_arena = threading.Lock()
+_shared_arena_made = False
+
+
+def use_shared_arena(ort, opts) -> None:
+    """Make the session of `opts` allocate from one memory arena shared by every session of the
+    process (onnxruntime's environment allocator, registered on the first call): a session's
+    own arena keeps its largest run's activations for good, so a process holding several
+    networks (the detector holds six) held their sum; one arena holds about the largest
+    (a tracker on a two-hand clip: 9 MB less, benchmarks/bench_memory.py)."""
+    global _shared_arena_made
+    with _shared_arena:
+        if not _shared_arena_made:
+            info = ort.OrtMemoryInfo("Cpu", ort.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0, ort.OrtMemType.DEFAULT)
+            ort.create_and_register_allocator(info, ort.OrtArenaCfg(0, -1, -1, -1))   # onnxruntime's defaults
+            _shared_arena_made = True
+    opts.add_session_config_entry("session.use_env_allocators", "1")
 
 
 def open_session(path: Path, what: str, made_by: str, threads: int = 1):
@@ -22,6 +42,7 @@ def open_session(path: Path, what: str, made_by: str, threads: int = 1):
     # errors only: when onnxruntime folds lite0's "SAME" Pad nodes into its convolutions it
     # warns once per constant left unused (about 60 lines a load), which says nothing to a user
     opts.log_severity_level = 3
+    use_shared_arena(ort, opts)
     try:
         return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
     except Exception as e:   # onnxruntime's own exception types (InvalidProtobuf, Fail, ...) are no OSError

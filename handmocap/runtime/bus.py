@@ -44,11 +44,9 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import zmq
 from zmq.utils.monitor import recv_monitor_message
 
-from handmocap.runtime.codec import MAX_MESSAGE_BYTES
 
 EOS = b"_eos"
 CONTROL = b"\0"   # topic-frame prefix of control messages (ends of stream), on the lossless socket
@@ -288,7 +286,9 @@ class Publisher:
             frames = self._frames[(topic, type_name)] = (topic_frame(topic), type_name.encode())
         if len(payload) > LARGE:   # zero-copy only pays for large frames
             # zmq keeps this array alive while the frame is in use (pyzmq drops it from its gc
-            # thread once libzmq frees the message); a memoryview can't carry the finalizer
+            # thread once libzmq frees the message); a memoryview can't carry the finalizer.
+            # (numpy imported here: the launcher, which sends nothing, runs without it)
+            import numpy as np
             payload = np.frombuffer(payload, np.uint8)
             with self._landed:
                 self.in_flight += 1
@@ -393,6 +393,7 @@ class Subscriber:
 
     def max_message_bytes(self, mode: str) -> int:
         """The ZMQ_MAXMSGSIZE of a socket of this mode (set before it connects, as its queue)."""
+        from handmocap.runtime.codec import MAX_MESSAGE_BYTES   # (the codec's numpy: not in the launcher)
         return MAX_MESSAGE_BYTES if mode in self.frames else MAX_SMALL_MESSAGE_BYTES
 
     def ended_connections(self) -> list[tuple[zmq.Socket, str]]:

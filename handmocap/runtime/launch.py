@@ -80,7 +80,7 @@ import yaml
 
 from handmocap.runtime import bus
 from handmocap.runtime.keys import ENV as KEYS_ENV, Keys, release as release_keys
-from handmocap.runtime.node import parse_cli_params
+from handmocap.runtime.params import parse_cli_params
 
 NODE_KEYS = {"node", "params", "remap", "env", "respawn", "respawn_delay", "required", "bind", "connect", "if",
              "container"}
@@ -192,8 +192,10 @@ def resolve_module(name: str) -> str:
     return name if "." in name else f"handmocap.nodes.{name}"
 
 
-def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
-    """Parse and check a launch file completely (no process is started here)."""
+def load_launch_file(path: str | Path, cli_args: dict, import_nodes: bool = True) -> LaunchFile:
+    """Parse and check a launch file completely (no process is started here). import_nodes=False:
+    every check but those that import a node's module (its PARAMS, its check_params), for a
+    file already checked whole (`checked_apart`)."""
     path = Path(path)
     doc, lines = _load_yaml_with_lines(path)
 
@@ -281,7 +283,7 @@ def load_launch_file(path: str | Path, cli_args: dict) -> LaunchFile:
         if not isinstance(params, dict):
             raise err(kp + ("params",), f"node {name!r}: 'params' must be a mapping")
         try:
-            node_module = importlib.import_module(module)
+            node_module = importlib.import_module(module) if import_nodes else None
         except Exception as e:   # a node whose module cannot even be imported cannot run
             raise err(kp + ("node",), f"node {name!r}: module {module} fails to import: "
                       f"{type(e).__name__}: {e}") from None
@@ -767,6 +769,30 @@ def run_container(members: list[dict]) -> int:
     return fatal[0][1] if fatal else 0
 
 
+def checked_apart(path: str, cli_args: dict) -> int:
+    """load_launch_file, every node module imported and its params checked, in a forked child
+    that then exits: the launcher itself never imports the nodes' modules (numpy, OpenCV,
+    onnxruntime), so the process that supervises a graph stays small (benchmarks/bench_memory.py:
+    ~20 MB less). 0 when the file is good, else the exit code; the child printed the error."""
+    pid = os.fork()
+    if pid == 0:   # the child: no thread runs yet in the launcher, so a fork is safe here
+        code = 1
+        try:
+            load_launch_file(path, cli_args)
+            code = 0
+        except (LaunchError, ValueError, bus.RunDirError) as e:
+            print(f"handlaunch: error: {e}", file=sys.stderr)
+            code = 2
+        except BaseException:
+            import traceback
+            traceback.print_exc()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+    return os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--container"]:   # started by a launcher: HANDMOCAP_CONTAINER names its nodes
@@ -775,8 +801,11 @@ def main(argv: list[str] | None = None) -> int:
         print(__doc__.strip())
         return 0 if argv else 2
     try:
-        launch = load_launch_file(argv[0], parse_cli_params(argv[1:]))
-        return Launcher(launch).run()
+        cli_args = parse_cli_params(argv[1:])
+        code = checked_apart(argv[0], cli_args)
+        if code:
+            return code
+        return Launcher(load_launch_file(argv[0], cli_args, import_nodes=False)).run()
     except (LaunchError, ValueError, bus.RunDirError) as e:
         print(f"handlaunch: error: {e}", file=sys.stderr)
         return 2

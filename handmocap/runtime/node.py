@@ -36,12 +36,12 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
 import zmq
 
 from handmocap.runtime import bus, codec
 from handmocap.runtime import keys
 from handmocap.runtime.keys import Keys
+from handmocap.runtime.params import parse_cli_params
 
 SCAN_S = 0.2          # how often subscribers look for new publishers
 RESET_JUDGE_S = 1.0   # an ended connection whose publisher lives on this long after was ended by zmq
@@ -129,19 +129,6 @@ def check_bool_param(node: str, key: str, value) -> None:
     string, which Python would take as true)."""
     if not isinstance(value, bool):
         raise ValueError(f"{node} param {key}: expected true or false, got {value!r}")
-
-
-def parse_cli_params(argv: list[str]) -> dict:
-    """`name:=value` pairs, values parsed as YAML scalars (so 2 is an int, true a bool)."""
-    out = {}
-    for arg in argv:
-        if ":=" not in arg:
-            raise ValueError(f"expected name:=value, got {arg!r}")
-        k, v = arg.split(":=", 1)
-        if k in out:   # the last would silently win
-            raise ValueError(f"{k} is given twice: {k}:={out[k]!r} and {arg!r}")
-        out[k] = yaml.safe_load(v) if v else ""
-    return out
 
 
 class Node:
@@ -689,7 +676,7 @@ class Node:
                         and not any(name in names for names in self._ended.values()):
                     self.sub.connect_again(s, endpoint)
                     self.drop("?", "oversized-unread", f"{name} sent a message part over this socket's bound "
-                              f"of {bus.MAX_MESSAGE_BYTES} bytes (images) or {bus.MAX_SMALL_MESSAGE_BYTES} "
+                              f"of {codec.MAX_MESSAGE_BYTES} bytes (images) or {bus.MAX_SMALL_MESSAGE_BYTES} "
                               f"(others); zmq refused it before reading it and the connection was made again",
                               "an oversized message")
 
