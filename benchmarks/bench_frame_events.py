@@ -1,6 +1,6 @@
 """What the slow frames carry: HandTracker.process's CPU time per frame, by what happened on it.
 
-    python benchmarks/bench_frame_events.py [--videos V ...] [--max-hands 2] [--passes 3] [--set KEY=VALUE ...]
+    python benchmarks/bench_frame_events.py [--videos V ...] [--max-hands 2] [--passes 3] [--in-turn] [--set KEY=VALUE ...]
 
 For each video (default: the two-hand real clip of bench_tracker.py, or the demo clip where
 the data pack is absent), `--passes` passes over its first MAX_FRAMES frames after a warm-up
@@ -12,6 +12,8 @@ found hand, a found hand refused at birth (unborn), a mirror vote (a track's age
 second look, a side re-read, and the number of DetNet crops. Printed: p50 / p95 / p99 of all
 frames, of the frames with each event and of the frames with none; how many frames carry
 two periodic events at once; and what the slowest 10% of frames (wall time) carry against the rest.
+--in-turn: one thread, as before session 39: the finder, the side network and each crop
+read one after the other on the caller's thread (finder_beside off, DetNetRunner.beside off).
 Issue 51's first item (spread the periodic work) is read here; the in-graph tail it makes is
 benchmarks/bench_tail.py's.
 """
@@ -83,10 +85,13 @@ def main():
     p.add_argument("--videos", nargs="+", type=Path, default=None)
     p.add_argument("--max-hands", type=int, default=2)
     p.add_argument("--passes", type=int, default=3)
+    p.add_argument("--in-turn", action="store_true", help="everything on the caller's thread (no second thread)")
     add_model_arguments(p)
     args = p.parse_args()
     from handmocap.perception.tracker import HandTracker
     tracker = HandTracker(**{**model_paths(args), "max_hands": args.max_hands})
+    if args.in_turn:
+        tracker.detector.finder_beside = tracker.detector.detnet.beside = False
     for video in args.videos or default_videos():
         frames = read_frames(video)
         frame_events(tracker, frames)                    # warm-up
@@ -95,7 +100,8 @@ def main():
         events = {k: np.concatenate([r[1][k] for r in runs]) for k in EVENTS}
         crops = np.concatenate([r[2] for r in runs])
         wall = np.concatenate([r[3] for r in runs])
-        print(f"\n{video.name}, max hands {args.max_hands}, {len(frames)} frames x {args.passes} passes: "
+        print(f"\n{video.name}, max hands {args.max_hands}, {len(frames)} frames x {args.passes} passes"
+              f"{', in turn on one thread' if args.in_turn else ''}: "
               f"ms a frame p50 / p95 / p99")
         print("| frames | share | CPU ms | wall ms | crops a frame |\n|---|---|---|---|---|")
         print(f"| all | 100% | {quantiles(ms)} | {quantiles(wall)} | {crops.mean():.1f} |")

@@ -9,8 +9,8 @@ max_num_hands) fed the same frames on a 30 fps clock in one process, each decode
 (scripts/mediapipe_reference.py --paced --stream; its venv found or built as bench_tracker.py does).
 Every SAMPLE_S each process's PSS (its private pages plus its share of the pages it shares:
 the libraries every process of the graph maps count once in the sum) and RSS are read from
-/proc/PID/smaps_rollup; printed: each process's largest, and the largest sum over the graph's
-processes at one sample. Default clip: the data pack's two-hand clip (bench_tracker.REAL_CLIPS),
+/proc/PID/smaps_rollup; printed: the sample where the sum over the graph's processes was
+largest, process by process (MediaPipe's likewise). Default clip: the data pack's two-hand clip (bench_tracker.REAL_CLIPS),
 else the demo clip.
 """
 from __future__ import annotations
@@ -76,22 +76,22 @@ def process_name(pid: int) -> str:
 
 
 def sampled(cmd: list[str], env: dict | None = None) -> tuple[dict, float]:
-    """Run cmd to its end, sampling its processes: ({name: (largest PSS, largest RSS)}, largest
-    PSS sum at one sample)."""
+    """Run cmd to its end, sampling its processes: ({name: (PSS, RSS)} at the sample where their
+    PSS sum was largest, that sum). (A process that lives a moment, such as handlaunch's forked
+    checker at the start, counts only if it is there at that sample.)"""
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     peak: dict[str, tuple[float, float]] = {}
     total = 0.0
     while proc.poll() is None:
-        now = 0.0
+        now: dict[str, tuple[float, float]] = {}
         for pid in descendants(proc.pid):
             mem = memory_mb(pid)
-            if mem is None:
-                continue
-            name = process_name(pid)
-            old = peak.get(name, (0.0, 0.0))
-            peak[name] = (max(old[0], mem[0]), max(old[1], mem[1]))
-            now += mem[0]
-        total = max(total, now)
+            if mem is not None:
+                name = process_name(pid)
+                old = now.get(name, (0.0, 0.0))
+                now[name] = (old[0] + mem[0], old[1] + mem[1])
+        if sum(pss for pss, _ in now.values()) > total:
+            peak, total = now, sum(pss for pss, _ in now.values())
         time.sleep(SAMPLE_S)
     if proc.returncode:
         raise SystemExit(f"{' '.join(cmd[:3])} ... failed: {proc.stderr.read()[-400:]}")
@@ -127,12 +127,12 @@ nodes:
                                          "--max-hands", str(args.max_hands)]) if python else ({}, float("nan")))
     print(f"{video.name}, {args.frames} frames at 30 fps, max hands {args.max_hands}"
           + (", every topic recorded" if args.record_all else ""))
-    print("| process | largest PSS, MB | largest RSS, MB |\n|---|---|---|")
+    print("| process | PSS, MB | RSS, MB |\n|---|---|---|")
     for side, peak in (("graph", ours), ("MediaPipe", theirs)):
         for name, (pss, rss) in sorted(peak.items(), key=lambda kv: -kv[1][0]):
             print(f"| {side}: {name} | {pss:.0f} | {rss:.0f} |")
-    print(f"| **graph, all processes at once** | **{ours_total:.0f}** | |")
-    print(f"| **MediaPipe** | **{theirs_total:.0f}** | |")
+    print(f"| **graph, all its processes** | **{ours_total:.0f}** | |")
+    print(f"| **MediaPipe, all its processes** | **{theirs_total:.0f}** | |")
     print(f"graph / MediaPipe PSS: {ours_total / theirs_total:.2f}")
 
 

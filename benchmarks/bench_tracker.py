@@ -1,6 +1,6 @@
 """HandTracker.process against MediaPipe Hands, matched, and the tracker's parts.
 
-    python benchmarks/bench_tracker.py [--videos V ...] [--max-hands 1 2] [--rounds 5] [--repeat 1] [--threads 1]
+    python benchmarks/bench_tracker.py [--videos V ...] [--max-hands 1 2] [--rounds 5] [--repeat 1] [--threads 1] [--in-turn]
                                        [--detnet PATH] [--finder PATH] [--iknet int8|float32|PATH]
                                        [--set KEY=VALUE ...]
 
@@ -21,8 +21,12 @@ onnxruntime call, clamp_to_limits and pose_fields inside it; "rest" is the total
 three stages), the detector alone (HandDetector.process), DetNet alone on one crop and on a
 batch of 16 (crops/s) and the hand finder on a frame. The first pass over a clip is a
 warm-up. Wall time counts waiting for the CPU on a shared machine; CPU time
-(time.process_time, one onnxruntime thread) is what a frame costs, which is what an idle
-core would take.
+(time.process_time, every thread of the process, one onnxruntime thread per network) is what
+a frame costs. Since session 39 the detector reads on a second thread too where the machine
+has two cores (the finder beside the crops, the side network beside the keypoints, half the
+crops beside the other half): wall time is then below CPU time where the second core is free.
+MediaPipe's legacy solution works on one core (its CPU time per frame equals its wall time
+here); `--in-turn` runs ours on one thread as well.
 """
 import argparse
 import json
@@ -73,6 +77,8 @@ def matched(videos, max_hands_list, args, settings):
         for max_hands in max_hands_list:
             tracker = HandTracker(detnet=args.detnet, side_detnet=args.side_detnet, finder=args.finder, iknet=args.iknet,
                                   threads=args.threads, max_hands=max_hands, **settings)
+            if args.in_turn:
+                one_thread(tracker.detector)
             hands = [len(tracker.process(f)) for f in frames]         # warm-up; the hands are tracked from here on
             ours, theirs, failed = [], [], None
             for _ in range(args.rounds):
@@ -89,21 +95,32 @@ def matched(videos, max_hands_list, args, settings):
                    "ours_hands_per_frame": float(np.mean(hands)), "mediapipe": failed}
             if theirs:
                 ratios = [o["median_ms"] / m["median_ms"] for o, m in zip(ours, theirs)]
+                if all("median_cpu_ms" in m for m in theirs):    # CPU against CPU: what a frame costs each
+                    row["cpu_ratio"] = float(np.median([o["median_cpu_ms"] / m["median_cpu_ms"]
+                                                        for o, m in zip(ours, theirs)]))
                 row["mediapipe"] = {"median_ms": float(np.median([m["median_ms"] for m in theirs])),
                                     "hands_per_frame": theirs[-1]["hands_per_frame"]}
                 row.update(ratio=float(np.median(ratios)), ratio_range=[float(min(ratios)), float(max(ratios))])
             rows.append(row)
             print(json.dumps(row), flush=True)
-    table = ["| video | size | max hands | ours ms (hands/frame) | MediaPipe ms (hands/frame) | ours / MediaPipe, "
-             "median (range) of the rounds |", "|---|---|---|---|---|---|"]
+    table = ["| video | size | max hands | ours ms (hands/frame) | ours CPU ms | MediaPipe ms (hands/frame) | "
+             "ours / MediaPipe, median (range) of the rounds | CPU ours / MediaPipe |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         mp = r["mediapipe"]
         mp_cell = f"{mp['median_ms']:.1f} ({mp['hands_per_frame']:.2f})" if isinstance(mp, dict) else mp
         table.append(f"| {r['video']} | {r['size']} | {r['max_hands']} | {r['ours_ms']:.1f} "
-                     f"({r['ours_hands_per_frame']:.2f}) | {mp_cell} | "
+                     f"({r['ours_hands_per_frame']:.2f}) | {r['ours_cpu_ms']:.1f} | {mp_cell} | "
                      + (f"{r['ratio']:.2f} ({r['ratio_range'][0]:.2f}-{r['ratio_range'][1]:.2f}) |"
-                        if "ratio" in r else "– |"))
+                        if "ratio" in r else "– |")
+                     + (f" {r['cpu_ratio']:.2f} |" if "cpu_ratio" in r else " – |"))
     return rows, "\n".join(table)
+
+
+def one_thread(detector):
+    """Everything of a HandDetector on the caller's thread, as before session 39: the finder, the
+    side network and each crop read one after the other (`--in-turn`)."""
+    detector.finder_beside = False
+    detector.detnet.beside = False
 
 
 def stage_cpu_ms(tracker, frames):
@@ -191,6 +208,9 @@ def main():
     p.add_argument("--rounds", type=int, default=5,
                    help="matched comparison: rounds of ours then MediaPipe's, alternating (default %(default)s)")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads per network")
+    p.add_argument("--in-turn", action="store_true",
+                   help="no second thread: the finder, the side network and each crop read in turn on the "
+                        "caller's thread (finder_beside off, DetNetRunner.beside off)")
     add_model_arguments(p)              # --detnet, --side-detnet, --finder, --iknet, --set: as handeval's
     p.add_argument("--max-hands", type=int, nargs="+", default=[1, 2],
                    help="maximum numbers of hands, each measured on both sides (default 1 2)")
@@ -211,6 +231,8 @@ def main():
 
     tracker = HandTracker(detnet=args.detnet, side_detnet=args.side_detnet, finder=args.finder, iknet=args.iknet,
                           threads=args.threads, max_hands=max_hands, **settings)
+    if args.in_turn:
+        one_thread(tracker.detector)
     for f in frames:                   # warm-up pass, and the hand is tracked from here on
         tracker.process(f)
     passes = max(args.repeat, 3)       # the parts below: at least 3 passes each
@@ -220,6 +242,8 @@ def main():
 
     det = HandDetector.load(args.detnet, args.finder, threads=args.threads, max_hands=max_hands,
                             side_detnet=args.side_detnet, **settings)
+    if args.in_turn:
+        one_thread(det)
     for f in frames:
         det.process(f)
     results["detector"] = stats(timed(det.process, frames, passes))
