@@ -71,6 +71,7 @@ from handmocap.perception.crops import (CROP, CROP_SCALE, TEST_TIME_VARIANTS, Cr
                                         crop_for_box, crop_for_joints, crop_to_frame_xyz, frame_to_crop_xyz,
                                         nearby_crops, square_box)
 from handmocap.perception.detnet_runner import DETNET_GREY, DetNetRunner
+from handmocap.perception.onnx_models import cores
 from handmocap.perception.one_euro import OneEuroFilter
 from handmocap.perception.hand_finder import GREY_PATH, HandFinder, box_iou, is_grey, sigmoid
 from handmocap.perception.rotations import mirror_points
@@ -116,7 +117,7 @@ class DetectorSettings:
     # onnxruntime and OpenCV let go of the GIL) while DetNet reads the tracked hands' crops of the
     # same frame; its boxes are then taken as a run in turn's would be (a re-seeded or evicted
     # track is read again), so a finder frame costs about the longer of the two, not their sum.
-    # With no track the finder runs on the frame first, as it must
+    # With no track the finder runs on the frame first, as it must; on one core, always in turn
     finder_beside: bool = True
     # a track is lost below this mean heatmap peak too: the presence head stays sure on a crop
     # that slid onto the forearm, the heatmap peaks do drop there (0: off)
@@ -238,6 +239,7 @@ class HandDetector:
         for f in dataclasses.fields(DetectorSettings):
             setattr(self, f.name, getattr(settings, f.name))
         self.unborn_retry = min(settings.unborn_retry, settings.redetect_every)
+        self.finder_beside = settings.finder_beside and cores() > 1      # on one core it would wait its turn
         self.test_time_crops = settings.test_time_crops or 0
         self.tracked_test_time_crops = settings.tracked_test_time_crops or 0
         self.second_look = settings.second_look or 0.0

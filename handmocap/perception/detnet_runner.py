@@ -2,7 +2,6 @@
 a batch of crops, optionally with a second network's handedness head (the default pair)."""
 from __future__ import annotations
 
-import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -10,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from handmocap.perception.crops import CROP
-from handmocap.perception.onnx_models import open_session, stale_quantization
+from handmocap.perception.onnx_models import cores, open_session, stale_quantization
 
 DETNET_FLOAT32 = Path(__file__).resolve().parents[2] / "models" / "detnet.onnx"   # `handtrain detnet` writes it
 DETNET_INT8 = DETNET_FLOAT32.with_name("detnet_int8.onnx")     # `python -m handmocap.training.quantize_detnet` makes it
@@ -61,7 +60,7 @@ class DetNetRunner:
 
     def __init__(self, session, side=None, path=None, beside=None):
         self.session, self.side, self.path = session, side, path     # path: the file, where loaded from one
-        self.beside = (os.cpu_count() or 1) > 1 if beside is None else beside
+        self.beside = cores() > 1 if beside is None else beside
         self._pool = None               # the second thread, made on first use
         self.outputs = [o.name for o in session.get_outputs()]
         missing = [o for o in DETNET_OUTPUTS if o not in self.outputs]

@@ -1,8 +1,18 @@
 """The one way the project opens its ONNX models (CPU, onnxruntime; no torch at run time)."""
 import hashlib
+import os
 import re
 import threading
 from pathlib import Path
+
+
+def cores() -> int:
+    """CPU cores this process may run on (its affinity: a container's limit, not the machine's
+    count). Where there is one, nothing is read on a second thread: it would only wait its turn."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:          # (no affinity call on this platform)
+        return os.cpu_count() or 1
 
 
 _shared_arena = threading.Lock()
