@@ -121,6 +121,21 @@ def test_merge_and_summary_arithmetic():
     assert m["wrong_side_ratio"] == pytest.approx(0.3 / 0.1)
 
 
+def test_false_hands_where_mediapipe_found_both_hands_are_counted_apart():
+    """false_sure: of the false hands, those in frames where MediaPipe found two hands (no
+    hand of the person is left for an output on neither), over those frames; a false hand
+    beside one label may be the hand MediaPipe missed and counts in false_per_frame only."""
+    right, left, far = hand(100, 100), hand(300, 100), hand(500, 400)
+    out = lambda uv, tid: {"track_id": tid, "uv": uv, "handedness": "right"}   # noqa: E731
+    frames = [([out(right, 0), out(left, 1), out(far, 2)], np.stack([right, left]), np.ones(2, bool), ["right"] * 2),
+              ([out(right, 0), out(left, 1)], np.stack([right]), np.ones(1, bool), ["right"]),
+              ([out(right, 0)], np.stack([right, left]), np.ones(2, bool), ["right"] * 2)]
+    m = eval_people.summary(eval_people.score_outputs(frames))
+    assert m["false_per_frame"] == pytest.approx(2 / 3) and m["false_sure"] == pytest.approx(1 / 2)
+    merged = eval_people.summary(eval_people.merge([eval_people.score_outputs(frames)] * 2))
+    assert merged["false_sure"] == pytest.approx(1 / 2)
+
+
 def test_handeval_people_without_the_second_drop_is_one_clear_error(tmp_path, capsys):
     from handmocap.training.eval_cli import main
     assert main(["people", "--data", str(tmp_path)]) == 2
