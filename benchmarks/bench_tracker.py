@@ -32,6 +32,7 @@ import argparse
 import json
 import os
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -125,7 +126,10 @@ def one_thread(detector):
 
 def stage_cpu_ms(tracker, frames):
     """CPU ms per frame of HandTracker.process and of its stages, from one pass over frames
-    with the stages' functions wrapped in timers (restored afterwards)."""
+    with the stages' functions wrapped in timers (restored afterwards); "networks" is the CPU of
+    every onnxruntime run (DetNet, its side network, the finder, IKNet), on whichever thread it
+    ran, and "glue" the rest: the Python and numpy around them (crops cut, tracks kept, poses
+    built), issue 51's share."""
     import handmocap.perception.pose as pose
     spent = {}
 
@@ -141,13 +145,19 @@ def stage_cpu_ms(tracker, frames):
         setattr(owner, name, timed_call)
         return owner, name, fn, own
 
-    solver, detnet = tracker.poses.solver, tracker.detector.detnet
-    wrapped = [wrap(tracker.detector, "process", "detector"), wrap(tracker.shapes, "update", "shape"),
+    solver, detector = tracker.poses.solver, tracker.detector
+    wrapped = [wrap(detector, "process", "detector"), wrap(tracker.shapes, "update", "shape"),
                wrap(tracker.poses, "update", "pose"), wrap(solver, "solve", "pose: IKSolver.solve"),
                wrap(pose, "clamp_to_limits", "pose: clamp_to_limits"), wrap(pose, "pose_fields", "pose: pose_fields")]
-    sessions = detnet.session, solver.session      # onnxruntime sessions: run() timed through a proxy
-    detnet.session = _TimedSession(sessions[0], "detector: DetNet network", spent)
-    solver.session = _TimedSession(sessions[1], "pose: IKNet network", spent)
+    # onnxruntime sessions: run() timed through a proxy, each on its own thread's clock
+    owners = [(detector.detnet, "detector: DetNet network"), (solver, "pose: IKNet network")]
+    if getattr(detector.detnet, "side", None) is not None:
+        owners.append((detector.detnet.side, "detector: side network"))
+    if hasattr(detector.finder, "session"):
+        owners.append((detector.finder, "detector: finder network"))
+    sessions = [(owner, owner.session) for owner, _ in owners]
+    for owner, key in owners:
+        owner.session = _TimedSession(owner.session, key, spent)
     total = 0.0
     try:
         for f in frames:
@@ -157,27 +167,35 @@ def stage_cpu_ms(tracker, frames):
     finally:
         for owner, name, fn, own in wrapped:
             setattr(owner, name, fn) if own else delattr(owner, name)
-        detnet.session, solver.session = sessions
+        for owner, session in sessions:
+            owner.session = session
     out = {"total": total, **spent}
     out["rest (tracker glue, smoothing)"] = total - sum(spent.get(k, 0.0) for k in ("detector", "shape", "pose"))
-    return {k: round(1e3 * v / len(frames), 3) for k, v in out.items()}
+    out["networks"] = sum(spent.get(key, 0.0) for _, key in owners)
+    out["glue"] = total - out["networks"]
+    out = {k: round(1e3 * v / len(frames), 3) for k, v in out.items()}
+    out["glue share"] = round(out["glue"] / out["total"], 3)
+    return out
 
 
 class _TimedSession:
-    """An onnxruntime session whose run() adds its CPU time to spent[key]."""
+    """An onnxruntime session whose run() adds the CPU time of the thread it runs on to spent[key]
+    (a run on the detector's second thread is counted there, not twice)."""
 
     def __init__(self, session, key, spent):
         self.session, self.key, self.spent = session, key, spent
+        self.lock = threading.Lock()
 
     def __getattr__(self, name):
         return getattr(self.session, name)
 
     def run(self, *args, **kwargs):
-        c = time.process_time()
+        c = time.thread_time()
         try:
             return self.session.run(*args, **kwargs)
         finally:
-            self.spent[self.key] = self.spent.get(self.key, 0.0) + time.process_time() - c
+            with self.lock:
+                self.spent[self.key] = self.spent.get(self.key, 0.0) + time.thread_time() - c
 
 
 def stats(times):
