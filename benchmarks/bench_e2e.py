@@ -143,6 +143,31 @@ def children_cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
+def chain_yaml(clip: Path, bag: Path, rate: float, record_all: bool, max_hands: int,
+               container: str | None = "source") -> str:
+    """The launch file of the measured chain: replay -> detector -> shape -> ik -> recorder of
+    /hand/pose (every topic with record_all). container "source": replay, detector, shape and
+    ik in one process (the product's layout); any other value: the source apart; None: none."""
+    topics = "" if record_all else ", topics: [/hand/pose]"
+    c = ", container: perception" if container else ""
+    cs = c if container == "source" else ""   # the product's layout: the source in the container too
+    return f"""
+nodes:
+  replay: {{node: replay, params: {{source: "{clip}", rate: {rate}}}, required: true{cs}}}
+  detector: {{node: detector, params: {{every_frame: true, max_hands: {max_hands}}}, required: true{c}}}
+  shape: {{node: shape{c}}}
+  ik: {{node: ik, required: true{c}}}
+  recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true{topics}}}, required: true}}
+"""
+
+
+def graph_env(run_dir: str) -> dict:
+    """This process's environment for a launched graph: none of its HANDMOCAP_ settings, its own run folder."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HANDMOCAP_")}
+    env["HANDMOCAP_RUN_DIR"] = run_dir
+    return env
+
+
 def run_graph(tmp: Path, clip: Path, rate: float, record_all: bool, name: str, max_hands: int,
               container: str | None = "source", trace: Path | None = None) -> dict:
     """Launch the chain on `clip`; return pose stamps and receipt times (ns), the CPU seconds
@@ -150,20 +175,9 @@ def run_graph(tmp: Path, clip: Path, rate: float, record_all: bool, name: str, m
     from handmocap.runtime.bag import iter_messages
     from handmocap.runtime import codec
     bag = tmp / f"{name}.mcap"
-    topics = "" if record_all else ", topics: [/hand/pose]"
-    c = ", container: perception" if container else ""
-    cs = c if container == "source" else ""   # the product's layout: the source in the container too
-    (tmp / f"{name}.yaml").write_text(f"""
-nodes:
-  replay: {{node: replay, params: {{source: "{clip}", rate: {rate}}}, required: true{cs}}}
-  detector: {{node: detector, params: {{every_frame: true, max_hands: {max_hands}}}, required: true{c}}}
-  shape: {{node: shape{c}}}
-  ik: {{node: ik, required: true{c}}}
-  recorder: {{node: recorder, params: {{output: "{bag}", overwrite: true{topics}}}, required: true}}
-""")
+    (tmp / f"{name}.yaml").write_text(chain_yaml(clip, bag, rate, record_all, max_hands, container))
     run_dir = tempfile.mkdtemp(prefix="hmb")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("HANDMOCAP_")}
-    env["HANDMOCAP_RUN_DIR"] = run_dir
+    env = graph_env(run_dir)
     if trace is not None:
         trace.mkdir(parents=True, exist_ok=True)
         env["HANDMOCAP_TRACE"] = str(trace)

@@ -18,40 +18,23 @@ Issue 51's first item (spread the periodic work) is read here; the in-graph tail
 benchmarks/bench_tail.py's.
 """
 import argparse
+import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_tracker import default_videos, one_thread  # noqa: E402
+from handmocap.runtime.frames import read_video  # noqa: E402
 from handmocap.training.eval_cli import add_model_arguments, model_paths  # noqa: E402
 MAX_FRAMES = 300
 EVENTS = ("finder", "new_track", "reseed", "eviction", "unborn", "mirror_vote", "second_look", "side_reread")
 
 
-def default_videos():
-    from handmocap.training.pose_data import SHARED_DATA
-    clip = SHARED_DATA / "video" / "wild" / "Criminal-9527__hands.mp4"
-    return [clip] if clip.is_file() else [ROOT / "data" / "demo" / "hand_clip.mp4"]
-
-
-def read_frames(video, n=MAX_FRAMES):
-    cap = cv2.VideoCapture(str(video))
-    frames = []
-    while len(frames) < n:
-        ok, frame = cap.read()
-        if not ok:
-            break
-        frames.append(frame)
-    cap.release()
-    if not frames:
-        raise SystemExit(f"bench_frame_events: no frames in {video}")
-    return frames
-
-
 def frame_events(tracker, frames):
-    """(ms (F,), events {name: (F,) bool}, crops (F,)) of one pass over `frames` from a reset."""
+    """(CPU ms (F,), events {name: (F,) bool}, crops (F,), wall ms (F,)) of one pass over `frames`
+    from a reset."""
     detector = tracker.detector
     tracker.reset()
     ms, wall, crops, events = [], [], [], {e: [] for e in EVENTS}
@@ -91,9 +74,9 @@ def main():
     from handmocap.perception.tracker import HandTracker
     tracker = HandTracker(**{**model_paths(args), "max_hands": args.max_hands})
     if args.in_turn:
-        tracker.detector.finder_beside = tracker.detector.detnet.beside = False
-    for video in args.videos or default_videos():
-        frames = read_frames(video)
+        one_thread(tracker.detector)
+    for video in args.videos or default_videos()[-1:]:      # the two-hand real clip, else the demo clip
+        frames = read_video(video)[:MAX_FRAMES]
         frame_events(tracker, frames)                    # warm-up
         runs = [frame_events(tracker, frames) for _ in range(args.passes)]
         ms = np.concatenate([r[0] for r in runs])

@@ -16,7 +16,6 @@ else the demo clip.
 from __future__ import annotations
 
 import argparse
-import os
 import subprocess
 import sys
 import tempfile
@@ -24,6 +23,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_e2e import chain_yaml, graph_env  # noqa: E402
 from bench_tail import clip_of  # noqa: E402
 from bench_tracker import ROOT, default_videos  # noqa: E402
 from handmocap.training.eval_cli import reference_python  # noqa: E402
@@ -109,17 +109,8 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         clip = clip_of(video, args.frames, tmp)
-        topics = "" if args.record_all else ", topics: [/hand/pose]"
-        (tmp / "graph.yaml").write_text(f"""
-nodes:
-  replay: {{node: replay, params: {{source: "{clip}", rate: 1}}, required: true, container: perception}}
-  detector: {{node: detector, params: {{every_frame: true, max_hands: {args.max_hands}}}, required: true, container: perception}}
-  shape: {{node: shape, container: perception}}
-  ik: {{node: ik, required: true, container: perception}}
-  recorder: {{node: recorder, params: {{output: "{tmp / 'out.mcap'}", overwrite: true{topics}}}, required: true}}
-""")
-        env = {k: v for k, v in os.environ.items() if not k.startswith("HANDMOCAP_")}
-        env["HANDMOCAP_RUN_DIR"] = tempfile.mkdtemp(prefix="hmm", dir=tmp)
+        (tmp / "graph.yaml").write_text(chain_yaml(clip, tmp / "out.mcap", 1, args.record_all, args.max_hands))
+        env = graph_env(tempfile.mkdtemp(prefix="hmm", dir=tmp))
         ours, ours_total = sampled([sys.executable, "-m", "handmocap.runtime.launch", str(tmp / "graph.yaml")], env)
         python = reference_python()
         theirs, theirs_total = (sampled([str(python), str(ROOT / "scripts" / "mediapipe_reference.py"), "--bench",
