@@ -983,12 +983,12 @@ def test_the_finder_runs_beside_the_tracked_crops_on_a_thread_of_its_own():
     hands = {}
     for beside in (True, False):
         det = HandDetector.load(max_hands=2, finder_beside=beside)
-        threads, run = [], det.finder.find_prepared
+        threads, run = [], det.finder.find
 
         def recorded(*args, run=run, threads=threads):
             threads.append(threading.current_thread().name)
             return run(*args)
-        det.finder.find_prepared = recorded
+        det.finder.find = recorded
         hands[beside] = [det.process(f) for f in frames]
         assert det.stats["finder_runs"] >= 4
         on_thread = [t.startswith("finder") for t in threads]

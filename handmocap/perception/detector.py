@@ -320,7 +320,8 @@ class HandDetector:
 
     def _find(self, image, finder=None, found=None):
         """New tracks for found hands that no track covers, and the tracks re-seeded: both
-        are refined from their first prediction. finder: another than self.finder; found:
+        are refined from their first prediction. finder: the one to run (None: this frame's,
+        _frame_finder; the fallback after a frame that found nothing); found:
         the FoundHands of a finder run beside this frame's crops, instead of a run now."""
         h, w = image.shape[:2]
         centre = False
@@ -464,7 +465,7 @@ class HandDetector:
             read = self._run_voting(image_bgr, tracks)  # the tracked crops while the finder runs
             hands = self._track(image_bgr, self._find(image_bgr, found=running.result()), (tracks, read))
         else:
-            hands = self._track(image_bgr, self._find(image_bgr) if searched else [])
+            hands = self._track(image_bgr, self._find(image_bgr, finder) if searched else [])
         if searched and not self.tracks and self.fallback is not None:   # nothing became a track
             self.stats["fallback_runs"] += 1
             hands = self._track(image_bgr, self._find(image_bgr, self.fallback))

@@ -163,9 +163,7 @@ class HandFinder:
         return cls(open_session(path or DEFAULT_PATH, "hand finder", "handtrain finder", threads), **kwargs)
 
     def prepare(self, image_bgr):
-        """The network input (1,3,size,size) float32 of one BGR frame (H,W,3) uint8 and its
-        Letterbox: made on the caller's thread, whose frame buffer may not outlive the call;
-        find_prepared may then run on another."""
+        """The network input (1,3,size,size) float32 of one BGR frame (H,W,3) uint8 and its Letterbox."""
         boxed, lb = letterbox(image_bgr, self.size)
         return to_input_tensor(boxed[None, ..., ::-1]), lb
 
@@ -175,13 +173,9 @@ class HandFinder:
         return self.session.run(None, {self.input_name: x})[0][0], lb
 
     def find(self, image_bgr, threshold=None, max_hands=None):
-        """Hands in a BGR frame (H,W,3) uint8, best first: list of FoundHand (frame px)."""
-        return self.find_prepared(*self.prepare(image_bgr), threshold, max_hands)
-
-    def find_prepared(self, x, lb, threshold=None, max_hands=None):
-        """find() on what prepare() made (onnxruntime lets go of the GIL while it runs, so
-        this can run beside other work)."""
-        maps = self.session.run(None, {self.input_name: x})[0][0]
+        """Hands in a BGR frame (H,W,3) uint8, best first: list of FoundHand (frame px).
+        (OpenCV and onnxruntime let go of the GIL while they work: it can run beside other work.)"""
+        maps, lb = self.raw(image_bgr)
         out = []
         for box, score, right in decode(maps, self.threshold if threshold is None else threshold,
                                         self.max_hands if max_hands is None else max_hands, input_size=self.size):
