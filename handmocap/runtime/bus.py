@@ -345,34 +345,42 @@ class Subscriber:
     message per topic kept; ZMQ_CONFLATE is no use here, it breaks multipart messages), `all`
     (keep-all, losses counted) and `lossless` (connected to publishers' lossless sockets);
     with keys, one more per mode for tcp connections (CURVE applies to a socket's every
-    connection); and `control`, the ends of stream of the publishers it takes (Queues)."""
+    connection); one more per mode for inproc:// connections, the nodes of its own container
+    (`trusted`: what comes on it was encoded by this process's own code); and `control`, the
+    ends of stream of the publishers it takes (Queues)."""
 
     MODES = ("latest", "all", "lossless")
 
-    def __init__(self, ctx: zmq.Context, keys=None):
+    def __init__(self, ctx: zmq.Context, keys=None, in_container: bool = False):
         self.ctx = ctx
+        self.in_container = in_container   # its mode's inproc socket is made with the others (subscribe)
         self.keys = keys   # handmocap.runtime.keys.Keys: tcp connections go through CURVE sockets of their own
-        self.socks: dict[tuple[str, bool], zmq.Socket] = {}   # (mode or "control", tcp) -> socket
+        self.socks: dict[tuple[str, str], zmq.Socket] = {}   # (mode or "control", kind: see socket) -> socket
+        self.trusted: set[zmq.Socket] = set()                # its inproc sockets
         self.monitors: dict[zmq.Socket, zmq.Socket] = {}      # socket -> its DISCONNECTED events (reconnect)
         self.prefixes: dict[str, list[bytes]] = {m: [] for m in self.MODES}
         self.connected: dict[str, set[str]] = {m: set() for m in (*self.MODES, "control")}
         self.frames: set[str] = set()   # modes whose socket may carry images (a short receive queue)
 
-    def socket(self, mode: str, tcp: bool = False) -> zmq.Socket:
-        if (mode, tcp) not in self.socks:
+    def socket(self, mode: str, kind: str = "") -> zmq.Socket:
+        """The SUB socket of `mode` for connections of `kind`: "" (ipc, or tcp without keys),
+        "tcp" (CURVE) or "inproc" (this process's own nodes)."""
+        if (mode, kind) not in self.socks:
             s = self.ctx.socket(zmq.SUB)
             s.setsockopt(zmq.RCVHWM, QUEUE_MESSAGES if mode in self.frames else QUEUE_MESSAGES_SMALL)   # Queues
             s.setsockopt(zmq.LINGER, 0)
             s.setsockopt(zmq.RECONNECT_IVL, RECONNECT_MS)
             s.setsockopt(zmq.MAXMSGSIZE, self.max_message_bytes(mode))
             self.monitors[s] = s.get_monitor_socket(zmq.EVENT_DISCONNECTED)
-            if tcp:
+            if kind == "tcp":
                 from handmocap.runtime import keys as curve
                 curve.client(s, self.keys)
+            elif kind == "inproc":
+                self.trusted.add(s)
             for prefix in ([CONTROL] if mode == "control" else self.prefixes[mode]):
                 s.subscribe(prefix)
-            self.socks[(mode, tcp)] = s
-        return self.socks[(mode, tcp)]
+            self.socks[(mode, kind)] = s
+        return self.socks[(mode, kind)]
 
     def subscribe(self, topic: str | None, mode: str, frames: bool = True) -> None:
         """topic None: every topic (the recorder's 'record all'); `frames`: images may come
@@ -381,6 +389,8 @@ class Subscriber:
         if frames:   # set before it connects: a connection's queue is fixed when it is made
             self.frames.add(mode)
         self.socket(mode)                  # made with the prefixes so far, then given this one
+        if self.in_container:              # made now too: a node polls the sockets it has when its loop starts
+            self.socket(mode, "inproc")
         self.prefixes[mode].append(prefix)
         if mode != "lossless":   # made now: a node polls the sockets it has when its loop starts
             self.socket("control")
@@ -430,7 +440,9 @@ class Subscriber:
     def connect(self, endpoint: str, mode: str) -> bool:
         if endpoint in self.connected[mode]:
             return False
-        self.socket(mode, tcp=self.keys is not None and endpoint.startswith("tcp://")).connect(endpoint)
+        kind = "inproc" if endpoint.startswith("inproc://") else \
+            "tcp" if self.keys is not None and endpoint.startswith("tcp://") else ""
+        self.socket(mode, kind).connect(endpoint)
         self.connected[mode].add(endpoint)
         return True
 

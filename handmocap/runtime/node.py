@@ -160,7 +160,7 @@ class Node:
         curve_keys = Keys.from_env()   # CURVE on tcp endpoints (handmocap.runtime.keys), as the launch file says
         self.pub = bus.Publisher(self.ctx, bind, curve_keys, lossless_endpoint=f"ipc://{self.dir}/{self.name}.lossless")
         self.pub.log = self.log
-        self.sub = bus.Subscriber(self.ctx, curve_keys)
+        self.sub = bus.Subscriber(self.ctx, curve_keys, in_container=not self._own_ctx)
         self.extra_endpoints = json.loads(_setting("HANDMOCAP_CONNECT", "[]"))
         self.info = bus.NodeInfo(self.name, os.getpid(), self.pub.endpoint, observer=observer,
                                  eos_token=secrets.token_hex(8), lossless=self.pub.lossless_endpoint)
@@ -379,6 +379,7 @@ class Node:
         self.ready()
         # keep-all, lossless and control sockets are read alike (tcp ones as their mode's)
         socks = {s: "latest" if mode == "latest" else "all" for (mode, _), s in self.sub.socks.items()}
+        trusted = self.sub.trusted   # inproc: this container's nodes (decoded without the checks, _decode)
         poller = None
         if len(socks) == 1:
             (only, only_mode), = socks.items()
@@ -410,20 +411,20 @@ class Node:
                     # not blocking (an executor's turn): what is queued now, no more, so a
                     # busy input can't keep the nodes after this one waiting
                     queued = () if block else list(self._pending(only))
-                    msg = self._decode(frames)
+                    msg = self._decode(frames, only in trusted)
                     if msg is not None:
                         got = True
                         yield msg
-                    batches = (self._pending(only),) if block else (queued,)   # then whatever queued meanwhile
+                    batches = ((self._pending(only) if block else queued, only in trusted),)   # then whatever queued meanwhile
                 else:
-                    batches = (self._drain_latest(only, frames),)
+                    batches = ((self._drain_latest(only, frames), only in trusted),)
             else:
-                batches = [self._drain_latest(s) if socks[s] == "latest" else
-                           (self._pending(s) if block else list(self._pending(s)))
+                batches = [(self._drain_latest(s) if socks[s] == "latest" else
+                            (self._pending(s) if block else list(self._pending(s))), s in trusted)
                            for s, _ in poller.poll(POLL_MS if block else 0)]
-            for batch in batches:
+            for batch, from_here in batches:
                 for frames in batch:
-                    msg = self._decode(frames)
+                    msg = self._decode(frames, from_here)
                     if msg is not None:
                         got = True
                         yield msg
@@ -477,7 +478,11 @@ class Node:
             frames = None
         return list(latest.values()) + eos
 
-    def _decode(self, frames: list) -> Message | None:
+    def _decode(self, frames: list, trusted: bool = False) -> Message | None:
+        """The Message of one received multipart message, or None (an end of stream, or a
+        message dropped and counted). `trusted`: it came over inproc:// from a node of this
+        container, whose payload this process encoded itself: codec.decode_trusted, without
+        the schema, NaN and stamp checks every message from another process gets."""
         if len(frames) != 3:
             return self.drop("?", "frames", f"{len(frames)} frames, expected 3")
         topic_b, type_b, payload = frames
@@ -510,7 +515,8 @@ class Node:
         if want is not None and want != type_name:
             return self.drop(topic, "type", f"got {type_name}, expected {want}")
         try:
-            data = codec.decode(payload if isinstance(payload, bytes) else payload.buffer, type_name)
+            data = (codec.decode_trusted if trusted else codec.decode)(
+                payload if isinstance(payload, bytes) else payload.buffer, type_name)
         except codec.MalformedMessage as e:
             return self.drop(topic, e.reason, str(e))
         self._received[topic] += 1
