@@ -252,3 +252,17 @@ def test_a_restart_a_stray_seq_or_a_second_frame_id_is_no_loss(run_dir, caplog):
     assert "seq 19 after 9" in caplog.text
     node.close()
 
+
+
+def test_non_finite_names_the_first_bad_value_in_any_container_and_passes_finite_ones():
+    """The fast check (all float arrays in one numpy call) and the walk that names the place
+    agree: one bad element of one array, a NaN in a dict subclass or a numpy float, a view."""
+    from collections import OrderedDict
+    ok = {"a": [1.0, {"b": np.zeros(3, np.float32)}], "n": np.arange(3), "s": "x", "z": None,
+          "v": np.zeros((2, 3))[:, ::2]}
+    assert codec.non_finite(ok) is None
+    assert codec.non_finite({**ok, "c": np.array([0, 0, np.inf], np.float32)}) == "c"
+    assert codec.non_finite({"a": [1.0, {"b": np.array([0, -np.inf], np.float32)}]}) == "a[1].b"
+    assert codec.non_finite({"a": OrderedDict(x=float("nan"))}) == "a.x"
+    assert codec.non_finite({"a": [np.float64("nan")]}) == "a[0]"
+    assert codec.non_finite({"v": np.array([[np.nan, 0.0], [0.0, 0.0]])[:, 1:]}) is None   # the NaN is not in the view
