@@ -2,6 +2,8 @@
 
     python benchmarks/bench_bus.py [--small 1000] [--frames 200] [--rounds 3]
 
+First the codec's own CPU per message (`codec_cost`), then the hops.
+
 One hop over ipc://, publisher and subscriber in separate processes.
 Bus: `Node.publish` (header, msgpack, raw array bytes) → `for msg in node` (receive, schema
 validation, arrays as views). Bare: `send_multipart([stamp, bytes])` → `recv_multipart`,
@@ -64,6 +66,32 @@ def small_body():
 def frame_body():
     img = np.random.default_rng(0).integers(0, 255, (480, 640, 3), dtype=np.uint8)
     return "Image", {"encoding": "bgr8", "width": 640, "height": 480, "data": img}
+
+
+def codec_cost():
+    """The codec's CPU per HandKeypoints message, one and two hands, in a hot loop (best of 3):
+    what a publish checks and encodes, what a receiver from another process decodes (checked),
+    and what a receiver in the sender's own container decodes (codec.decode_trusted)."""
+    from handmocap.runtime import codec
+    type_name, body = small_body()
+
+    def per_call_us(f, k=20000):
+        best = float("inf")
+        for _ in range(3):
+            t0 = time.perf_counter()
+            for _ in range(k):
+                f()
+            best = min(best, (time.perf_counter() - t0) / k * 1e6)
+        return best
+    for hands in (1, 2):
+        msg = {"header": codec.header(0), **body, "hands": body["hands"] * hands}
+        payload = codec.encode(msg)
+        codec.decode(payload, type_name)
+        send = per_call_us(lambda: (codec.non_finite(msg), codec.encode(msg)))
+        checked = per_call_us(lambda: codec.decode(payload, type_name))
+        trusted = per_call_us(lambda: codec.decode_trusted(payload, type_name))
+        print(f"codec, {hands} hand(s) ({len(payload)} B): check + encode {send:.1f} us, decode {checked:.1f} us "
+              f"(sum {send + checked:.1f}); in a container, decode {trusted:.1f} us")
 
 
 def bus_subscriber(run_dir, topic, type_name, n, q):
@@ -147,6 +175,7 @@ def main():
     ap.add_argument("--rounds", type=int, default=3, help="rounds per message kind")
     args = ap.parse_args()
     print(f"load average {os.getloadavg()[0]:.1f} ({os.cpu_count()} CPUs)")
+    codec_cost()
     print(f"{'message':22s} {'round':>5s} {'bare p50':>9s} {'p95':>7s} {'bus p50':>9s} {'p95':>7s} {'ratio p50':>10s}")
     summary = {}
     for name, kind in CASES.items():
