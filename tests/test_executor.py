@@ -85,14 +85,21 @@ def spin_in_thread(exits, **kw):
     return t, out["calls"]
 
 
-def test_nodes_are_called_in_turn_on_one_thread_and_end_in_order(container):
+def run_chain(n_messages, every_s=0.0, **kw):
+    """A source thread sends n_messages through A and B spun in a thread; returns (spinner
+    thread, exits, calls) once both ended (or 30 s passed)."""
     exits, started = [], threading.Event()
-    spinner, calls = spin_in_thread(exits)
-    src = threading.Thread(target=source, args=(50, started, 0.002))
+    spinner, calls = spin_in_thread(exits, **kw)
+    src = threading.Thread(target=source, args=(n_messages, started, every_s))
     src.start()
     started.set()
     spinner.join(30)
     src.join(10)
+    return spinner, exits, calls
+
+
+def test_nodes_are_called_in_turn_on_one_thread_and_end_in_order(container):
+    spinner, exits, calls = run_chain(50, 0.002)
     assert not spinner.is_alive(), "the executor did not end when its inputs ended"
     assert exits == [("A", 0), ("B", 0)]            # A ends first, B once it heard A's end of stream
     assert [c[2] for c in calls if c[0] == "A"] == [str(i) for i in range(50)]
@@ -103,13 +110,7 @@ def test_nodes_are_called_in_turn_on_one_thread_and_end_in_order(container):
 def test_a_handler_that_raises_loses_that_message_only(container, caplog):
     """One bad message must not stop a node (issue 30): A's handler raises on "3"; that message
     is dropped, counted and logged, and A and B go on with the rest and end normally."""
-    exits, started = [], threading.Event()
-    spinner, calls = spin_in_thread(exits, fail_at="3")
-    src = threading.Thread(target=source, args=(10, started))
-    src.start()
-    started.set()
-    spinner.join(30)
-    src.join(10)
+    spinner, exits, calls = run_chain(10, fail_at="3")
     assert not spinner.is_alive()
     assert exits == [("A", 0), ("B", 0)]
     assert [c[2] for c in calls if c[0] == "B"] == [str(i) for i in range(10) if i != 3]
@@ -170,13 +171,7 @@ def test_messages_between_nodes_of_a_container_skip_the_checks_and_arrive_the_sa
     monkeypatch.setattr(codec, "decode", lambda p, t, *a, _d=codec.decode: kinds.append("checked") or _d(p, t, *a))
     monkeypatch.setattr(codec, "decode_trusted",
                         lambda p, t, _d=codec.decode_trusted: kinds.append("trusted") or _d(p, t))
-    exits, started = [], threading.Event()
-    spinner, calls = spin_in_thread(exits)
-    src = threading.Thread(target=source, args=(20, started, 0.002))
-    src.start()
-    started.set()
-    spinner.join(30)
-    src.join(10)
+    spinner, exits, calls = run_chain(20, 0.002)
     assert exits == [("A", 0), ("B", 0)]
     assert [c[2] for c in calls if c[0] == "B"] == [str(i) for i in range(20)]
     # the first message of a type is checked (decode_trusted learns the type's converter from it)
