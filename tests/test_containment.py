@@ -266,3 +266,7 @@ def test_non_finite_names_the_first_bad_value_in_any_container_and_passes_finite
     assert codec.non_finite({"a": OrderedDict(x=float("nan"))}) == "a.x"
     assert codec.non_finite({"a": [np.float64("nan")]}) == "a[0]"
     assert codec.non_finite({"v": np.array([[np.nan, 0.0], [0.0, 0.0]])[:, 1:]}) is None   # the NaN is not in the view
+    cyclic = {"x": 1.0}
+    cyclic["self"] = cyclic                  # a body that holds itself: an error, never a hang
+    with pytest.raises(RecursionError):
+        codec.non_finite(cyclic)

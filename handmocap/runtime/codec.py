@@ -461,6 +461,7 @@ def non_finite(obj, path: str = "") -> str | None:
 
 _NDARRAY = np.ndarray
 _PLAIN_LEAVES = frozenset((str, int, bool, bytes, type(None)))
+_WALK_LIMIT = 100_000   # values in one message (an array counts once); a message has ~20-100
 
 
 def _all_finite(obj) -> bool:
@@ -469,7 +470,11 @@ def _all_finite(obj) -> bool:
     has eight: each call costs ~1 us, more than the check)."""
     stack, arrays = [obj], []
     pop, extend = stack.pop, stack.extend
+    steps = 0
     while stack:
+        steps += 1
+        if steps > _WALK_LIMIT:   # a cycle (a publish() body that holds itself): the named walk raises on it
+            return False
         o = pop()
         kind = type(o)   # the exact types first (a decoded message holds nothing else), then subclasses
         if kind is dict:
