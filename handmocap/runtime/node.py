@@ -415,7 +415,8 @@ class Node:
                     if msg is not None:
                         got = True
                         yield msg
-                    batches = ((self._pending(only) if block else queued, only in trusted),)   # then whatever queued meanwhile
+                    # then whatever queued meanwhile
+                    batches = ((self._pending(only) if block else queued, only in trusted),)
                 else:
                     batches = ((self._drain_latest(only, frames), only in trusted),)
             else:

@@ -25,7 +25,8 @@ Augmentation: random zoom/shift of the letterboxed frame, horizontal flip (hande
 flips with it), a quarter, half or three-quarter turn for half the frames (`--rot90`; the
 real videos show upright hands only), brightness/contrast, grey for a share of the frames
 (`--grey`; every real training frame is in colour, and a finder trained without grey found
-a quarter of the held-out hands in grey). Losses (CenterNet): focal loss on the centre
+a quarter of the held-out hands in grey), and printed hand-like graphics pasted as negatives
+for a share of the frames (`--graphics`: a logo or a sign is not a hand). Losses (CenterNet): focal loss on the centre
 heatmap, L1 on offset and log size, BCE on handedness at the centre cells.
 Validation: recall of hands (a peak whose box has IoU >= 0.3 with the true box) and false
 peaks per frame at the default threshold, every --val-every iterations, on each held-out
@@ -267,7 +268,7 @@ def hand_graphic(rng, uv, side):
     size = int(side) + 2 * pad
     pts = pts - pts.min(0) + pad + (size - 2 * pad - np.ptp(pts, 0)) / 2
     width = max(2, int(rng.uniform(0.07, 0.13) * side))
-    per_joint = np.zeros(21, int)   # which finger (1..5) each bone end colours; 0: palm
+    per_joint = np.zeros(21, int)   # the finger (1..5) whose colour a joint's bone takes; 6 is the palm, 0 nothing
     per_joint[1:] = (np.arange(20) // 4) + 1
     labels = np.zeros((size, size), np.uint8)
     cv2.fillPoly(labels, [np.round(pts[list(PALM)]).astype(np.int32)], 6)
