@@ -50,7 +50,9 @@ def start() -> tuple[Node, Callable[[Message], None]]:
     p = node.params
     # topics first, models second: subscribers of /hand/pose connect while the models load
     node.subscribe("/hand/keypoints", "HandKeypoints", mode="all")   # every frame's pose is recorded
-    node.subscribe("/camera/info", "CameraInfo", mode="all")         # in order with keypoints where both come the same way (both from this container, or both not): one socket
+    # in order with the keypoints where both come the same way (both from this container, or
+    # both from other processes): then they share one socket
+    node.subscribe("/camera/info", "CameraInfo", mode="all")
     node.subscribe("/hand/shape", "HandShape", mode="latest")
     node.advertise("/hand/pose", "HandPose")
     node.advertise("/hand/mesh", "HandMesh")
