@@ -4,7 +4,6 @@
     python research/heldback_misses.py CLIP     # e.g. klyct__limpiar
 """
 import sys
-import numpy as np
 from handmocap.training import real_data, eval_people
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.perception.crops import square_box

@@ -166,7 +166,6 @@ def build(root):
     z_axis = np.cross(x_axis, y_axis)
     rot = np.stack([x_axis, y_axis, z_axis])            # rows: canonical axes in mesh coords
     to_canon = lambda x: (x - j0[0]) @ rot.T * DM_TO_M
-    dir_to_canon = lambda d: d @ rot.T * DM_TO_M
 
     # Crop: body vertices of the hand and of the forearm up to FOREARM_KEEP_M from the wrist.
     canon = to_canon(base)

@@ -19,7 +19,7 @@ from handmocap.perception.camera_info import default_K
 from handmocap.perception.hand_model import HandModel
 from handmocap.perception.joint_limits import named_pose
 from handmocap.perception.render import MeshRenderer
-from handmocap.perception.rotations import axis_angle_to_matrix, axis_angle_to_quat, quat_slerp, quat_to_axis_angle
+from handmocap.perception.rotations import axis_angle_to_quat, quat_slerp, quat_to_axis_angle
 
 W, H, FPS = 640, 480, 30
 GESTURES = ("flat", "fist", "pointing", "spread", "flat")

@@ -2,7 +2,6 @@
 MalformedMessage, on every message type; the four inputs that once stopped a whole graph are
 dropped and counted with the graph running on; a handler that fails on a message loses only
 that message."""
-import json
 import time
 
 import msgpack

@@ -148,7 +148,6 @@ def test_crop_round_trip_and_pixels_land_where_the_transform_says(mirrored, angl
 
 
 def test_the_crop_of_a_hand_at_angle_zero_is_the_axis_aligned_one_exactly():
-    frame = np.random.default_rng(1).integers(0, 255, (H, W, 3), np.uint8)
     for centre, side in (((300, 200), 257), ((20, 460), 200), ((600, 30), 90)):
         crop = CropTransform.around(centre, side)
         assert crop.angle == 0.0

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from conftest import ROOT, graph_env, handlaunch
+from conftest import graph_env, handlaunch
 
 GRAPH = """
 nodes:
