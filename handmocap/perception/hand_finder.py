@@ -162,15 +162,10 @@ class HandFinder:
     def load(cls, path=None, threads=1, **kwargs):
         return cls(open_session(path or DEFAULT_PATH, "hand finder", "handtrain finder", threads), **kwargs)
 
-    def prepare(self, image_bgr):
-        """The network input (1,3,size,size) float32 of one BGR frame (H,W,3) uint8 and its Letterbox."""
-        boxed, lb = letterbox(image_bgr, self.size)
-        return to_input_tensor(boxed[None, ..., ::-1]), lb
-
     def raw(self, image_bgr):
         """(5, size/STRIDE, size/STRIDE) network output for one BGR frame, and its Letterbox."""
-        x, lb = self.prepare(image_bgr)
-        return self.session.run(None, {self.input_name: x})[0][0], lb
+        boxed, lb = letterbox(image_bgr, self.size)
+        return self.session.run(None, {self.input_name: to_input_tensor(boxed[None, ..., ::-1])})[0][0], lb
 
     def find(self, image_bgr, threshold=None, max_hands=None):
         """Hands in a BGR frame (H,W,3) uint8, best first: list of FoundHand (frame px).

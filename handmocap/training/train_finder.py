@@ -42,6 +42,7 @@ import numpy as np
 
 from handmocap.training import real_data
 from handmocap.perception.hand_finder import BORDER_VALUE, INPUT_SIZE, STRIDE, box_iou, decode, greyed, letterbox, square
+from handmocap.perception.skeleton import BONES
 from handmocap.training.training import add_pretrained_arguments, warmup_cosine_lr
 
 RUN_DIR = Path("runs/finder")
@@ -259,7 +260,6 @@ def hand_graphic(rng, uv, side):
     side, turned at random. Returns an RGB patch (P,P,3) uint8 and its opacity (P,P) float32
     in [0,1]. Colours are flat and saturated (one for all, one per finger, or a gradient),
     with an outline half the time: what a camera sees of print, not of skin."""
-    from handmocap.perception.skeleton import BONES
     a = rng.uniform(0, 2 * np.pi)
     rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
     pts = (uv - uv.mean(0)) @ rot.T
