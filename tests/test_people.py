@@ -77,6 +77,27 @@ def test_held_back_people_are_in_no_training_set():
     assert len(held_ids) >= 30 and len(train_ids) >= 120
 
 
+
+@pytest.mark.skipif(not (SHARED_DATA / "video" / "wild3").is_dir(), reason="needs the data pack's video/wild3 (../shared)")
+def test_a_later_drop_is_cut_into_a_cache_of_its_own_held_back_by_person(tmp_path):
+    """build_drop_cache: the third drop's training people train (source wild/<clip>, with
+    negatives), its held-back people are validation only (heldback/wild3/<clip>) and stay
+    out of the held-back clips' figures of the second drop (detnet_eval.heldout_groups)."""
+    from handmocap.training.detnet_data import WILD_SOURCE, build_drop_cache
+    from handmocap.training.detnet_eval import heldout_groups
+    cut = build_drop_cache(SHARED_DATA, tmp_path / "wild3.npz", "wild3", log=lambda *a: None)
+    assert (tmp_path / "wild3.npz").is_file()
+    source = cut["source"].astype(str)
+    clip = np.array([s.rsplit("/", 1)[-1] for s in source])
+    held_back = np.isin(clip, real_data.WILD3_HELD_BACK)
+    assert held_back.any() and (~held_back).any()
+    assert (cut["held"] == held_back).all()                                  # a clip is all held out or all training
+    assert all(s.startswith("heldback/wild3/") for s in source[held_back])
+    assert all(s.startswith(WILD_SOURCE) for s in source[~held_back])
+    assert len(cut["neg"]) and not cut["neg_held"].any()                     # negatives from the training people only
+    groups = heldout_groups(source)
+    assert (groups["held-back clips, third drop"] == held_back).all() and not groups["held-back clips"].any()
+
 def test_scoring_counts_found_false_and_wrong_sides():
     """score_frames with the real detector on the rendered demo clip, labelled with its
     ground truth as the right hand (found, scored), and again with a second, made-up label

@@ -23,6 +23,7 @@ REAL_CACHE = "real_v5.npz"          # v2: + arm-only negatives; v3: frame edges 
                                     # v4: + MediaPipe world landmarks of the video hands (xyz, has_3d);
                                     # v5: + video/wild, 11K Hands, images/scenes; pseudo-labels filtered
                                     # (real_data.reliable_hands); the held-back people, validation only
+DROP_CACHES = {"wild3": "wild3_v1.npz"}    # the later drops of people's own clips: video/<drop> -> its cache (build_drop_cache)
 HELD_BACK_SOURCE = "heldback/"      # source prefix of the held-back people's crops (never trained on)
 WILD_SOURCE = "wild/"              # source prefix of the training people's video/wild crops (--wild-share)
 PART_CACHE = "parts_v1.npz"         # close-ups of part of a hand (build_part_cache), negatives for --part-neg
@@ -61,9 +62,9 @@ def _boxes_overlap(box, boxes):
     return any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in boxes)
 
 
-def build_real_cache(shared, path, seed=0, log=print):
-    """Cut every usable real hand into a context crop (CTX px around its keypoint box x
-    CTX_SCALE) and a few negatives per video frame; save the arrays to `path`.
+class RealCutter:
+    """Cuts real hands into context crops (CTX px around the keypoint box x CTX_SCALE) and
+    negatives beside them, collecting the arrays a real cache holds (`arrays`):
 
     Hands: image (n,CTX,CTX,3), uv (n,21,2) in context px, right (n,) 1 if the hand appears
     as a right hand, weight (n,) label weight, held (n,) bool held-out, source (n,) str,
@@ -73,32 +74,36 @@ def build_real_cache(shared, path, seed=0, log=print):
     Negatives: neg (m,128,128,3) uint8, neg_held (m,) bool held-out, neg_arm (m,) bool an
     arm-only crop (`arm_crop`).
     """
-    rng = np.random.default_rng([seed, 99])
-    hands = {k: [] for k in ("image", "uv", "right", "weight", "held", "source", "xyz", "has_3d")}
-    negs, neg_held, neg_arm = [], [], []
 
-    def add_hand(image, uv, right, weight, held, source, world=None):
+    def __init__(self, rng, log=print):
+        self.rng, self.log = rng, log
+        self.hands = {k: [] for k in ("image", "uv", "right", "weight", "held", "source", "xyz", "has_3d")}
+        self.negs, self.neg_held, self.neg_arm = [], [], []
+
+    def add_hand(self, image, uv, right, weight, held, source, world=None):
         cx, cy, side = real_data.crop_box(uv, CTX_SCALE)
         if side < 16:
             return
         M = real_data.crop_affine(cx, cy, side, CTX)
-        hands["image"].append(real_data.warp(image, M, CTX, replicate=True))
-        hands["uv"].append(real_data.apply_affine(M, uv).astype(np.float32))
+        self.hands["image"].append(real_data.warp(image, M, CTX, replicate=True))
+        self.hands["uv"].append(real_data.apply_affine(M, uv).astype(np.float32))
         xyz = None if world is None else normalize_joints(world)
         has_3d = xyz is not None and bool(np.all(np.isfinite(xyz)))
         for k, v in (("right", right), ("weight", weight), ("held", held), ("source", source),
                      ("xyz", xyz.astype(np.float32) if has_3d else np.zeros((21, 3), np.float32)),
                      ("has_3d", has_3d)):
-            hands[k].append(v)
+            self.hands[k].append(v)
 
-    for seq in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, shared):
-        seq_name = seq["name"].split("/")[1]
-        add_hand(seq["image"], seq["uv"], seq["handedness"] == "right", 1.0, seq_name in real_data.HOWIEMA_HELD_OUT,
-                 "howiema001/" + seq_name)
-    def add_video(video, split=real_data.video_split, stride=1, source=None, negatives=True):
+    def add_negative(self, crop, held, arm):
+        self.negs.append(crop)
+        self.neg_held.append(bool(held))
+        self.neg_arm.append(bool(arm))
+
+    def add_video(self, video, split=real_data.video_split, stride=1, source=None, negatives=True):
         """The reliable pseudo-labelled hands (real_data.reliable_hands) of every `stride`-th
         frame where train | held ((F,) bool each, split(F)), and negatives beside them on
         every 3rd."""
+        rng = self.rng
         lab = real_data.load_pseudo_labels(video)
         train, held = split(len(lab["found"]))
         reliable = real_data.reliable_hands(lab)
@@ -109,8 +114,8 @@ def build_real_cache(shared, path, seed=0, log=print):
             slots = np.flatnonzero(lab["found"][f])
             boxes = [np.r_[lab["uv"][f, s].min(0), lab["uv"][f, s].max(0)] for s in slots]
             for s in np.flatnonzero(reliable[f]):
-                add_hand(image, lab["uv"][f, s], lab["handedness"][f, s] == 0, float(lab["score"][f, s]),
-                         bool(held[f]), source or video.stem, lab["world"][f, s])
+                self.add_hand(image, lab["uv"][f, s], lab["handedness"][f, s] == 0, float(lab["score"][f, s]),
+                              bool(held[f]), source or video.stem, lab["world"][f, s])
             if negatives and len(slots) and f % 3 == 0:    # negatives: squares of hand-like size, away from hands
                 h, w = image.shape[:2]
                 grown = [np.r_[b[:2] - 0.3 * (b[2:] - b[:2]) - 12, b[2:] + 0.3 * (b[2:] - b[:2]) + 12] for b in boxes]
@@ -120,9 +125,7 @@ def build_real_cache(shared, path, seed=0, log=print):
                     x0, y0 = rng.uniform(0, w - side), rng.uniform(0, h - side)
                     if not _boxes_overlap((x0, y0, x0 + side, y0 + side), grown):
                         M = real_data.crop_affine(x0 + side / 2, y0 + side / 2, side, CROP)
-                        negs.append(real_data.warp(image, M, CROP, replicate=True))
-                        neg_held.append(bool(held[f]))
-                        neg_arm.append(False)
+                        self.add_negative(real_data.warp(image, M, CROP, replicate=True), held[f], False)
                         break
                 for k, s in enumerate(slots):         # arm-only negatives: a tracked crop that slid up the forearm
                     arm = arm_crop(lab["uv"][f, s], rng)
@@ -130,32 +133,63 @@ def build_real_cache(shared, path, seed=0, log=print):
                         continue
                     box, others = arm_box(arm), [g for j, g in enumerate(grown) if j != k]
                     if not _boxes_overlap(box, others) and _inside_share(box, w, h) >= 0.8:   # mostly inside the frame: not a streak of repeated edge pixels
-                        negs.append(real_data.warp(image, arm, CROP, replicate=True))
-                        neg_held.append(bool(held[f]))
-                        neg_arm.append(True)
-        log(f"  {video.name}: {len(hands['image'])} hands, {len(negs)} negatives so far")
+                        self.add_negative(real_data.warp(image, arm, CROP, replicate=True), held[f], True)
+        self.log(f"  {video.name}: {len(self.hands['image'])} hands, {len(self.negs)} negatives so far")
 
-    for rel in real_data.TRAIN_VIDEOS:
-        add_video(Path(shared) / rel)
-    # many more people (the pack's second drop): every 2nd frame of the training clips,
-    # every 3rd of the held-back people's (validation only; their source says so)
-    for held_back in (False, True):
+    def add_drop(self, shared, drop, held_back):
+        """The clips of one drop of people's own clips (video/<drop>), all training or all held
+        out: every 2nd frame of the training people's clips (source WILD_SOURCE + clip, with
+        negatives), every 3rd of the held-back people's (validation only: source
+        HELD_BACK_SOURCE + clip for the second drop, + "<drop>/" + clip for later drops)."""
         def whole(n):           # a clip is all training or all held out
             return np.full(n, not held_back), np.full(n, held_back)
-        for video in real_data.wild_clips(shared, held_back):
-            add_video(video, whole, stride=3 if held_back else 2,
-                      source=f"{HELD_BACK_SOURCE}{video.stem}" if held_back else WILD_SOURCE + video.stem,
-                      negatives=not held_back)
+        for video in real_data.wild_clips(shared, held_back, drops=(drop,)):
+            named = video.stem if drop == "wild" else f"{drop}/{video.stem}"
+            self.add_video(video, whole, stride=3 if held_back else 2,
+                           source=HELD_BACK_SOURCE + named if held_back else WILD_SOURCE + video.stem,
+                           negatives=not held_back)
+
+    def arrays(self):
+        arrays = {k: np.asarray(v) for k, v in self.hands.items()}
+        arrays["neg"] = np.asarray(self.negs, np.uint8).reshape(-1, CROP, CROP, 3)
+        arrays["neg_held"], arrays["neg_arm"] = np.asarray(self.neg_held, bool), np.asarray(self.neg_arm, bool)
+        return arrays
+
+
+def build_real_cache(shared, path, seed=0, log=print):
+    """Cut every usable real hand of the pack but the later drops' clips (howiema 001, the
+    training videos, video/wild, 11K Hands, images/scenes) into context crops, with a few
+    negatives per video frame (RealCutter); save the arrays to `path`."""
+    cut = RealCutter(np.random.default_rng([seed, 99]), log)
+    for seq in real_data.load_howiema(real_data.HOWIEMA_TRAIN_SUBJECT, shared):
+        seq_name = seq["name"].split("/")[1]
+        cut.add_hand(seq["image"], seq["uv"], seq["handedness"] == "right", 1.0, seq_name in real_data.HOWIEMA_HELD_OUT,
+                     "howiema001/" + seq_name)
+    for rel in real_data.TRAIN_VIDEOS:
+        cut.add_video(Path(shared) / rel)
+    # many more people (the pack's second drop), and 11K Hands' photos of people
+    for held_back in (False, True):
+        cut.add_drop(shared, "wild", held_back)
         for s in real_data.load_11khands(shared, held_back):
-            add_hand(s["image"], s["uv"], s["handedness"] == "right", 1.0, held_back,
-                     (HELD_BACK_SOURCE if held_back else "") + "11k/" + s["name"].split("/")[0])
-        log(f"  11K Hands ({'held back' if held_back else 'training'} people): {len(hands['image'])} hands so far")
+            cut.add_hand(s["image"], s["uv"], s["handedness"] == "right", 1.0, held_back,
+                         (HELD_BACK_SOURCE if held_back else "") + "11k/" + s["name"].split("/")[0])
+        log(f"  11K Hands ({'held back' if held_back else 'training'} people): {len(cut.hands['image'])} hands so far")
     for s in real_data.load_scenes(shared):
-        add_hand(s["image"], s["uv"], s["handedness"] == "right", 1.0, False, "scenes")
-    log(f"  images/scenes: {len(hands['image'])} hands")
-    arrays = {k: np.asarray(v) for k, v in hands.items()}
-    arrays["neg"], arrays["neg_held"] = np.asarray(negs, np.uint8).reshape(-1, CROP, CROP, 3), np.asarray(neg_held)
-    arrays["neg_arm"] = np.asarray(neg_arm, bool)
+        cut.add_hand(s["image"], s["uv"], s["handedness"] == "right", 1.0, False, "scenes")
+    log(f"  images/scenes: {len(cut.hands['image'])} hands")
+    arrays = cut.arrays()
+    write_npz(path, arrays)
+    return arrays
+
+
+def build_drop_cache(shared, path, drop, seed=0, log=print):
+    """A later drop's clips (video/<drop>: its training people and, for validation only, its
+    held-back people; RealCutter.add_drop) cut as the real cache cuts video/wild's, saved to
+    `path`: a new drop adds a cache of its own rather than re-cutting the others."""
+    cut = RealCutter(np.random.default_rng([seed, 99, len(drop)]), log)
+    for held_back in (False, True):
+        cut.add_drop(shared, drop, held_back)
+    arrays = cut.arrays()
     write_npz(path, arrays)
     return arrays
 
@@ -436,9 +470,18 @@ def _inside_share(box, w, h):
 
 
 def load_real(shared, log=print):
-    """The real cache (built on first use under runs/detnet_data/), or None without shared/."""
+    """The real crops (RealCutter's arrays): the real cache and each later drop's cache
+    (DROP_CACHES), built on first use under runs/detnet_data/ and concatenated; None without
+    shared/."""
     if not (Path(shared) / "labelled2d").exists():
         log(f"note: no real data pack at {shared}; training on synthetic data only")
         return None
-    return _cached(DATA_DIR / REAL_CACHE, lambda path: build_real_cache(shared, path, log=log),
-                   f"cutting real crops from {shared}", log)
+    parts = [_cached(DATA_DIR / REAL_CACHE, lambda path: build_real_cache(shared, path, log=log),
+                     f"cutting real crops from {shared}", log)]
+    for drop, name in DROP_CACHES.items():
+        if (Path(shared) / "video" / drop).is_dir():
+            parts.append(_cached(DATA_DIR / name, lambda path: build_drop_cache(shared, path, drop, log=log),
+                                 f"cutting video/{drop}'s crops from {shared}", log))
+    if len(parts) == 1:
+        return parts[0]
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

@@ -9,7 +9,7 @@ from handmocap.perception.tracks import logit
 from handmocap.perception.skeleton import ROOT
 from handmocap.training import real_data
 from handmocap.training.detnet_batches import rotate_mirror_3d
-from handmocap.training.detnet_data import CTX, CTX_SCALE, HARD_NEGATIVES, HELD_BACK_SOURCE, load_synth
+from handmocap.training.detnet_data import CTX, CTX_SCALE, DROP_CACHES, HARD_NEGATIVES, HELD_BACK_SOURCE, load_synth
 from handmocap.perception.crops import CROP
 
 
@@ -57,8 +57,17 @@ def heldout_groups(source):
     source = np.asarray(source).astype(str)
     how, people = np.char.startswith(source, "howiema"), np.char.startswith(source, HELD_BACK_SOURCE)
     photos = np.char.startswith(source, HELD_BACK_SOURCE + "11k/")
+    later = later_drops(source)
     return {"howiema 001": how, "training videos' tails": ~how & ~people,
-            "held-back clips": people & ~photos, "held-back photos": photos}
+            "held-back clips": people & ~photos & ~later, "held-back clips, third drop": later,
+            "held-back photos": photos}
+
+
+def later_drops(source):
+    """(N,) bool: the held-back crops of the later drops' clips (DROP_CACHES), kept out of the
+    held-back clips' figures so those stay comparable with the sessions before them."""
+    source = np.asarray(source).astype(str)
+    return np.any([np.char.startswith(source, f"{HELD_BACK_SOURCE}{drop}/") for drop in DROP_CACHES], axis=0)
 
 
 def real_val_set(real):
@@ -148,8 +157,8 @@ def validate(net, sval, rval, refines=("softmax",)):
             m["howiema001_heldout_px"] = float(err[how].mean())
         if (~how & ~people).any():
             m["video_heldout_px_vs_mediapipe"] = float(err[~how & ~people].mean())
-        photos = np.char.startswith(source, HELD_BACK_SOURCE + "11k/")
-        for name, mask in (("wild", people & ~photos), ("11k", people & photos)):
+        photos, later = np.char.startswith(source, HELD_BACK_SOURCE + "11k/"), later_drops(source)
+        for name, mask in (("wild", people & ~photos & ~later), ("wild3", later), ("11k", people & photos)):
             if mask.any():      # people never trained on, against MediaPipe: error / hand size, PCK at 0.1 of it
                 size = real_data.hand_size(rval["uv"][mask])
                 joint_err = np.linalg.norm(reads[refines[0]][0][mask] - rval["uv"][mask], axis=-1)
@@ -161,7 +170,7 @@ def validate(net, sval, rval, refines=("softmax",)):
                                                 np.ones(len(err), bool))
         reads_wrong, _, right_wrong = predict(net, flipped, refines[:1])
         err_wrong = np.linalg.norm(reads_wrong[refines[0]][0] - uv_flipped, axis=-1).mean(-1)
-        clips = people & ~photos
+        clips = people & ~photos & ~later
         if clips.any():     # the side of held-back clips' hands, shown as right (image) and as left (flipped)
             m["people_side_acc"] = float(np.mean([(right[clips] > 0.5).mean(), (right_wrong[clips] < 0.5).mean()]))
             # the detector's mirror vote: the two readings of one hand averaged in logit space (its logit)
