@@ -310,6 +310,38 @@ def test_tcp_without_keys_is_refused_at_launch_and_a_taken_port_is_one_line(tmp_
     assert "Traceback" not in out
 
 
+
+def test_a_tcp_publisher_found_after_the_loop_started_is_heard(tmp_path, run_dir, monkeypatch):
+    """A subscriber with keys whose loop is already running when a CURVE tcp publisher comes
+    (its tcp socket is made on discovery, after the loop armed its poller) still hears it:
+    the loop polls the sockets made since it started."""
+    import threading
+
+    from handmocap.runtime.keys import ENV, Keys
+    from handmocap.runtime.node import Node
+    keys = make_keys(tmp_path, "unused")
+    monkeypatch.setenv(ENV, Keys(secret=f"{keys}/b.key_secret", server=f"{keys}/a.key").to_env())
+    sub = Node("late_sub", argv=[])
+    sub.subscribe("/tick", "Blob", mode="all")
+    got = []
+    loop = threading.Thread(target=lambda: got.extend(m.data["header"]["seq"] for m in sub.events()))
+    loop.start()
+    time.sleep(0.3)                       # the loop is armed, with no publisher yet
+    monkeypatch.setenv(ENV, Keys(secret=f"{keys}/a.key_secret", clients=f"{keys}/clients").to_env())
+    monkeypatch.setenv("HANDMOCAP_BIND", f"tcp://127.0.0.1:{free_port()}")
+    pub = Node("late_pub", argv=[])
+    pub.advertise("/tick", "Blob")
+    try:
+        assert not pub.wait_for_subscribers(10.0), "the subscriber never connected"
+        for i in range(20):
+            pub.publish("/tick", {"data": np.full(8, i, np.uint8)})
+    finally:
+        pub.close()
+        loop.join(10.0)
+        sub.close()
+    assert not loop.is_alive(), "the subscriber never heard the end of stream"
+    assert got == list(range(20))
+
 def test_one_node_with_latest_and_keep_all_inputs_small_and_large(run_dir):
     """In one process: a node that subscribes to one topic keep-all and another latest-only
     (two sockets, polled) gets every small message in order and the freshest large one, with

@@ -361,6 +361,7 @@ class Subscriber:
         self.prefixes: dict[str, list[bytes]] = {m: [] for m in self.MODES}
         self.connected: dict[str, set[str]] = {m: set() for m in (*self.MODES, "control")}
         self.frames: set[str] = set()   # modes whose socket may carry images (a short receive queue)
+        self.made = 0   # sockets made so far: a receive loop armed with fewer polls the new ones too
 
     def socket(self, mode: str, kind: str = "") -> zmq.Socket:
         """The SUB socket of `mode` for connections of `kind`: "" (ipc, or tcp without keys),
@@ -380,6 +381,7 @@ class Subscriber:
             for prefix in ([CONTROL] if mode == "control" else self.prefixes[mode]):
                 s.subscribe(prefix)
             self.socks[(mode, kind)] = s
+            self.made += 1
         return self.socks[(mode, kind)]
 
     def subscribe(self, topic: str | None, mode: str, frames: bool = True) -> None:
@@ -389,10 +391,10 @@ class Subscriber:
         if frames:   # set before it connects: a connection's queue is fixed when it is made
             self.frames.add(mode)
         self.socket(mode)                  # made with the prefixes so far, then given this one
-        if self.in_container:              # made now too: a node polls the sockets it has when its loop starts
+        if self.in_container:              # made now too (no re-arming of a loop that starts with it)
             self.socket(mode, "inproc")
         self.prefixes[mode].append(prefix)
-        if mode != "lossless":   # made now: a node polls the sockets it has when its loop starts
+        if mode != "lossless":   # made now too
             self.socket("control")
         for (m, _), s in self.socks.items():
             if m == mode:

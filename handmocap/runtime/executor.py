@@ -71,10 +71,13 @@ def spin(started: list[tuple], on_exit: Callable[[dict, int], None]) -> None:
     on_exit(member, 0); a message its handler raises on is dropped and counted (Node.handle)."""
     live = [(m, node, handler, node.steps()) for m, node, handler in started]
     poller = zmq.Poller()
-    for _, node, _, _ in live:
-        for s in node.sockets():
-            poller.register(s, zmq.POLLIN)
+    armed = {}   # node -> its sockets made when registered (a node makes one for a new kind of connection)
     while live:
+        for _, node, _, _ in live:
+            if armed.get(node) != node.sub.made:
+                for s in node.sockets():
+                    poller.register(s, zmq.POLLIN)   # again for the old ones: no change
+                armed[node] = node.sub.made
         for entry in list(live):
             m, node, handler, steps = entry
             ended = []

@@ -375,19 +375,26 @@ class Node:
         """Call fn() when the node closes, before its end of stream goes out (final stats)."""
         self._at_close.append(fn)
 
-    def _events(self, timeout, block):
-        self.ready()
-        # keep-all, lossless and control sockets are read alike (tcp ones as their mode's)
+    def _arm(self, block):
+        """What a receive loop reads: {socket: "latest" or "all"} (keep-all, lossless and
+        control sockets are read alike, tcp and inproc ones as their mode's), and a Poller
+        over them, or with one socket None (the loop then blocks in recv: RCVTIMEO)."""
         socks = {s: "latest" if mode == "latest" else "all" for (mode, _), s in self.sub.socks.items()}
-        trusted = self.sub.trusted   # inproc: this container's nodes (decoded without the checks, _decode)
         poller = None
         if len(socks) == 1:
-            (only, only_mode), = socks.items()
-            only.setsockopt(zmq.RCVTIMEO, POLL_MS if block else 0)
+            next(iter(socks)).setsockopt(zmq.RCVTIMEO, POLL_MS if block else 0)
         elif socks:
             poller = zmq.Poller()
             for s in socks:
                 poller.register(s, zmq.POLLIN)
+        return socks, poller
+
+    def _events(self, timeout, block):
+        self.ready()
+        socks, poller = self._arm(block)
+        only, only_mode = next(iter(socks.items()), (None, None))
+        armed = self.sub.made
+        trusted = self.sub.trusted   # inproc: this container's nodes (decoded without the checks, _decode)
         last = time.monotonic()
         idle_since = None
         while not self._stop.is_set():
@@ -397,6 +404,10 @@ class Node:
                 self._eos_seen = False
                 if not self.info.observer and self._inputs_ended():
                     break
+                if self.sub.made != armed:   # a publisher found on a new kind of connection (tcp with keys)
+                    socks, poller = self._arm(block)
+                    only, only_mode = next(iter(socks.items()), (None, None))
+                    armed = self.sub.made
             got = False
             if poller is None:
                 try:
