@@ -78,9 +78,9 @@ def test_left_hand_is_solved_in_the_right_model_and_mirrored_back():
 
 
 def test_estimator_solves_every_hand_of_a_frame_in_one_batch_as_it_would_one_by_one():
-    """Two hands of different people and sides in one message: one IKNet run and one clamp
-    for both give each hand exactly what it gets alone (the int8 IKNet is statically
-    quantized), with each track's own shape."""
+    """Two hands of different people and sides in one message: one IKNet run, one clamp and
+    one pass of the fields (hands_pose_fields) for both give each hand exactly what it gets
+    alone (the int8 IKNet is statically quantized), with each track's own shape."""
     right, _, d = synthetic_hands(2, 5, "right")
     left, _, _ = synthetic_hands(2, 6, "left")
     pair = [{**right[0], "track_id": 1}, {**left[1], "track_id": 2}]

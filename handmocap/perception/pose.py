@@ -115,25 +115,36 @@ def solve_rotations(xyz_rel, handedness, rest, solver, limits=None):
 
 def pose_fields(hand, quats, beta, K, model):
     """HandPose hand (float32 arrays) from one HandKeypoints hand and its (already solved,
-    maybe smoothed) right-model quaternions; root (before any smoothing) is the all-joint
-    least-squares fit, or Eq. 5's where that fit is degenerate."""
-    rest = model.rest_joints(beta)                                          # (21,3) m
-    ref_m = float(np.linalg.norm(rest[REF_BONE[1]] - rest[REF_BONE[0]]))   # = model.ref_bone_length(beta)
-    R = quat_to_matrix(quats)                       # (21,3,3), shared by FK and the relative pose
-    joints = posed_joints(R, model, beta, rest)
-    rel = joints - joints[ROOT]
-    if hand["handedness"] == "left":
-        rel = mirror_points(rel)
-    root, valid = root_fitting_keypoints(K, hand["uv"], rel)
-    if not valid:
-        _, root, valid = camera_joints_from_keypoints(K, hand["uv"], rel / ref_m, ref_m)
-    return {"track_id": int(hand["track_id"]), "handedness": hand["handedness"], "score": float(hand["score"]),
-            "confidence": np.asarray(hand["confidence"], dtype=np.float32),
-            "xyz": (root + rel).astype(np.float32), "root": root.astype(np.float32),
-            "quat": quat_normalize(quats).astype(np.float32),
-            "pose": global_quats_to_relative(R).astype(np.float32),
-            "beta": np.asarray(beta, dtype=np.float32), "uv": np.asarray(hand["uv"], dtype=np.float32),
-            "translation_valid": bool(valid)}
+    maybe smoothed) right-model quaternions (21,4) at shape beta (B,): hands_pose_fields for one."""
+    return hands_pose_fields([hand], np.asarray(quats)[None], np.asarray(beta)[None], K, model)[0]
+
+
+def hands_pose_fields(hands, quats, betas, K, model):
+    """HandPose hands (float32 arrays) from N HandKeypoints hands, their (already solved,
+    maybe smoothed) right-model quaternions (N,21,4) and shapes betas (N,B), in one
+    vectorised pass (per-call overheads once per frame, not per hand). root (before any
+    smoothing) is the all-joint least-squares fit, or Eq. 5's where that fit is degenerate."""
+    betas = np.asarray(betas, dtype=np.float64)
+    rest = model.rest_joints(betas)                                         # (N,21,3) m
+    R = quat_to_matrix(quats)                       # (N,21,3,3), shared by FK and the relative pose
+    joints = posed_joints(R, model, betas, rest)                            # (N,21,3) m
+    rel = joints - joints[:, ROOT:ROOT + 1]
+    left = [i for i, h in enumerate(hands) if h["handedness"] == "left"]
+    rel[left, :, 0] *= -1.0                                                 # a left hand mirrored back
+    uv = np.stack([h["uv"] for h in hands]).astype(np.float64)              # (N,21,2) px
+    root, valid = root_fitting_keypoints(K, uv, rel)                        # (N,3) m, (N,)
+    if not valid.all():                  # Eq. 5 where the all-joint fit is degenerate (rare)
+        for i in np.flatnonzero(~valid):
+            ref_m = float(np.linalg.norm(rest[i, REF_BONE[1]] - rest[i, REF_BONE[0]]))   # = model.ref_bone_length
+            _, root[i], valid[i] = camera_joints_from_keypoints(K, uv[i], rel[i] / ref_m, ref_m)
+    xyz = (root[:, None] + rel).astype(np.float32)
+    quat = quat_normalize(quats).astype(np.float32)
+    pose = global_quats_to_relative(R).astype(np.float32)
+    return [{"track_id": int(hand["track_id"]), "handedness": hand["handedness"], "score": float(hand["score"]),
+             "confidence": np.asarray(hand["confidence"], dtype=np.float32),
+             "xyz": xyz[i], "root": root[i].astype(np.float32), "quat": quat[i], "pose": pose[i],
+             "beta": betas[i].astype(np.float32), "uv": uv[i].astype(np.float32),
+             "translation_valid": bool(valid[i])} for i, hand in enumerate(hands)]
 
 
 def hand_certainty(hand):
@@ -161,9 +172,15 @@ def surest_per_side(hands):
 def joints_for_iknet(hand, K, xy_from_keypoints=PoseSettings.xy_from_keypoints):
     """(21,3) the joints IKNet reads for one HandKeypoints hand (as seen, camera axes):
     xyz_rel with x, y moved `xy_from_keypoints` of the way onto the ones its uv implies (0: xyz_rel)."""
+    return hands_joints_for_iknet([hand], K, xy_from_keypoints)[0]
+
+
+def hands_joints_for_iknet(hands, K, xy_from_keypoints=PoseSettings.xy_from_keypoints):
+    """(N,21,3) joints_for_iknet of N HandKeypoints hands, in one vectorised call."""
+    xyz_rel = np.stack([h["xyz_rel"] for h in hands]).astype(np.float64)
     if not xy_from_keypoints:
-        return hand["xyz_rel"]
-    return joints_through_keypoints(K, hand["uv"], hand["xyz_rel"], xy_from_keypoints)
+        return xyz_rel
+    return joints_through_keypoints(K, np.stack([h["uv"] for h in hands]), xyz_rel, xy_from_keypoints)
 
 
 def pose_from_keypoints(hand, K, rest, solver, model, beta=None, limits=None,
@@ -231,20 +248,19 @@ class PoseEstimator:
             beta = self.model.sized(beta, self.settings.hand_length)   # the shape fit leaves size at 0
             betas.append(beta)
             rests.append(self.model.rest_joints(beta) if rest is None else rest)
-        # every hand in one IKNet run and one clamp: per-call overheads once per frame, not per hand
-        quats = solve_rotations(np.stack([joints_for_iknet(h, K, self.settings.xy_from_keypoints) for h in hands]),
+        # every hand in one IKNet run, one clamp and one pass of the fields: per-call overheads
+        # once per frame, not per hand
+        quats = solve_rotations(hands_joints_for_iknet(hands, K, self.settings.xy_from_keypoints),
                                 [h["handedness"] for h in hands], np.stack(rests), self.solver, self.limits)
-        out = []
-        for hand, beta, q in zip(hands, betas, quats):
-            if not self.settings.smooth:
-                out.append(pose_fields(hand, q, beta, K, self.model))
-                continue
-            track = self.tracks.setdefault(hand["track_id"], TrackSmoother(self.settings))
-            fields = pose_fields(hand, track.quats(q, t), beta, K, self.model)
+        if not self.settings.smooth:
+            return hands_pose_fields(hands, quats, betas, K, self.model)
+        tracks = [self.tracks.setdefault(h["track_id"], TrackSmoother(self.settings)) for h in hands]
+        out = hands_pose_fields(hands, np.stack([track.quats(q, t) for track, q in zip(tracks, quats)]),
+                                betas, K, self.model)
+        for track, fields in zip(tracks, out):
             root = track.root(fields["root"], t)
             fields["xyz"] = (fields["xyz"] - fields["root"] + root).astype(np.float32)
             fields["root"] = root.astype(np.float32)
-            out.append(fields)
         return out
 
 
