@@ -148,7 +148,7 @@ def stage_cpu_ms(tracker, frames):
     solver, detector = tracker.poses.solver, tracker.detector
     wrapped = [wrap(detector, "process", "detector"), wrap(tracker.shapes, "update", "shape"),
                wrap(tracker.poses, "update", "pose"), wrap(solver, "solve", "pose: IKSolver.solve"),
-               wrap(pose, "clamp_to_limits", "pose: clamp_to_limits"), wrap(pose, "pose_fields", "pose: pose_fields")]
+               wrap(pose, "clamp_to_limits", "pose: clamp_to_limits"), wrap(pose, "hands_pose_fields", "pose: hands_pose_fields")]
     # onnxruntime sessions: run() timed through a proxy, each on its own thread's clock
     owners = [(detector.detnet, "detector: DetNet network"), (solver, "pose: IKNet network")]
     if getattr(detector.detnet, "side", None) is not None:

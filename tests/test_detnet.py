@@ -665,6 +665,29 @@ def test_int8_detnet_is_close_to_float32_and_made_from_the_shipped_float32():
     assert stale_quantization(int8.session, DETNET_INT8, "") is None, "run python -m handmocap.training.quantize_detnet"
 
 
+
+def test_the_network_input_is_written_into_a_kept_buffer_and_reads_alike():
+    """DetNetRunner.network_input: crops (N,S,S,3) uint8 -> (N,3,S,S) float32 / 255, the same
+    to the bit as a fresh conversion, in one buffer kept between calls for up to
+    INPUT_BUFFER_CROPS crops (a larger read gets an array of its own); the outputs of a read
+    do not depend on what the buffer held before."""
+    from handmocap.perception.detnet_runner import INPUT_BUFFER_CROPS, DetNetRunner
+    runner = DetNetRunner.load("int8")
+    crops = _demo_crops(INPUT_BUFFER_CROPS + 2)
+    fresh = lambda c: np.ascontiguousarray(c.transpose(0, 3, 1, 2), dtype=np.float32) / 255.0  # noqa: E731
+    one, two = runner.network_input(crops[:1]).copy(), runner.network_input(crops[1:3])
+    np.testing.assert_array_equal(one, fresh(crops[:1]))
+    np.testing.assert_array_equal(two, fresh(crops[1:3]))
+    assert np.shares_memory(two, runner.network_input(crops[:2]))             # the same buffer again
+    many = runner.network_input(crops)
+    np.testing.assert_array_equal(many, fresh(crops))
+    assert not np.shares_memory(many, runner.network_input(crops[:1]))
+    alone = runner(crops[3:4])
+    runner(crops[:INPUT_BUFFER_CROPS])
+    again = runner(crops[3:4])
+    for name in alone:
+        np.testing.assert_array_equal(alone[name], again[name])
+
 def test_quantize_makes_an_int8_copy_that_agrees_and_knows_its_source(tmp_path):
     torch = _torch()
     pytest.importorskip("onnx")

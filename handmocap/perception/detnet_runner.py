@@ -28,6 +28,10 @@ DETNET_GREY = DETNET_FLOAT32.with_name("detnet_grey_int8.onnx")
 # 14-crop read, a new hand's turns, held lite0 65 MB more than 2-crop reads; benchmarks/bench_memory.py),
 # and a CPU reads a crop no faster in a larger batch
 MAX_BATCH = 2
+# crops whose network input (float32, N x 196 kB) is written into a buffer kept between calls: a
+# fresh array of two crops or more costs several times the conversion itself in page faults
+# (2 crops: 272 against 33 us); reads of more crops (a new hand's turns, rare) take a fresh one
+INPUT_BUFFER_CROPS = 4
 
 
 def run_in_batches(session, names, x):
@@ -62,6 +66,7 @@ class DetNetRunner:
         self.session, self.side, self.path = session, side, path     # path: the file, where loaded from one
         self.beside = cores() > 1 if beside is None else beside
         self._pool = None               # the second thread, made on first use
+        self._input = None              # the network input buffer (network_input), made on first use
         self.outputs = [o.name for o in session.get_outputs()]
         missing = [o for o in DETNET_OUTPUTS if o not in self.outputs]
         if missing:    # another network's file (a finder, IKNet): one clear error, not a KeyError per frame
@@ -89,11 +94,24 @@ class DetNetRunner:
             warnings.warn(stale, stacklevel=2)
         return cls(session, cls.load(side_path, threads) if side_path not in (None, "none") else None, path)
 
+    def network_input(self, crops_rgb):
+        """(N,3,S,S) float32 in [0, 1] from uint8 crops (N,S,S,3), written into a buffer kept
+        between calls for up to INPUT_BUFFER_CROPS crops (valid until the next call)."""
+        crops = np.asarray(crops_rgb)
+        shape = (len(crops), crops.shape[3], crops.shape[1], crops.shape[2])
+        if len(crops) > INPUT_BUFFER_CROPS:
+            return np.divide(crops.transpose(0, 3, 1, 2), np.float32(255), dtype=np.float32)
+        if self._input is None or self._input.shape[1:] != shape[1:]:
+            self._input = np.empty((INPUT_BUFFER_CROPS, *shape[1:]), np.float32)
+        x = self._input[:len(crops)]
+        np.divide(crops.transpose(0, 3, 1, 2), np.float32(255), out=x)
+        return x
+
     def __call__(self, crops_rgb, read_side=True, side_only=0):
         """side_only: with a side network, the last this many crops are read by it alone (the
         mirror votes: only their handedness is wanted), so every output but `handedness` has
         that many rows fewer."""
-        x = np.ascontiguousarray(np.asarray(crops_rgb).transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
+        x = self.network_input(crops_rgb)
         keypoints = x[:len(x) - side_only] if self.side is not None and side_only else x
         read_side = read_side and self.side is not None
         side = half = None
