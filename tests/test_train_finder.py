@@ -70,37 +70,6 @@ def test_a_larger_finder_input_round_trips_its_boxes_through_targets_and_decode(
 
 
 
-def test_letterbox_shrinks_by_halvings_and_keeps_every_pixel_where_its_mapping_says():
-    """letterbox on frames of the usual sizes (and odd ones, which skip the halvings): a bright
-    square lands where Letterbox.to_input maps its centre (within 0.5 px), and the picture is
-    within the halvings' rounding (2 levels) of OpenCV's one-step area shrink where the
-    factor is a power of two, and close to it (mean 2 levels on a photo-like picture) where not."""
-    import cv2
-    from handmocap.perception.hand_finder import letterbox
-    rng = np.random.default_rng(0)
-    for w, h, size in ((1280, 720, 160), (1920, 1080, 192), (640, 480, 160), (540, 960, 160), (1281, 721, 160),
-                       (320, 240, 160)):
-        frame = np.zeros((h, w, 3), np.uint8)
-        cx, cy, r = rng.uniform(0.2, 0.8) * w, rng.uniform(0.2, 0.8) * h, max(w, h) // 40
-        frame[int(cy) - r:int(cy) + r, int(cx) - r:int(cx) + r] = 255
-        boxed, lb = letterbox(frame, size)
-        assert boxed.shape == (size, size, 3)
-        nw, nh = max(1, round(w * size / max(w, h))), max(1, round(h * size / max(w, h)))
-        inside = boxed[lb.pad_y:lb.pad_y + nh, lb.pad_x:lb.pad_x + nw, 0].astype(float)   # the grey border left out
-        ys, xs = np.nonzero(inside)
-        found = np.array([np.average(xs, weights=inside[ys, xs]) + lb.pad_x,
-                          np.average(ys, weights=inside[ys, xs]) + lb.pad_y])
-        centre = [int(cx) - 0.5, int(cy) - 0.5]          # of pixels int(c) - r ... int(c) + r - 1
-        np.testing.assert_allclose(found, lb.to_input(centre), atol=0.5, err_msg=f"{w}x{h}")
-        photo = cv2.GaussianBlur(rng.integers(0, 256, (h, w, 3), dtype=np.uint8), (0, 0), 4)   # smooth, like a scene
-        direct = cv2.resize(photo, (nw, nh), interpolation=cv2.INTER_AREA if nw < w else cv2.INTER_LINEAR)
-        gap = np.abs(letterbox(photo, size)[0][lb.pad_y:lb.pad_y + nh, lb.pad_x:lb.pad_x + nw].astype(int) - direct)
-        factor = max(w, h) / size
-        if factor == 2 ** round(np.log2(factor)):
-            assert gap.max() <= 2, (w, h)
-        else:
-            assert gap.mean() <= 2, (w, h, gap.mean())
-
 def test_the_runtime_finder_letterboxes_into_its_file_s_input_side(tmp_path):
     """A finder exported at 256 px is read at 256 px (HandFinder.size), the shipped one at 160."""
     import pytest
