@@ -41,13 +41,13 @@ import cv2
 import numpy as np
 
 from handmocap.training import real_data
+from handmocap.training.pose_data import SHARED_DATA
 from handmocap.perception.hand_finder import BORDER_VALUE, INPUT_SIZE, STRIDE, box_iou, decode, greyed, letterbox, square
 from handmocap.perception.skeleton import BONES
 from handmocap.training.training import add_pretrained_arguments, warmup_cosine_lr
 
 RUN_DIR = Path("runs/finder")
 DEFAULT_EXPORT = Path(__file__).resolve().parents[2] / "models" / "finder.onnx"
-SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 TRAIN_VIDEOS = ("webcam/huytung228_1hand", "webcam/huytung228_hand", "webcam/huytung228_volctl",
                 "webcam/lujunwang_hand", "webcam/lujunwang_hand2", "webcam/sushensanthush_hand",
                 "dex_retargeting/human_hand_video", "tfjs_asl_hand/asl_hand.25fps")
