@@ -192,7 +192,8 @@ HEAD = ("| held-back set | frames | MediaPipe's hands | found % | false hands / 
 
 JITTER_KEYS = (("found", "found %", 100), ("false_per_frame", "false hands / frame", 1),
                ("false_sure", "false / frame where MediaPipe found two", 1), ("median_err", "median", 1),
-               ("mean_err", "mean", 1), ("pck", "PCK@0.1", 1), ("side", "side right %", 100), ("shake", "shake", 1))
+               ("mean_err", "mean", 1), ("pck", "PCK@0.1", 1), ("side", "side right %", 100),
+               ("wrong_side_ratio", "wrong-side error ratio", 1), ("shake", "shake", 1))
 
 
 def jitter_rows(runs):
