@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from handmocap.perception.crops import CROP
+from handmocap.perception.hand_finder import to_input_tensor
 from handmocap.perception.onnx_models import cores, open_session, stale_quantization
 
 DETNET_FLOAT32 = Path(__file__).resolve().parents[2] / "models" / "detnet.onnx"   # `handtrain detnet` writes it
@@ -98,14 +99,12 @@ class DetNetRunner:
         """(N,3,S,S) float32 in [0, 1] from uint8 crops (N,S,S,3), written into a buffer kept
         between calls for up to INPUT_BUFFER_CROPS crops (valid until the next call)."""
         crops = np.asarray(crops_rgb)
-        shape = (len(crops), crops.shape[3], crops.shape[1], crops.shape[2])
         if len(crops) > INPUT_BUFFER_CROPS:
-            return np.divide(crops.transpose(0, 3, 1, 2), np.float32(255), dtype=np.float32)
-        if self._input is None or self._input.shape[1:] != shape[1:]:
-            self._input = np.empty((INPUT_BUFFER_CROPS, *shape[1:]), np.float32)
-        x = self._input[:len(crops)]
-        np.divide(crops.transpose(0, 3, 1, 2), np.float32(255), out=x)
-        return x
+            return to_input_tensor(crops)
+        planes = (crops.shape[3], *crops.shape[1:3])                          # (3,S,S)
+        if self._input is None or self._input.shape[1:] != planes:
+            self._input = np.empty((INPUT_BUFFER_CROPS, *planes), np.float32)
+        return to_input_tensor(crops, out=self._input[:len(crops)])
 
     def __call__(self, crops_rgb, read_side=True, side_only=0):
         """side_only: with a side network, the last this many crops are read by it alone (the

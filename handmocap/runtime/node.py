@@ -377,8 +377,9 @@ class Node:
 
     def _arm(self, block):
         """What a receive loop reads: {socket: "latest" or "all"} (keep-all, lossless and
-        control sockets are read alike, tcp and inproc ones as their mode's), and a Poller
-        over them, or with one socket None (the loop then blocks in recv: RCVTIMEO)."""
+        control sockets are read alike, tcp and inproc ones as their mode's); a Poller over
+        them, or with one socket None (the loop then blocks in recv: RCVTIMEO); that one
+        socket and its mode (None, None without sockets); the sockets made so far."""
         socks = {s: "latest" if mode == "latest" else "all" for (mode, _), s in self.sub.socks.items()}
         poller = None
         if len(socks) == 1:
@@ -387,13 +388,11 @@ class Node:
             poller = zmq.Poller()
             for s in socks:
                 poller.register(s, zmq.POLLIN)
-        return socks, poller
+        return (socks, poller, *next(iter(socks.items()), (None, None)), self.sub.made)
 
     def _events(self, timeout, block):
         self.ready()
-        socks, poller = self._arm(block)
-        only, only_mode = next(iter(socks.items()), (None, None))
-        armed = self.sub.made
+        socks, poller, only, only_mode, armed = self._arm(block)
         trusted = self.sub.trusted   # inproc: this container's nodes (decoded without the checks, _decode)
         last = time.monotonic()
         idle_since = None
@@ -405,9 +404,7 @@ class Node:
                 if not self.info.observer and self._inputs_ended():
                     break
                 if self.sub.made != armed:   # a publisher found on a new kind of connection (tcp with keys)
-                    socks, poller = self._arm(block)
-                    only, only_mode = next(iter(socks.items()), (None, None))
-                    armed = self.sub.made
+                    socks, poller, only, only_mode, armed = self._arm(block)
             got = False
             if poller is None:
                 try:

@@ -64,7 +64,7 @@ def _boxes_overlap(box, boxes):
 
 class RealCutter:
     """Cuts real hands into context crops (CTX px around the keypoint box x CTX_SCALE) and
-    negatives beside them, collecting the arrays a real cache holds (`arrays`):
+    negatives beside them, collecting the arrays a real cache holds (`save`):
 
     Hands: image (n,CTX,CTX,3), uv (n,21,2) in context px, right (n,) 1 if the hand appears
     as a right hand, weight (n,) label weight, held (n,) bool held-out, source (n,) str,
@@ -149,10 +149,12 @@ class RealCutter:
                            source=HELD_BACK_SOURCE + named if held_back else WILD_SOURCE + video.stem,
                            negatives=not held_back)
 
-    def arrays(self):
+    def save(self, path):
+        """The arrays cut so far, written to `path` (write_npz) and returned."""
         arrays = {k: np.asarray(v) for k, v in self.hands.items()}
         arrays["neg"] = np.asarray(self.negs, np.uint8).reshape(-1, CROP, CROP, 3)
         arrays["neg_held"], arrays["neg_arm"] = np.asarray(self.neg_held, bool), np.asarray(self.neg_arm, bool)
+        write_npz(path, arrays)
         return arrays
 
 
@@ -177,9 +179,7 @@ def build_real_cache(shared, path, seed=0, log=print):
     for s in real_data.load_scenes(shared):
         cut.add_hand(s["image"], s["uv"], s["handedness"] == "right", 1.0, False, "scenes")
     log(f"  images/scenes: {len(cut.hands['image'])} hands")
-    arrays = cut.arrays()
-    write_npz(path, arrays)
-    return arrays
+    return cut.save(path)
 
 
 def build_drop_cache(shared, path, drop, seed=0, log=print):
@@ -189,9 +189,7 @@ def build_drop_cache(shared, path, drop, seed=0, log=print):
     cut = RealCutter(np.random.default_rng([seed, 99, len(drop)]), log)
     for held_back in (False, True):
         cut.add_drop(shared, drop, held_back)
-    arrays = cut.arrays()
-    write_npz(path, arrays)
-    return arrays
+    return cut.save(path)
 
 
 def jittered_side(uv, rng, scale=1.3):

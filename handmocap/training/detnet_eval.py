@@ -150,15 +150,15 @@ def validate(net, sval, rval, refines=("softmax",)):
     if rval is not None:
         reads, pres, right = predict(net, rval["image"], refines[:1])
         err = np.linalg.norm(reads[refines[0]][0] - rval["uv"], axis=-1).mean(-1)
-        source = rval["source"].astype(str)
-        how = np.char.startswith(source, "howiema")
-        people = np.char.startswith(source, HELD_BACK_SOURCE)
+        groups = heldout_groups(rval["source"])
+        how, tails, clips, later, photos = (groups[k] for k in ("howiema 001", "training videos' tails", "held-back clips",
+                                                                "held-back clips, third drop", "held-back photos"))
+        people = clips | later | photos
         if how.any():
             m["howiema001_heldout_px"] = float(err[how].mean())
-        if (~how & ~people).any():
-            m["video_heldout_px_vs_mediapipe"] = float(err[~how & ~people].mean())
-        photos, later = np.char.startswith(source, HELD_BACK_SOURCE + "11k/"), later_drops(source)
-        for name, mask in (("wild", people & ~photos & ~later), ("wild3", later), ("11k", people & photos)):
+        if tails.any():
+            m["video_heldout_px_vs_mediapipe"] = float(err[tails].mean())
+        for name, mask in (("wild", clips), ("wild3", later), ("11k", photos)):
             if mask.any():      # people never trained on, against MediaPipe: error / hand size, PCK at 0.1 of it
                 size = real_data.hand_size(rval["uv"][mask])
                 joint_err = np.linalg.norm(reads[refines[0]][0][mask] - rval["uv"][mask], axis=-1)
@@ -170,15 +170,14 @@ def validate(net, sval, rval, refines=("softmax",)):
                                                 np.ones(len(err), bool))
         reads_wrong, _, right_wrong = predict(net, flipped, refines[:1])
         err_wrong = np.linalg.norm(reads_wrong[refines[0]][0] - uv_flipped, axis=-1).mean(-1)
-        clips = people & ~photos & ~later
         if clips.any():     # the side of held-back clips' hands, shown as right (image) and as left (flipped)
             m["people_side_acc"] = float(np.mean([(right[clips] > 0.5).mean(), (right_wrong[clips] < 0.5).mean()]))
             # the detector's mirror vote: the two readings of one hand averaged in logit space (its logit)
             m["people_side_acc_pair"] = float((logit(right[clips]) > logit(right_wrong[clips])).mean())
         if how.any():
             m["howiema001_heldout_px_wrong_side"] = float(err_wrong[how].mean())
-        if (~how & ~people).any():
-            m["video_heldout_px_wrong_side"] = float(err_wrong[~how & ~people].mean())
+        if tails.any():
+            m["video_heldout_px_wrong_side"] = float(err_wrong[tails].mean())
         if people.any():
             m["people_px"], m["people_px_wrong_side"] = float(err[people].mean()), float(err_wrong[people].mean())
         if "has_3d" in rval and rval["has_3d"].any():   # agreement with MediaPipe's 3D, not accuracy
