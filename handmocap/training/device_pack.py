@@ -13,7 +13,9 @@ carried files; `../shared` does not travel. So the job's data goes as one folder
 * synth.npz: rendered 128 px crops (JPEG) with their 2D and 3D labels, and a held-out
   synthetic set for validation;
 * in real.npz too, every 2nd crop of an arm without its hand (detnet_data.build_arm_cache;
-  `arm`, for --arm-neg), where that cache was given.
+  `arm`, for --arm-neg), where that cache was given;
+* for `--backbone lite0`, the trunk's ImageNet weights in float16 (IMAGENET_IN_PACK, 6 MB):
+  the machine has no registry to install the package that ships them.
 
 Which crops go: the byte budget (`--mb`) is split between real and synthetic crops
 (`--real-share`); every 11K Hands photo of a training person goes (each is another person),
@@ -33,6 +35,7 @@ PACK_DIR = Path("runs/device/pack")
 HAND_KEYS = ("uv", "right", "weight", "held", "source", "xyz", "has_3d")
 SYNTH_KEYS = ("uv", "xyz_rel", "xyz", "handedness", "in_image")
 HARD_KINDS = ("arm", "near")        # hard negatives a pack can carry (train_detnet --arm-neg, --near-neg)
+IMAGENET_IN_PACK = "imagenet_lite0.pt"     # the lite0 trunk's ImageNet weights, float16, in a lite0 run's pack
 LABEL_BYTES = 250           # a crop's labels (float16 uv and xyz) in the compressed .npz, about
 
 

@@ -122,6 +122,9 @@ def add_arguments(p):
                    help="write a device pack of --data's synthetic crops, the held-out set and the real cache to "
                         "DIR (about --pack-mb MB) and stop")
     p.add_argument("--pack-mb", type=float, default=24.0, help="size of a --write-pack pack, MB (default %(default)s)")
+    p.add_argument("--pack-quality", type=int, default=85, metavar="Q",
+                   help="JPEG quality of a --write-pack pack's crops (default %(default)s; 80 packs about a fifth "
+                        "more crops in the same room)")
     p.add_argument("--minutes", type=float, default=None,
                    help="stop after this many minutes of training and export (the learning rate decays over "
                         "whichever of --iters and --minutes comes first): a job that must end on time")
@@ -144,7 +147,7 @@ def add_arguments(p):
 
 def main(args):
     if args.write_pack:                 # the data only: no network
-        from handmocap.training.device_pack import HARD_KINDS, pack
+        from handmocap.training.device_pack import HARD_KINDS, IMAGENET_IN_PACK, pack
         real, synth = load_real(args.shared), load_synth(synth_dirs(args.data), args.max_synth)
         val = load_synth([args.val], 256)
         if real is None or synth is None or val is None:
@@ -152,7 +155,13 @@ def main(args):
                              f"({' '.join(args.data)}) and the held-out set ({args.val}): see the model card")
         # hard negatives only for a pack meant for a run that uses them: they take the room of rendered crops
         hard = {kind: HARD_NEGATIVES[kind][0](args.shared) for kind in HARD_KINDS if getattr(args, f"{kind}_neg")}
-        pack(args.write_pack, real, synth, val, args.pack_mb, hard=hard)
+        mb = args.pack_mb
+        if args.backbone == "lite0":    # its ImageNet weights travel too: the lent machine has no registry
+            from handmocap.training.efficientnet_lite import save_imagenet_half
+            args.write_pack.mkdir(parents=True, exist_ok=True)
+            save_imagenet_half(args.write_pack / IMAGENET_IN_PACK)
+            mb -= (args.write_pack / IMAGENET_IN_PACK).stat().st_size / 1e6
+        pack(args.write_pack, real, synth, val, mb, quality=args.pack_quality, hard=hard)
         return
     import torch
     from tqdm import tqdm
@@ -255,8 +264,11 @@ def main(args):
         if rval is not None and pool is not None:
             rval[kind] = pool[kind][pool[f"{kind}_held"]]
     if args.backbone in PRETRAINED and not args.resume and not args.init_from:
-        net.backbone.trunk.load_imagenet()
-        print(f"{args.backbone}: trunk from the ImageNet weights of {IMAGENET_PACKAGE}; "
+        from handmocap.training.device_pack import IMAGENET_IN_PACK
+        carried = args.pack / IMAGENET_IN_PACK if args.pack else None      # a pack's copy, where it has one
+        net.backbone.trunk.load_imagenet(carried if carried and carried.exists() else None)
+        print(f"{args.backbone}: trunk from the ImageNet weights of {IMAGENET_PACKAGE}"
+              + (f" (the pack's float16 copy)" if carried and carried.exists() else "") + "; "
               + (f"stem and blocks 0-{args.freeze_blocks - 1} frozen, " if args.freeze_blocks > 0 else "")
               + f"the pretrained blocks at {args.backbone_lr} x lr")
     if args.init_from and not args.resume:
