@@ -383,11 +383,15 @@ def export_onnx(net, path, refine="logquad", opset=17):
     uv (N,21,2) crop px, xyz (N,21,3) root-relative normalized (right hand), confidence
     (N,21), presence (N,), handedness (N,) = P(crop shows a right hand as it appears),
     uv_peak (N,21,2) crop px, the "logquad" read-out (what the detector tracks with)."""
+    import copy
+
     import onnx
     was_training = net.training
     net.eval()
-    wrapper = DetNetExport(net, refine).eval()
-    dummy = torch.rand(2, 3, CROP, CROP, device=next(net.parameters()).device)   # a GPU net exports too
+    # a GPU net is traced from a CPU copy: the graph is the same, and no constant lands on the GPU
+    on_cpu = net if next(net.parameters()).device.type == "cpu" else copy.deepcopy(net).cpu()
+    wrapper = DetNetExport(on_cpu, refine).eval()
+    dummy = torch.rand(2, 3, CROP, CROP)
     torch.onnx.export(wrapper, (dummy,), str(path), input_names=["image"], output_names=list(OUTPUTS),
                       dynamic_axes={"image": {0: "N"}, **{k: {0: "N"} for k in OUTPUTS}},
                       opset_version=opset, dynamo=False)

@@ -9,7 +9,7 @@ def gaussian_heatmaps(uv, grid, stride, sigma=1.0):
     import torch
     from handmocap.training.detnet import uv_to_cell
     cell = uv_to_cell(uv, stride)
-    g = torch.arange(grid, dtype=uv.dtype)
+    g = torch.arange(grid, dtype=uv.dtype, device=uv.device)
     dx2 = (g.view(1, 1, 1, grid) - cell[..., 0, None, None]) ** 2
     dy2 = (g.view(1, 1, grid, 1) - cell[..., 1, None, None]) ** 2
     return torch.exp(-0.5 * (dx2 + dy2) / sigma ** 2)
