@@ -298,6 +298,29 @@ def test_training_step_decreases_loss():
     assert total().item() < 0.7 * first.item()
 
 
+@pytest.mark.parametrize("backbone", ["fast", "lite0"])
+def test_a_training_step_makes_no_tensor_off_the_batchs_device(backbone):
+    """The lent GPU's first run stopped at iteration 0: a target grid was made on the CPU.
+    The meta device (shapes only) fails the same way wherever a CPU tensor meets the batch's."""
+    torch = _torch()
+    from handmocap.training.detnet import DetNet, read_out
+    from handmocap.training.detnet_eval import read_outs
+    from handmocap.training.detnet_losses import detnet_losses
+    meta = torch.device("meta")
+    n = 2
+    batch = {"image": torch.rand(n, 3, 128, 128), "uv": torch.rand(n, 21, 2) * 128, "xyz": torch.rand(n, 21, 3),
+             **{k: torch.ones(n) for k in ("w2d", "w3d", "presence", "right", "w_hand")}}
+    batch = {k: v.to(meta) for k, v in batch.items()}
+    net = DetNet(backbone).to(meta)
+    sum(detnet_losses(net(batch["image"]), batch, net.stride).values()).backward()
+    with torch.no_grad():
+        out = net.eval()(batch["image"])
+        for refine in read_outs(net):
+            uv, xyz, conf = read_out(out["heatmap"], out["location"], net.stride, refine, out["heat_logits"],
+                                     out.get("fine_logits"))
+            assert uv.device == meta and uv.shape == (n, 21, 2)
+
+
 def test_augmentation_keeps_2d_and_3d_consistent():
     """Rotating/mirroring the crop and the 3D label together keeps the 3D label the crop's."""
     from handmocap.training import real_data
