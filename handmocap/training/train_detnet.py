@@ -324,7 +324,8 @@ def main(args):
         metrics = validate(net, sval, rval, refines=read_outs(net))
         if sval is not None:
             refine = min(read_outs(net), key=lambda r: metrics[f"syn_px_{r}"])
-        history.append({"iteration": done, "seconds": time.monotonic() - t0, "refine": refine,
+        history.append({"iteration": done, "seconds": time.monotonic() - t0, "batch_wait_seconds": waited,
+                        "refine": refine,
                         "synthetic_crops": len(synth["image"]), **metrics})
         bar.write(f"iter {done}: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v
                                                  for k, v in history[-1].items()}))
@@ -339,7 +340,7 @@ def main(args):
                                                pin_memory=device.type == "cuda")) if args.workers else None
     bar = tqdm(range(start, args.iters), initial=start, total=args.iters, desc=f"detnet-{args.backbone}",
                dynamic_ncols=True, mininterval=5)
-    t0 = time.monotonic()
+    t0, waited = time.monotonic(), 0.0
     budget_s = None if args.minutes is None else 60.0 * args.minutes
     done = start
     for it in bar:
@@ -358,7 +359,12 @@ def main(args):
             # (the warm-up stays 300 iterations)
             at = it if budget_s is None or it < 300 else max(it, int(300 + (args.iters - 300) * elapsed / budget_s))
             group["lr"] = scale * warmup_cosine_lr(at, args.lr, args.iters, warmup=300, floor=0.02)
-        b = {k: v.to(device, non_blocking=True) for k, v in (next(batches) if batches else batch_at(it)).items()}
+        # the time spent waiting for (or making) batches: what the loader costs the run
+        # (a GPU run whose wait is a large share of its time wants more loader processes)
+        w = time.monotonic()
+        batch = next(batches) if batches else batch_at(it)
+        waited += time.monotonic() - w
+        b = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
         train_mode()                    # validation and export leave every module in training mode
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.amp):   # --amp: bf16 mixed precision
             out = net(b["image"].contiguous(memory_format=torch.channels_last))
