@@ -268,7 +268,7 @@ def main(args):
         carried = args.pack / IMAGENET_IN_PACK if args.pack else None      # a pack's copy, where it has one
         net.backbone.trunk.load_imagenet(carried if carried and carried.exists() else None)
         print(f"{args.backbone}: trunk from the ImageNet weights of {IMAGENET_PACKAGE}"
-              + (f" (the pack's float16 copy)" if carried and carried.exists() else "") + "; "
+              + (" (the pack's float16 copy)" if carried and carried.exists() else "") + "; "
               + (f"stem and blocks 0-{args.freeze_blocks - 1} frozen, " if args.freeze_blocks > 0 else "")
               + f"the pretrained blocks at {args.backbone_lr} x lr")
     if args.init_from and not args.resume:
