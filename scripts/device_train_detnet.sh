@@ -19,6 +19,10 @@
 #     handeval people --jitter 3 --detnet F_int8.onnx --side-detnet int8
 # and ship it only by the rule written before the run (model card, "DetNet").
 #
+# Session 42 on an H200 (15 minutes of device time): a cold start and the 65 MB transfer took
+# 35-90 s a call; MINUTES=6.5 ran 419 s (6,564 iterations of 256 at 17-19 a second, validation
+# and exports included). One call of MINUTES=8.5 with timeout_s 600 fits the lease with a
+# minute to spare, but leaves no room for a second start (4 minutes needed).
 # The machine has python3 with torch, numpy, opencv, onnx and onnxruntime, and no registry:
 # the repository runs from the checkout (PYTHONPATH), nothing is installed. The same script
 # runs on a CPU for a check (DEVICE=cpu MINUTES=0.2 WORKERS=0 BATCH=8). EXTRA adds trainer
