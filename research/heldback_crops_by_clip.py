@@ -4,6 +4,7 @@ hand (detnet_eval.real_val_set, a perfect finder, tracker and side), so a change
 at some clips' conditions (two hands touching, a sink from above) shows where it lands.
 
     python research/heldback_crops_by_clip.py models/detnet_int8.onnx runs/detnet/X/final_int8.onnx ...
+    python research/heldback_crops_by_clip.py --as-cut ...     (unturned: the crops `quantize_detnet --compare` reads)
 """
 import argparse
 
@@ -18,8 +19,11 @@ from handmocap.training.detnet_eval import heldout_groups
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("detnet", nargs="+", help="exported DetNet files (ONNX)")
+    p.add_argument("--as-cut", action="store_true",
+                   help="the crops as cut around the label, not turned upright (the hands at any angle, as "
+                        "`python -m handmocap.training.quantize_detnet --compare` and a run's own log read them)")
     args = p.parse_args()
-    _, crops = heldout_sets(upright=True)
+    _, crops = heldout_sets(upright=not args.as_cut)
     held = heldout_groups(crops["source"])
     clips, source = held["held-back clips"], crops["source"].astype(str)      # a clip's crops: heldback/<clip>
     groups = {name[len(HELD_BACK_SOURCE):]: clips & (source == name) for name in sorted(set(source[clips]))}
