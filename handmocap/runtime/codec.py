@@ -3,16 +3,18 @@
 A message is a plain dict. numpy arrays anywhere in it travel as
 `{"dtype": str, "shape": [int], "data": bytes}` (C order, little-endian), never as
 per-element lists; `decode` turns them back into read-only arrays that view the payload.
+Fields a message type does not declare are dropped on receipt (a bag keeps the payload as
+it was sent).
 
 Speed: a node sleeps between messages while other processes use the cores, so it handles
-each message with cold caches, where every step costs 3-10x its hot-loop time (a 1 kB
-HandKeypoints on this 2-core machine under load: encode 5 us hot / ~20 cold, unpack 3 / ~40,
-schema check 8 / ~40, arrays 5 / ~20). That cold CPU is most of what the bus adds to a hop,
-so the path touches as little as it can: the schema is compiled with its `$ref`s inlined
-(fastjsonschema otherwise calls a function per ref that formats an error-path string even for
-a valid message); arrays are rebuilt by straight-line code generated from the schema (a
-generic walk of the message costs ~3x more cold); packers are reused; and large messages
-(frames) are packed into pooled buffers that are sent as they are (`encode_view`).
+each message with cold caches, where every step costs 3-10x its hot-loop time. That cold CPU
+is most of what the bus adds to a hop, so the path touches as little as it can: msgspec's
+typed decoder unpacks and checks a payload against its type's schema in one pass of C
+(`wire_type` translates the JSON Schema; a 1 kB HandKeypoints in ~1 us, against ~7.5 for
+msgpack's unpack and fastjsonschema's check); arrays are rebuilt by straight-line code
+generated from the schema (a generic walk of the message costs ~3x more cold); packers are
+reused; and large messages (frames) are packed into pooled buffers that are sent as they
+are (`encode_view`).
 """
 from __future__ import annotations
 
@@ -23,9 +25,10 @@ import os
 import threading
 import time
 from importlib import resources
+from typing import Annotated, Any, Literal, NotRequired, TypedDict
 
-import fastjsonschema
 import msgpack
+import msgspec
 import numpy as np
 
 # Larger payloads are dropped unread; a 4K BGR frame is 25 MB.
@@ -62,15 +65,19 @@ def schema(type_name: str) -> dict:
     return s
 
 
+# Schema keywords that say nothing a message must satisfy
+_NOTES = frozenset(("description", "title", "$comment", "$defs", "x-shape", "x-unit", "x-summary", "examples"))
+
+
 def _inline_refs(node, defs: dict, depth: int = 0):
-    """The schema with every plain local reference (`{"$ref": "#/$defs/name"}`, nothing beside
-    it) replaced by its definition: the same schema, which fastjsonschema then checks in one
-    function. `$defs` stay where they are, for any reference left."""
+    """The schema with every local reference (`{"$ref": "#/$defs/name"}`, nothing beside it
+    but notes such as a description) replaced by its definition: the same schema, in one
+    piece. `$defs` stay where they are, for any reference left."""
     if depth > 64:
         raise RecursionError("recursive $ref")
     if isinstance(node, dict):
         ref = node.get("$ref")
-        if isinstance(ref, str) and ref.startswith("#/$defs/") and ref[8:] in defs and len(node) == 1:
+        if isinstance(ref, str) and ref.startswith("#/$defs/") and ref[8:] in defs and set(node) - {"$ref"} <= _NOTES:
             return _inline_refs(defs[ref[8:]], defs, depth + 1)
         return {k: v if k == "$defs" else _inline_refs(v, defs, depth + 1) for k, v in node.items()}
     if isinstance(node, list):
@@ -87,9 +94,63 @@ def _flat_schema(type_name: str) -> dict:
         return s
 
 
+def wire_type(s: dict, where: str = "$"):
+    """The msgspec type that checks what the JSON Schema `s` (a part of a type's flat schema)
+    asks, for msgspec's typed decoder: unpacking and checking in one pass of C (a 1 kB
+    HandKeypoints: ~1 us against ~7.5 for msgpack and fastjsonschema). The subset the messages
+    use, exactly: an object (TypedDict: `required` keys must be there, `properties` checked;
+    keys a type does not declare are dropped on receipt), an array (`items`, `minItems`,
+    `maxItems`; a list of `items` schemas of one fixed length: a tuple), integer and number
+    (`minimum`, `maximum`; a bool is neither, an integral float is no integer), string,
+    boolean, `const` and `enum` (Literal), and no type at all (anything). A ValueError names
+    any other keyword, so a schema the translation would check less than it says never ships
+    (tests/test_codec.py translates every type)."""
+    def unsupported(keys):
+        raise ValueError(f"messages schema at {where}: {', '.join(sorted(keys))} has no wire_type translation")
+
+    def bounds(t, **meta):
+        meta = {k: v for k, v in meta.items() if v is not None}
+        return Annotated[t, msgspec.Meta(**meta)] if meta else t
+
+    keys = set(s) - _NOTES
+    if "const" in s or "enum" in s:
+        values = (s["const"],) if "const" in s else tuple(s["enum"])
+        if keys - {"const", "enum", "type"} or not all(type(v) in (str, int) for v in values):
+            unsupported(keys)
+        return Literal[values]
+    kind = s.get("type")
+    if kind is None:
+        if keys:
+            unsupported(keys)
+        return Any
+    if kind == "object":
+        if keys - {"type", "properties", "required", "additionalProperties"} or \
+                s.get("additionalProperties", False) is not False:
+            unsupported(keys)
+        required = set(s.get("required", ()))
+        fields = {k: wire_type(v, f"{where}.{k}") for k, v in s.get("properties", {}).items()}
+        if required - set(fields):
+            unsupported({f"required {sorted(required - set(fields))} without properties"})
+        return TypedDict(f"Wire{abs(hash(where))}", {k: t if k in required else NotRequired[t] for k, t in fields.items()})
+    if kind == "array":
+        if keys - {"type", "items", "minItems", "maxItems"}:
+            unsupported(keys)
+        items = s.get("items", {})
+        if isinstance(items, list):
+            if not s.get("minItems") == s.get("maxItems") == len(items):
+                unsupported({"items list of open length"})
+            return tuple[tuple(wire_type(v, f"{where}[{i}]") for i, v in enumerate(items))]
+        return bounds(list[wire_type(items, f"{where}[]")], min_length=s.get("minItems"), max_length=s.get("maxItems"))
+    scalar = {"integer": int, "number": float, "string": str, "boolean": bool}.get(kind)
+    if scalar is None or keys - ({"type", "minimum", "maximum"} if scalar in (int, float) else {"type"}):
+        unsupported(keys)
+    return bounds(scalar, ge=s.get("minimum"), le=s.get("maximum"))
+
+
 @functools.cache
-def _validator(type_name: str):
-    return fastjsonschema.compile(_flat_schema(type_name))
+def _decoder(type_name: str) -> msgspec.msgpack.Decoder:
+    """msgspec's typed decoder of a type (`wire_type` of its flat schema)."""
+    return msgspec.msgpack.Decoder(wire_type(_flat_schema(type_name), type_name))
 
 
 _DTYPE_NAMES = {np.dtype(n): n for n in  # dtype.name is slow: a lookup table for the wire types
@@ -209,17 +270,10 @@ def _bad_array(v: dict) -> None:
     raise MalformedMessage("array-shape", f"numpy refuses shape {v['shape']!r}")
 
 
-def _walk_extras(obj: dict, declared: frozenset) -> None:
-    """Arrays under keys the schema does not declare (it allows them): the generic walk."""
-    for k in obj.keys() - declared:
-        v = obj[k]
-        if isinstance(v, (dict, list)):
-            obj[k] = _arrays_from_wire({0: v})[0]
-
-
 # Where a type's arrays are, read from its schema: a plan is ("array", dtype, shape) (dtype and
-# shape: the schema's constants, or None), ("list", plan), ("object", {key: plan}, declared
-# keys), ("any",) (a part the schema leaves open: walked generically) or None (no array).
+# shape: the schema's constants, or None), ("list", plan), ("object", {key: plan}) (keys it does
+# not declare never reach the converter: msgspec drops them), ("any",) (a part the schema leaves
+# open: walked generically) or None (no array).
 _ANY = ("any",)
 
 
@@ -241,8 +295,8 @@ def _plan(s: dict):
             return ("array", dtype if dtype in _DTYPES else None, shape)
         if "patternProperties" in s or isinstance(s.get("additionalProperties"), dict):
             return _ANY
-        inner = {k: _plan(v) for k, v in props.items()}
-        return ("object", {k: p for k, p in inner.items() if p is not None}, frozenset(props))
+        inner = {k: p for k, p in ((k, _plan(v)) for k, v in props.items()) if p is not None}
+        return ("object", inner) if inner else None
     if t == "array":
         items = s.get("items")
         if isinstance(items, dict):
@@ -261,7 +315,7 @@ def _converter_source(plan, tail: bool = False) -> tuple[str, dict]:
     array whose data is the `_TAIL_TOKEN` placeholder gets `tail` (a view of the payload's last
     binary) as its data; it returns how many arrays took it (the caller wants exactly 1)."""
     env = {"_TOK": _TAIL_TOKEN, "_nd": np.ndarray, "_DTYPES": _DTYPES, "_bad": _bad_array, "_prod": math.prod,
-           "_walk": _walk_extras, "_any": lambda v: _arrays_from_wire({0: v})[0]}
+           "_any": lambda v: _arrays_from_wire({0: v})[0]}
     lines = ["def convert(m, _tail):", "    _took = 0"] if tail else ["def convert(m):"]
     names = iter(range(1 << 30))
 
@@ -278,9 +332,6 @@ def _converter_source(plan, tail: bool = False) -> tuple[str, dict]:
                 lines.append(f"{ind}{v} = {var}.get({key!r})")
                 lines.append(f"{ind}if {v} is not None:")
                 emit(v, sub, ind + "    ", f"{var}[{key!r}]")
-            declared = const(plan[2])
-            lines.append(f"{ind}if not {var}.keys() <= {declared}:")
-            lines.append(f"{ind}    _walk({var}, {declared})")
         elif kind == "list":
             i, x = f"i{next(names)}", f"x{next(names)}"
             lines.append(f"{ind}for {i}, {x} in enumerate({var}):")
@@ -341,7 +392,7 @@ def _converter(type_name: str, tail: bool = False):
     return env["convert"]
 
 
-_DECODERS: dict = {}   # type name -> (validate, convert)
+_DECODERS: dict = {}   # type name -> (msgspec decoder, convert)
 _TAIL_MIN = 65536   # a payload whose last binary is at least this long is decoded without copying it
 _TAIL_TOKEN = b"\x00handmocap-tail\x00"   # 16 bytes: where that binary was, in the message unpacked without it
 _TAIL_SCAN = 4096   # its header must start this near the payload's start (a frame's few small fields)
@@ -363,7 +414,7 @@ def _tail_start(payload) -> int:
     return -1
 
 
-def _decode_tail(payload, type_name: str, validate) -> dict | None:
+def _decode_tail(payload, type_name: str) -> dict | None:
     """`decode` of a large payload without copying its last binary (a frame's pixels): msgpack
     copies every binary it unpacks (921 kB for a 640x480 frame: ~0.2-0.3 ms with cold caches,
     most of the receiving node's cost of a frame). The small part before it is unpacked with
@@ -378,8 +429,7 @@ def _decode_tail(payload, type_name: str, validate) -> dict | None:
     if i < 0:
         return None
     try:
-        raw = msgpack.unpackb(bytes(payload[:i]) + b"\xc4\x10" + _TAIL_TOKEN, raw=False, strict_map_key=True)
-        validate(raw)
+        raw = _decoder(type_name).decode(bytes(payload[:i]) + b"\xc4\x10" + _TAIL_TOKEN)
         took = _converter(type_name, True)(raw, memoryview(payload)[i + 5:].toreadonly())
     except Exception:
         return None
@@ -417,27 +467,23 @@ def decode(payload: bytes, type_name: str, max_bytes: int = MAX_MESSAGE_BYTES) -
 
 def decode_trusted(payload, type_name: str) -> dict:
     """`decode` of a payload this process's own code encoded (a node of the same container,
-    over inproc://): unpacked, arrays as views, without the checks that guard against what
-    other processes send (schema, NaN and inf, consistency, stamp). A node's publish() already
-    refused NaN and inf; the schema is checked at send under HANDMOCAP_VALIDATE_SEND (the
-    tests). Raises MalformedMessage on a payload that does not unpack (a bug: never from a
-    running node)."""
+    over inproc://): unpacked by the same typed decoder (the schema's check comes with the
+    unpacking, at no extra cost), arrays as views, without the walks that guard against what
+    other processes send (NaN and inf, consistency, stamp). A node's publish() already refused
+    NaN and inf. Raises MalformedMessage on a payload that does not unpack or fit its type (a
+    bug: never from a running node)."""
     try:
-        validate, convert = _DECODERS[type_name]
+        decoder, convert = _DECODERS[type_name]
     except KeyError:
         return decode(payload, type_name)   # its first message (and an unknown type's error)
     if len(payload) >= _TAIL_MIN:
-        msg = _decode_tail(payload, type_name, _trusted)
+        msg = _decode_tail(payload, type_name)
         if msg is not None:
             return msg
     try:
-        return convert(msgpack.unpackb(payload, raw=False, strict_map_key=True))
+        return convert(decoder.decode(payload))
     except Exception as e:
         raise MalformedMessage("msgpack", f"{type(e).__name__}: {e}") from None
-
-
-def _trusted(raw) -> None:
-    """The validator of decode_trusted: none."""
 
 
 def _image_consistent(m: dict) -> None:
@@ -541,24 +587,24 @@ def _decode(payload, type_name: str, max_bytes: int) -> dict:
     if len(payload) > max_bytes:
         raise MalformedMessage("oversized", f"{len(payload)} bytes > limit {max_bytes}")
     try:
-        validate, convert = _DECODERS[type_name]
+        decoder, convert = _DECODERS[type_name]
     except KeyError:
         try:
-            validate, convert = _DECODERS[type_name] = (_validator(type_name), _converter(type_name))
+            decoder, convert = _DECODERS[type_name] = (_decoder(type_name), _converter(type_name))
         except KeyError as e:
             raise MalformedMessage("unknown-type", str(e)) from None
     if len(payload) >= _TAIL_MIN:
-        msg = _decode_tail(payload, type_name, validate)
+        msg = _decode_tail(payload, type_name)
         if msg is not None:
             return msg
     try:
-        raw = msgpack.unpackb(payload, raw=False, strict_map_key=True)
-    except Exception as e:  # msgpack raises a zoo of types on garbage
+        raw = decoder.decode(payload)
+    except msgspec.ValidationError as e:   # unpacked, but not what the schema asks
+        raise MalformedMessage("schema", str(e)) from None
+    except RecursionError:
+        raise   # decode's "too-deep"
+    except Exception as e:   # not msgpack (msgspec.DecodeError), or nested past its depth limit
         raise MalformedMessage("msgpack", f"{type(e).__name__}: {e}") from None
-    try:
-        validate(raw)
-    except fastjsonschema.JsonSchemaException as e:
-        raise MalformedMessage("schema", e.message) from None
     return convert(raw)
 
 
