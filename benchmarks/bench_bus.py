@@ -68,12 +68,24 @@ def frame_body():
     return "Image", {"encoding": "bgr8", "width": 640, "height": 480, "data": img}
 
 
+def pose_body():
+    f32 = lambda *shape: np.zeros(shape, np.float32)  # noqa: E731
+    hand = {"track_id": 1, "handedness": "right", "score": 0.5, "xyz": f32(21, 3), "root": f32(3),
+            "quat": np.tile(np.float32([1, 0, 0, 0]), (21, 1)), "pose": f32(16, 3), "beta": f32(10), "uv": f32(21, 2)}
+    return "HandPose", {"hands": [hand]}
+
+
 def codec_cost():
-    """The codec's CPU per HandKeypoints message, one and two hands, in a hot loop (best of 3):
-    what a publish checks and encodes, what a receiver from another process decodes (checked),
-    and what a receiver in the sender's own container decodes (codec.decode_trusted)."""
+    """The codec's CPU per HandKeypoints and HandPose message, one and two hands, in a hot loop
+    (best of 3): what a publish checks and encodes, what a receiver from another process
+    decodes (checked), and what a receiver in the sender's own container decodes
+    (codec.decode_trusted)."""
+    for type_name, body in (small_body(), pose_body()):
+        _codec_cost(type_name, body)
+
+
+def _codec_cost(type_name, body):
     from handmocap.runtime import codec
-    type_name, body = small_body()
 
     def per_call_us(f, k=20000):
         best = float("inf")
@@ -89,7 +101,7 @@ def codec_cost():
         codec.decode(payload, type_name)
         send = per_call_us(lambda: (codec.non_finite(msg), codec.encode(msg)))
         checked = per_call_us(lambda: codec.decode(payload, type_name))
-        print(f"codec, {hands} hand(s) ({len(payload)} B): check + encode {send:.1f} us, decode {checked:.1f} us "
+        print(f"codec, {type_name}, {hands} hand(s) ({len(payload)} B): check + encode {send:.1f} us, decode {checked:.1f} us "
               f"(sum {send + checked:.1f})", end="")
         if hasattr(codec, "decode_trusted"):   # (not in the code before session 40: PYTHONPATH=an older tree)
             print(f"; in a container, decode {per_call_us(lambda: codec.decode_trusted(payload, type_name)):.1f} us",
