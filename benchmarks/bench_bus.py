@@ -99,7 +99,7 @@ def _codec_cost(type_name, body):
         msg = {"header": codec.header(0), **body, "hands": body["hands"] * hands}
         payload = codec.encode(msg)
         codec.decode(payload, type_name)
-        send = per_call_us(lambda: (codec.non_finite(msg), codec.encode(msg)))
+        send = per_call_us(lambda: (codec.non_finite(msg, type_name), codec.encode(msg)))
         checked = per_call_us(lambda: codec.decode(payload, type_name))
         print(f"codec, {type_name}, {hands} hand(s) ({len(payload)} B): check + encode {send:.1f} us, decode {checked:.1f} us "
               f"(sum {send + checked:.1f})", end="")

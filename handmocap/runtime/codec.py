@@ -11,9 +11,9 @@ each message with cold caches, where every step costs 3-10x its hot-loop time. T
 is most of what the bus adds to a hop, so the path touches as little as it can: msgspec's
 typed decoder unpacks and checks a payload against its type's schema in one pass of C
 (`wire_type` translates the JSON Schema; a 1 kB HandKeypoints in ~1 us, against ~7.5 for
-msgpack's unpack and fastjsonschema's check); arrays are rebuilt by straight-line code
-generated from the schema (a generic walk of the message costs ~3x more cold); packers are
-reused; and large messages (frames) are packed into pooled buffers that are sent as they
+msgpack's unpack and fastjsonschema's check); arrays are rebuilt, and every float checked
+finite, by straight-line code generated from the schema (a generic walk of the message costs
+~3x more cold); packers are reused; and large messages (frames) are packed into pooled buffers that are sent as they
 are (`encode_view`).
 """
 from __future__ import annotations
@@ -270,11 +270,12 @@ def _bad_array(v: dict) -> None:
     raise MalformedMessage("array-shape", f"numpy refuses shape {v['shape']!r}")
 
 
-# Where a type's arrays are, read from its schema: a plan is ("array", dtype, shape) (dtype and
-# shape: the schema's constants, or None), ("list", plan), ("object", {key: plan}) (keys it does
-# not declare never reach the converter: msgspec drops them), ("any",) (a part the schema leaves
-# open: walked generically) or None (no array).
+# Where a type's arrays and floats are, read from its schema: a plan is ("array", dtype, shape)
+# (dtype and shape: the schema's constants, or None), ("list", plan), ("object", {key: plan})
+# (keys it does not declare never reach the converter: msgspec drops them), ("float",) (a
+# number), ("any",) (a part the schema leaves open: walked generically) or None (neither).
 _ANY = ("any",)
+_FLOAT = ("float",)   # a number: no array, but a float the finite check reads
 
 
 def _plan(s: dict):
@@ -305,7 +306,7 @@ def _plan(s: dict):
         return _ANY if items is not None or "prefixItems" in s else ("list", _ANY)
     if t is None and "enum" not in s and "const" not in s:
         return _ANY
-    return None   # a scalar: holds no array
+    return _FLOAT if t == "number" else None   # a scalar: holds no array
 
 
 def _converter_source(plan, tail: bool = False) -> tuple[str, dict]:
@@ -369,6 +370,8 @@ def _converter_source(plan, tail: bool = False) -> tuple[str, dict]:
                 lines.append(f"{ind}    _bad({var})")
             else:
                 lines.append(f"{ind}{target} = _nd({sh}, {dt}, {d})")
+        elif kind == "float":   # nothing to convert (the finite check reads it)
+            lines.append(f"{ind}pass")
         else:   # any
             lines.append(f"{ind}{target} = _any({var})")
 
@@ -390,6 +393,62 @@ def _converter(type_name: str, tail: bool = False):
     source, env = _converter_source(_plan(_flat_schema(type_name)), tail)
     exec(compile(source, f"<handmocap.runtime.codec converter for {type_name}>", "exec"), env)
     return env["convert"]
+
+
+def _finite_source(plan) -> tuple[str, dict]:
+    """Python source of `finite(m)`: whether every float and float array at the places `plan`
+    declares is finite, read in straight-line code (the generic walk, `_all_finite`, costs
+    ~2 us more a message), all arrays in one numpy call."""
+    env = {"_isfinite": math.isfinite, "_arrays_ok": _finite_arrays, "_walk": _all_finite}
+    lines = ["def finite(m):", "    _fl = []"]
+    names = iter(range(1 << 30))
+
+    def emit(var: str, plan, ind: str) -> None:
+        kind = plan[0]
+        if kind == "object":
+            for key, sub in plan[1].items():
+                v = f"v{next(names)}"
+                lines.append(f"{ind}{v} = {var}.get({key!r})")
+                lines.append(f"{ind}if {v} is not None:")
+                emit(v, sub, ind + "    ")
+        elif kind == "list":
+            x = f"x{next(names)}"
+            lines.append(f"{ind}for {x} in {var}:")
+            emit(x, plan[1], ind + "    ")
+        elif kind == "array":
+            dtype = plan[1]
+            if dtype is None:
+                lines.append(f"{ind}if {var}.dtype.kind == 'f':")
+                lines.append(f"{ind}    _fl.append({var}.reshape(-1))")
+            elif _DTYPES[dtype].kind == "f":
+                lines.append(f"{ind}_fl.append({var}.reshape(-1))")
+            else:
+                lines.append(f"{ind}pass")
+        elif kind == "float":
+            lines.append(f"{ind}if not _isfinite({var}):")
+            lines.append(f"{ind}    return False")
+        else:   # any
+            lines.append(f"{ind}if not _walk({var}):")
+            lines.append(f"{ind}    return False")
+
+    if plan is not None:
+        emit("m", plan, "    ")
+    lines.append("    return _arrays_ok(_fl)")
+    return "\n".join(lines) + "\n", env
+
+
+@functools.cache
+def _finite(type_name: str):
+    """The compiled `finite(m)` of a type (see `_finite_source`)."""
+    source, env = _finite_source(_plan(_flat_schema(type_name)))
+    exec(compile(source, f"<handmocap.runtime.codec finite check for {type_name}>", "exec"), env)
+    return env["finite"]
+
+
+def _finite_arrays(arrays: list) -> bool:
+    if not arrays:
+        return True
+    return bool(np.isfinite(arrays[0] if len(arrays) == 1 else np.concatenate(arrays)).all())
 
 
 _DECODERS: dict = {}   # type name -> (msgspec decoder, convert)
@@ -446,7 +505,7 @@ def decode(payload: bytes, type_name: str, max_bytes: int = MAX_MESSAGE_BYTES) -
     """
     try:
         msg = _decode(payload, type_name, max_bytes)
-        where = non_finite(msg)
+        where = non_finite(msg, type_name)
         if where is not None:
             raise MalformedMessage("not-finite", f"{where} has NaN or inf")
         check = CONSISTENCY.get(type_name)
@@ -496,13 +555,22 @@ def _image_consistent(m: dict) -> None:
         raise MalformedMessage("inconsistent", f"jpeg image data must be a (N,) byte stream, got {data.shape}")
 
 
-def non_finite(obj, path: str = "") -> str | None:
-    """Where the first NaN or inf of a decoded message is ("hands[1].beta"), or None. Every
-    float of every type must be finite: a NaN that passes a hop reaches every subscriber (a NaN
-    `score` even passes the schema's 0-1 bounds: comparisons with NaN are false). Runs on every
-    message at both ends of a hop, so the usual answer (none) comes from `_all_finite`; the
-    walk that names the place runs only when there is one."""
-    return None if _all_finite(obj) else _first_non_finite(obj, path)
+def non_finite(obj, type_name: str | None = None) -> str | None:
+    """Where the first NaN or inf of a message is ("hands[1].beta"), or None. Every float of
+    every type must be finite: a NaN that passes a hop reaches every subscriber. Runs on every
+    message at both ends of a hop, so the usual answer (none) comes from a quick check: with
+    `type_name`, the type's generated one, which reads the places its schema declares (what a
+    receiver keeps: the others are dropped on receipt); else the generic walk (`_all_finite`).
+    The walk that names the place runs only when there is one."""
+    if type_name is not None:
+        try:
+            if _finite(type_name)(obj):
+                return None
+        except Exception:   # a body that does not fit its type (publish checks it later, if asked)
+            pass
+    elif _all_finite(obj):
+        return None
+    return _first_non_finite(obj)
 
 
 _NDARRAY = np.ndarray

@@ -240,7 +240,7 @@ class Node:
         type_name = self.info.publishes.get(topic)
         if type_name is None:
             raise KeyError(f"{self.name}: publish on {topic!r} without advertise()")
-        where = codec.non_finite(body)
+        where = codec.non_finite(body, type_name)
         if where is not None:       # checked at the source: no subscriber ever gets it, no seq is spent
             last = self._last_input
             cause = f"from {last.topic} seq {last.data['header']['seq']} stamp {last.stamp_ns}" if last else "no input"
