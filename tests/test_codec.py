@@ -227,3 +227,17 @@ def test_a_schema_construct_the_decoder_cannot_check_is_an_error_not_a_looser_ch
               {"type": "array", "items": [{"const": 1}], "maxItems": 3}):
         with pytest.raises(ValueError, match="no wire_type translation"):
             codec.wire_type(s)
+
+
+def test_the_typed_finite_check_names_a_nan_where_the_body_does_not_fit_its_type_too():
+    """codec.non_finite(body, type) reads the places the type declares; a body that does not fit
+    (a list where an array belongs, as a careless publisher may send) falls back to the walk."""
+    msg = keypoints_msg(2)
+    assert codec.non_finite(msg, "HandKeypoints") is None
+    msg["hands"][1] = {**msg["hands"][1], "score": float("inf")}
+    assert codec.non_finite(msg, "HandKeypoints") == "hands[1].score"
+    msg = keypoints_msg()
+    msg["hands"][0]["uv"] = [[float("nan"), 0.0]] * 21
+    assert codec.non_finite(msg, "HandKeypoints") == "hands[0].uv[0][0]"
+    msg["hands"][0]["uv"] = np.zeros((21, 2), np.float32)
+    assert codec.non_finite(msg, "HandKeypoints") is None
