@@ -13,8 +13,8 @@ typed decoder unpacks and checks a payload against its type's schema in one pass
 (`wire_type` translates the JSON Schema; a 1 kB HandKeypoints in ~1 us, against ~7.5 for
 msgpack's unpack and fastjsonschema's check); arrays are rebuilt, and every float checked
 finite, by straight-line code generated from the schema (a generic walk of the message costs
-~3x more cold); packers are reused; and large messages (frames) are packed into pooled buffers that are sent as they
-are (`encode_view`).
+~3x more cold); packers are reused; and large messages (frames) are packed into pooled
+buffers that are sent as they are (`encode_view`).
 """
 from __future__ import annotations
 
@@ -131,7 +131,8 @@ def wire_type(s: dict, where: str = "$"):
         fields = {k: wire_type(v, f"{where}.{k}") for k, v in s.get("properties", {}).items()}
         if required - set(fields):
             unsupported({f"required {sorted(required - set(fields))} without properties"})
-        return TypedDict(f"Wire{abs(hash(where))}", {k: t if k in required else NotRequired[t] for k, t in fields.items()})
+        name = "".join(c if c.isalnum() else "_" for c in where)
+        return TypedDict(name, {k: t if k in required else NotRequired[t] for k, t in fields.items()})
     if kind == "array":
         if keys - {"type", "items", "minItems", "maxItems"}:
             unsupported(keys)
