@@ -310,6 +310,39 @@ def _plan(s: dict):
     return _FLOAT if t == "number" else None   # a scalar: holds no array
 
 
+def _arrays_only(plan):
+    """`plan` without its floats (what the converter has nothing to do for), or None."""
+    if plan is None or plan is _FLOAT:
+        return None
+    if plan[0] == "object":
+        inner = {k: p for k, p in ((k, _arrays_only(sub)) for k, sub in plan[1].items()) if p is not None}
+        return ("object", inner) if inner else None
+    if plan[0] == "list":
+        inner = _arrays_only(plan[1])
+        return None if inner is None else ("list", inner)
+    return plan
+
+
+def _emit_walk(lines: list, names, var: str, plan, ind: str, target: str | None, leaf) -> None:
+    """Append to `lines` straight-line code that reaches every leaf of `plan` under the variable
+    `var` (an object's keys through .get, a list's items in a loop); `leaf(var, plan, ind,
+    target)` appends a leaf's own lines (`target`: the expression that assigns in its place).
+    `names`: an iterator of fresh numbers for the code's variables."""
+    kind = plan[0]
+    if kind == "object":
+        for key, sub in plan[1].items():
+            v = f"v{next(names)}"
+            lines.append(f"{ind}{v} = {var}.get({key!r})")
+            lines.append(f"{ind}if {v} is not None:")
+            _emit_walk(lines, names, v, sub, ind + "    ", f"{var}[{key!r}]", leaf)
+    elif kind == "list":
+        i, x = f"i{next(names)}", f"x{next(names)}"
+        lines.append(f"{ind}for {i}, {x} in enumerate({var}):")
+        _emit_walk(lines, names, x, plan[1], ind + "    ", f"{var}[{i}]", leaf)
+    else:
+        leaf(var, plan, ind, target)
+
+
 def _converter_source(plan, tail: bool = False) -> tuple[str, dict]:
     """Python source of `convert(m)`, which turns the arrays of a schema-checked message into
     views in place, following `plan` in straight-line code (a generic walk costs ~3x more
@@ -326,19 +359,9 @@ def _converter_source(plan, tail: bool = False) -> tuple[str, dict]:
         env[name] = value
         return name
 
-    def emit(var: str, plan, ind: str, target: str | None) -> None:
+    def leaf(var: str, plan, ind: str, target: str | None) -> None:
         kind = plan[0]
-        if kind == "object":
-            for key, sub in plan[1].items():
-                v = f"v{next(names)}"
-                lines.append(f"{ind}{v} = {var}.get({key!r})")
-                lines.append(f"{ind}if {v} is not None:")
-                emit(v, sub, ind + "    ", f"{var}[{key!r}]")
-        elif kind == "list":
-            i, x = f"i{next(names)}", f"x{next(names)}"
-            lines.append(f"{ind}for {i}, {x} in enumerate({var}):")
-            emit(x, plan[1], ind + "    ", f"{var}[{i}]")
-        elif kind == "array":
+        if kind == "array":
             _, dtype, shape = plan
             d = f"d{next(names)}"
             lines.append(f"{ind}{d} = {var}['data']")
@@ -364,34 +387,26 @@ def _converter_source(plan, tail: bool = False) -> tuple[str, dict]:
                 size = f"_prod({sh}) * {dt}.itemsize"
             lines.append(f"{ind}if {ok_type} or len({d}) != {size}:")
             lines.append(f"{ind}    _bad({var})")
-            if shape is None:   # the schema's "integer" lets a float like 2.0 through
+            if shape is None:   # numpy refuses some shapes of counts ("array is too big")
                 lines.append(f"{ind}try:")
                 lines.append(f"{ind}    {target} = _nd({sh}, {dt}, {d})")
                 lines.append(f"{ind}except (TypeError, ValueError):")
                 lines.append(f"{ind}    _bad({var})")
             else:
                 lines.append(f"{ind}{target} = _nd({sh}, {dt}, {d})")
-        elif kind == "float":   # nothing to convert (the finite check reads it)
-            lines.append(f"{ind}pass")
         else:   # any
             lines.append(f"{ind}{target} = _any({var})")
 
-    ret = "    return _took" if tail else "    return m"
-    if plan is None:
-        lines.append(ret)
-    elif plan[0] in ("array", "any"):
-        emit("m", plan, "    ", "m")
-        lines.append(ret)
-    else:
-        emit("m", plan, "    ", None)
-        lines.append(ret)
+    if plan is not None:
+        _emit_walk(lines, names, "m", plan, "    ", "m", leaf)
+    lines.append("    return _took" if tail else "    return m")
     return "\n".join(lines) + "\n", env
 
 
 @functools.cache
 def _converter(type_name: str, tail: bool = False):
     """The compiled `convert(m)` of a type; with `tail`, `convert(m, view)` (see `decode`)."""
-    source, env = _converter_source(_plan(_flat_schema(type_name)), tail)
+    source, env = _converter_source(_arrays_only(_plan(_flat_schema(type_name))), tail)
     exec(compile(source, f"<handmocap.runtime.codec converter for {type_name}>", "exec"), env)
     return env["convert"]
 
@@ -404,19 +419,9 @@ def _finite_source(plan) -> tuple[str, dict]:
     lines = ["def finite(m):", "    _fl = []"]
     names = iter(range(1 << 30))
 
-    def emit(var: str, plan, ind: str) -> None:
+    def leaf(var: str, plan, ind: str, target: str | None) -> None:
         kind = plan[0]
-        if kind == "object":
-            for key, sub in plan[1].items():
-                v = f"v{next(names)}"
-                lines.append(f"{ind}{v} = {var}.get({key!r})")
-                lines.append(f"{ind}if {v} is not None:")
-                emit(v, sub, ind + "    ")
-        elif kind == "list":
-            x = f"x{next(names)}"
-            lines.append(f"{ind}for {x} in {var}:")
-            emit(x, plan[1], ind + "    ")
-        elif kind == "array":
+        if kind == "array":
             dtype = plan[1]
             if dtype is None:
                 lines.append(f"{ind}if {var}.dtype.kind == 'f':")
@@ -433,7 +438,7 @@ def _finite_source(plan) -> tuple[str, dict]:
             lines.append(f"{ind}    return False")
 
     if plan is not None:
-        emit("m", plan, "    ")
+        _emit_walk(lines, names, "m", plan, "    ", None, leaf)
     lines.append("    return _arrays_ok(_fl)")
     return "\n".join(lines) + "\n", env
 
