@@ -24,6 +24,18 @@ def run_dir(monkeypatch):
     shutil.rmtree(d, ignore_errors=True)
 
 
+def paths_in(obj, prefix=()):
+    """Every place in a message's nested dicts and lists, as key/index tuples (the message itself
+    first, as ())."""
+    yield prefix
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from paths_in(v, prefix + (k,))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from paths_in(v, prefix + (i,))
+
+
 def graph_env(run_dir: Path, **extra) -> dict:
     """Environment for a handlaunch subprocess: private run dir, test nodes importable."""
     env = {**os.environ, "HANDMOCAP_RUN_DIR": str(run_dir), "HANDMOCAP_VALIDATE_SEND": "1",

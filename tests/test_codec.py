@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
+from conftest import paths_in
 from handmocap.runtime import codec
 
 
@@ -168,16 +169,6 @@ def _example(s):
             "boolean": False}.get(kind, b"")
 
 
-def _paths(obj, path=()):
-    yield path
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            yield from _paths(v, path + (k,))
-    elif isinstance(obj, list):
-        for i, v in enumerate(obj):
-            yield from _paths(v, path + (i,))
-
-
 @pytest.mark.parametrize("type_name", codec.message_types())
 def test_msgspecs_check_of_every_type_refuses_whatever_its_json_schema_refuses(type_name):
     """messages/*.json stay the contract; the decoder checks it through codec.wire_type. Every
@@ -195,7 +186,7 @@ def test_msgspecs_check_of_every_type_refuses_whatever_its_json_schema_refuses(t
     schema_ok(base)
     decoder.decode(msgpack.packb(base))
     wrong = (None, True, -1, 0, 3, 1.5, 2.0, 10**19, "s", "float64", b"b", [], [0], {}, {"k": 1})
-    for path in list(_paths(base))[1:]:
+    for path in list(paths_in(base))[1:]:
         for value in (*wrong, "remove"):
             msg = copy.deepcopy(base)
             parent = msg

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from conftest import handlaunch
+from conftest import handlaunch, paths_in
 from graphnodes.killers import image_killers, nan_keypoints
 from handmocap.runtime import codec
 from handmocap.runtime.bag import iter_messages
@@ -73,23 +73,13 @@ structures = st.recursive(leaves, lambda c: st.lists(c, max_size=3) | st.diction
                           max_leaves=12)
 
 
-def _paths(obj, prefix=()):
-    yield prefix
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            yield from _paths(v, prefix + (k,))
-    elif isinstance(obj, list):
-        for i, v in enumerate(obj):
-            yield from _paths(v, prefix + (i,))
-
-
 @settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.sampled_from(sorted(codec.message_types())), st.data())
 def test_structured_fuzz_of_every_type_only_ever_raises_malformed(type_name, data):
     """A valid message of the type with one part replaced by anything (a deeply nested list, an
     array of absurd shape, a wrong type), or an extra key, or its payload cut or flipped."""
     msg = wire(sample(type_name))
-    paths = [p for p in _paths(msg) if p]
+    paths = [p for p in paths_in(msg) if p]
     how = data.draw(st.sampled_from(["replace", "extra", "deep", "bytes"]))
     if how == "replace":
         path = data.draw(st.sampled_from(paths))
