@@ -283,8 +283,8 @@ _FLOAT = ("float",)   # a number: no array, but a float the finite check reads
 
 
 def _plan(s: dict):
-    if not isinstance(s, dict) or "$ref" in s or any(k in s for k in ("anyOf", "oneOf", "allOf", "not", "if")):
-        return _ANY
+    """The plan of a part of a flat schema that `wire_type` translates (it refuses $ref, anyOf,
+    patternProperties and the like, so none reaches here)."""
     t = s.get("type")
     if t == "object":
         props = s.get("properties", {})
@@ -298,8 +298,6 @@ def _plan(s: dict):
                     and all(isinstance(i, dict) and type(i.get("const")) is int for i in items):
                 shape = tuple(i["const"] for i in items)
             return ("array", dtype if dtype in _DTYPES else None, shape)
-        if "patternProperties" in s or isinstance(s.get("additionalProperties"), dict):
-            return _ANY
         inner = {k: p for k, p in ((k, _plan(v)) for k, v in props.items()) if p is not None}
         return ("object", inner) if inner else None
     if t == "array":
@@ -307,7 +305,7 @@ def _plan(s: dict):
         if isinstance(items, dict):
             p = _plan(items)
             return None if p is None else ("list", p)
-        return _ANY if items is not None or "prefixItems" in s else ("list", _ANY)
+        return _ANY if items is not None else ("list", _ANY)
     if t is None and "enum" not in s and "const" not in s:
         return _ANY
     return _FLOAT if t == "number" else None   # a scalar: holds no array
