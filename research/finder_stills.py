@@ -36,11 +36,10 @@ def main():
     p.add_argument("--thresholds", type=float, nargs="*", default=None)
     args = p.parse_args()
     held_back = args.people == "held-back"
-    frames_of = {f"{args.people} clips, every {args.every}th frame": lambda: list(stills(args.every, held_back))}
+    frames_of = {f"{args.people} clips, every {args.every}th frame": list(stills(args.every, held_back))}
     if held_back:
-        frames_of["11K photos"] = lambda: list(eval_people.frames_of_photos(
-            real_data.load_11khands(SHARED_DATA, held_back=True)))
-    frames_of = {name: get() for name, get in frames_of.items()}
+        frames_of["11K photos"] = list(eval_people.frames_of_photos(real_data.load_11khands(SHARED_DATA,
+                                                                                          held_back=True)))
     print("| finder | set | stills | MediaPipe's hands | found % | false hands / still | median error / hand size "
           "| PCK@0.1 | side right % | ms a still |\n|---|---|---|---|---|---|---|---|---|---|")
     for k, path in enumerate(args.finders):
