@@ -437,6 +437,28 @@ def test_tracked_hands_do_not_run_the_finder_unless_it_checks_the_tracks():
     assert det.stats["crops"] == 2 * 30 + 2 * 3 + 2 + 2 * 2 + 2 * 4
 
 
+def test_a_periodic_finder_run_waits_for_a_frame_without_a_mirror_vote():
+    frames, _ = two_hand_frames(60)
+
+    def events(finder_waits):
+        """Per frame after the first: (the finder ran, a track was due a mirror vote: its age a
+        multiple of mirror_vote_every, 6, as the frame came)."""
+        det = detector(redetect_every=10, finder_waits=finder_waits)
+        out = []
+        for f in frames:
+            calls, voting = det.finder.calls, any(t.age % 6 == 0 for t in det.tracks)
+            det.process(f)
+            out.append((det.finder.calls > calls, voting))
+        return out[1:]
+
+    at_once = lambda ev: sum(found and voted for found, voted in ev)   # noqa: E731
+    runs = lambda ev: [i for i, (found, _) in enumerate(ev) if found]   # noqa: E731
+    assert at_once(events(0)) > 0                # finder every 10 frames, votes every 6: they meet
+    waited = events(3)
+    assert at_once(waited) == 0 and len(runs(waited)) >= len(runs(events(0))) - 1
+    assert max(np.diff(runs(waited))) <= 10 + 3
+
+
 def test_a_track_whose_joints_left_the_found_hand_is_reseeded_from_the_finder():
     det = detector(redetect_every=5)
     frames, truth = two_hand_frames(12)
