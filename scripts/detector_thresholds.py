@@ -1,6 +1,6 @@
 """Choose the detector's track-keeping thresholds on training-side held-out real data.
 
-    python scripts/detector_thresholds.py [--detnet int8|float32|F.onnx] [--finder models/finder.onnx]
+    python scripts/detector_thresholds.py [--detnet int8|float32|F.onnx] [--side-detnet int8|none|F.onnx] [--finder models/finder.onnx]
                                           [--compare KEY=VALUE[,KEY=VALUE] ...]
 
 Runs the detector (finder + DetNet tracking, every frame in order) over real clips kept out
@@ -148,6 +148,8 @@ def parse_setting(text):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--detnet", default=None)
+    ap.add_argument("--side-detnet", default=None,
+                    help="the DetNet whose handedness head gives the side (as handeval's --side-detnet)")
     ap.add_argument("--finder", default=None)
     ap.add_argument("--shared", type=Path, default=SHARED_DATA)
     ap.add_argument("--compare", nargs="*", metavar="KEY=VALUE[,KEY=VALUE]",
@@ -185,7 +187,7 @@ def main():
         print("|---|---|---|---|---|---|")
     quantiles, clip_rows = [], []
     for label, setting in settings:
-        detector = HandDetector.load(args.detnet, args.finder, **setting)
+        detector = HandDetector.load(args.detnet, args.finder, side_detnet=args.side_detnet, **setting)
         cells, errors, sides = [], [], []
         for stills in (False, True):
             rows, found, labelled = [], 0, 0

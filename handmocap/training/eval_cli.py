@@ -650,7 +650,8 @@ def main(argv=None):
     q.add_argument("--json", help="write every number here")
     q.add_argument("--jitter", type=int, default=0, metavar="N",
                    help="run the clips N more times with every pixel moved by -1/0/+1 and print the figures' "
-                        "mean and spread: what a change must beat to be told apart (about 40 s each)")
+                        "mean and spread: what a change must beat to be told apart (about 25 s each; 9 for a "
+                        "decision on the side or the false hands, which move most: models/README.md)")
     q.add_argument("--training-clips", action="store_true",
                    help="the training people's video/wild clips instead of the held-back people: where detector "
                         "settings are chosen (the networks trained on these frames: never accuracy)")
