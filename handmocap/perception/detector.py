@@ -306,7 +306,9 @@ class HandDetector:
     def _should_find(self):
         if not self.tracks or self.lost_last_frame:
             return True
-        if self.frames_since_find < self.redetect_every or not (len(self.tracks) < self.max_hands or self.reseed_iou > 0):
+        if self.frames_since_find < self.redetect_every:
+            return False
+        if len(self.tracks) >= self.max_hands and not self.reseed_iou > 0:   # every slot held, no re-seeding
             return False
         return self.frames_since_find >= self.redetect_every + self.finder_waits or not self._side_read_due()
 
