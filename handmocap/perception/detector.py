@@ -312,12 +312,19 @@ class HandDetector:
             return False
         return self.frames_since_find >= self.redetect_every + self.finder_waits or not self._side_read_due()
 
+    def _vote_due(self, track):
+        """Is `track` due a mirror vote on this frame (`mirror_vote_every`)?"""
+        return bool(self.mirror_vote_every) and not track.fixed_side and track.age % self.mirror_vote_every == 0
+
+    def _side_due(self, track):
+        """Is `track` due a side reading on this frame (`side_every`; None: every frame)?"""
+        return not self.side_every or track.age % self.side_every == 0
+
     def _side_read_due(self):
         """Does this frame read a track's side at a cost (`_run_voting`): a mirror vote (a crop
-        more), or a side reading where a second network reads the side?"""
-        side_every = self.side_every if getattr(self.detnet, "side", None) is not None else None
-        return any((self.mirror_vote_every and not t.fixed_side and t.age % self.mirror_vote_every == 0)
-                   or (side_every and t.age % side_every == 0) for t in self.tracks)
+        more), or a side reading where a second network reads the side at intervals?"""
+        paired = self.side_every and getattr(self.detnet, "side", None) is not None
+        return any(self._vote_due(t) or (paired and self._side_due(t)) for t in self.tracks)
 
     def _frame_finder(self, finder=None):
         """The finder to run on this frame: `finder` when given, else the grey one on grey
@@ -584,9 +591,8 @@ class HandDetector:
         """DetNet's outputs on the crops of `tracks`; the crops of those due a mirror vote
         (`mirror_vote_every`; a new track on each of its first frame's crops) are also read
         flipped, and the handedness head's answer there goes into their running handedness."""
-        due = [i for i, t in enumerate(tracks)
-               if self.mirror_vote_every and not t.fixed_side and t.age % self.mirror_vote_every == 0]
-        read_side = not self.side_every or bool(due) or any(t.age % self.side_every == 0 for t in tracks)
+        due = [i for i, t in enumerate(tracks) if self._vote_due(t)]
+        read_side = bool(due) or any(self._side_due(t) for t in tracks)
         out = self._run(image_bgr, [t.crop for t in tracks], due, read_side)
         n = len(tracks)
         for k, i in enumerate(due):     # the head on the crop mirrored the other way
