@@ -17,7 +17,10 @@
 # and train.log. Here, after it: the int8 copy and the held-back people,
 #     python -m handmocap.training.quantize_detnet --src F.onnx --out F_int8.onnx
 #     handeval people --jitter 3 --detnet F_int8.onnx --side-detnet int8
-# and ship it only by the rule written before the run (model card, "DetNet").
+# and ship it only by the rule written before the run (model card, "DetNet"). Commit what came
+# back (weights_fp16.pt, 6 MB) as models/candidates/<run>.pt in the same session, shipped or not:
+# runs/ is git-ignored and goes with the machine (session 42's GPU run and its polished copy,
+# the best keypoints measured on strangers, were lost that way before session 45).
 #
 # Session 42 on an H200 (15 minutes of device time): a cold start and the 65 MB transfer took
 # 35-90 s a call; MINUTES=6.5 ran 419 s (6,564 iterations of 256 at 17-19 a second, validation
