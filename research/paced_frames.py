@@ -10,10 +10,10 @@ detector, then shape and pose), the detector alone, and the DetNet reads in it (
 Back to back (benchmarks/bench_frame_events.py) a frame's work on the second thread overlaps the
 next frame's; paced, it runs in the gap before it, beside whatever the first thread still does.
 
-Session 45 (experiment log, "Side readings and the finder a frame late"): on a 2-core Xeon VM a
-side read on the second thread (fast-deep int8, two crops) beside the pose stage made that stage
-~2x slower (3 -> 6.5 ms); moving the side read off the detector's frame moved its cost into
-the pose stage rather than removing it.
+Session 45 (experiment log, "The detector's periodic work a frame late"): with the side read moved
+off the frame's path (`research/late_side_and_finder.patch`, `--set side_late=true`), the keypoints
+of those frames still took 11.3 ms against 7.3-8.2 on the others: the side network then runs on
+the second thread at the same moment, and on a 2-core VM two busy threads slow each other.
 """
 import argparse
 import collections

@@ -16,7 +16,7 @@
 # `--init-from` here: the checkpoint with AdamW's state is 37 MB, over the 16 MiB a file may have)
 # and train.log. Here, after it: the int8 copy and the held-back people,
 #     python -m handmocap.training.quantize_detnet --src F.onnx --out F_int8.onnx
-#     handeval people --jitter 3 --detnet F_int8.onnx --side-detnet int8
+#     handeval people --jitter 9 --detnet F_int8.onnx --side-detnet int8
 # and ship it only by the rule written before the run (model card, "DetNet"). Commit what came
 # back (weights_fp16.pt, 6 MB) as models/candidates/<run>.pt in the same session, shipped or not:
 # runs/ is git-ignored and goes with the machine (session 42's GPU run and its polished copy,
