@@ -200,10 +200,26 @@ def run_graph(tmp: Path, clip: Path, rate: float, record_all: bool, name: str, m
             "wall_s": wall}
 
 
-def trace_breakdown(trace: Path) -> list[tuple[str, float, float]]:
-    """Per-hop p50 / p95 ms from the nodes' HANDMOCAP_TRACE files (frames after the first
-    second): each node's receive and publish times (`pub0`: publish() called, `pub1`: sent),
-    matched by capture stamp."""
+# the hops and stages of a frame, each from one trace event to another ((node, event, topic); None:
+# the frame's capture stamp). publish() called -> received: pack, send and the hop together (in a
+# container the receiving thread may run before the sending one records `pub1`, so the two are not split)
+TRACE_SEGMENTS = (
+    ("replay: capture stamp -> publish()", None, ("replay", "pub0", "/camera/image")),
+    ("frame: replay publish -> detector", ("replay", "pub0", "/camera/image"), ("detector", "recv", "/camera/image")),
+    ("  of which replay pack + send", ("replay", "pub0", "/camera/image"), ("replay", "pub1", "/camera/image")),
+    ("detector compute", ("detector", "recv", "/camera/image"), ("detector", "pub0", "/hand/keypoints")),
+    ("keypoints: detector publish -> ik", ("detector", "pub0", "/hand/keypoints"), ("ik", "recv", "/hand/keypoints")),
+    ("ik compute", ("ik", "recv", "/hand/keypoints"), ("ik", "pub0", "/hand/pose")),
+    ("pose: ik publish -> recorder", ("ik", "pub0", "/hand/pose"), ("recorder", "recv", "/hand/pose")),
+    ("total capture -> recorder", None, ("recorder", "recv", "/hand/pose")),
+)
+
+
+def trace_segments_ms(trace: Path) -> tuple[np.ndarray, dict, int]:
+    """From the nodes' HANDMOCAP_TRACE files: (F, len(TRACE_SEGMENTS)) ms of each segment per
+    frame after the first second (NaN where a frame lacks an event), the CPU ms of each traced
+    thread over the run, and the frames traced. Events: each node's receive and publish times
+    (`pub0`: publish() called, `pub1`: sent), matched by capture stamp."""
     import json
     ev: dict = {}
     cpu: dict = {}
@@ -221,32 +237,28 @@ def trace_breakdown(trace: Path) -> list[tuple[str, float, float]]:
             else:
                 ev[(node, "recv", topic, stamp)] = t
     stamps = sorted(s for (n, k, tp, s) in ev if n == "replay" and k == "pub0" and tp == "/camera/image")
-    stamps = stamps[WARMUP_FRAMES:]
-    # publish() called -> received: pack, send and the hop together (in a container the receiving
-    # thread may run before the sending one records `pub1`, so the two are not split)
-    segments = [
-        ("replay: capture stamp -> publish()", None, ("replay", "pub0", "/camera/image")),
-        ("frame: replay publish -> detector", ("replay", "pub0", "/camera/image"), ("detector", "recv", "/camera/image")),
-        ("  of which replay pack + send", ("replay", "pub0", "/camera/image"), ("replay", "pub1", "/camera/image")),
-        ("detector compute", ("detector", "recv", "/camera/image"), ("detector", "pub0", "/hand/keypoints")),
-        ("keypoints: detector publish -> ik", ("detector", "pub0", "/hand/keypoints"), ("ik", "recv", "/hand/keypoints")),
-        ("ik compute", ("ik", "recv", "/hand/keypoints"), ("ik", "pub0", "/hand/pose")),
-        ("pose: ik publish -> recorder", ("ik", "pub0", "/hand/pose"), ("recorder", "recv", "/hand/pose")),
-        ("total capture -> recorder", None, ("recorder", "recv", "/hand/pose")),
-    ]
-    out = []
-    for label, a, b in segments:
-        d = []
-        for s in stamps:
+    rows = []
+    for s in stamps[WARMUP_FRAMES:]:
+        row = []
+        for _, a, b in TRACE_SEGMENTS:
             ta = s if a is None else ev.get((*a, s))
             tb = s if b is None else ev.get((*b, s))
-            if ta is not None and tb is not None:
-                d.append((tb - ta) / 1e6)
-        if d:
+            row.append(np.nan if ta is None or tb is None else (tb - ta) / 1e6)
+        rows.append(row)
+    return np.array(rows, float).reshape(-1, len(TRACE_SEGMENTS)), cpu, len(stamps)
+
+
+def trace_breakdown(trace: Path) -> list[tuple[str, float, float]]:
+    """Per-segment p50 / p95 ms (TRACE_SEGMENTS, frames after the first second) and each traced
+    thread's CPU per frame, from the nodes' HANDMOCAP_TRACE files."""
+    ms, cpu, n = trace_segments_ms(trace)
+    out = []
+    for k, (label, _, _) in enumerate(TRACE_SEGMENTS):
+        d = ms[:, k][np.isfinite(ms[:, k])]
+        if len(d):
             out.append((label, float(np.percentile(d, 50)), float(np.percentile(d, 95))))
-    n = len(stamps) + WARMUP_FRAMES
-    for thread, ms in sorted(cpu.items()):   # (a "p95" column of the per-frame mean: the same)
-        out.append((f"{thread} thread CPU per frame (whole run)", ms / n, ms / n))   # printed once
+    for thread, total in sorted(cpu.items()):   # (a "p95" column of the per-frame mean: the same)
+        out.append((f"{thread} thread CPU per frame (whole run)", total / n, total / n))   # printed once
     return out
 
 

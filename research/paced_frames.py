@@ -3,7 +3,7 @@ by frame index modulo the side period (`side_every` / `mirror_vote_every`: 6). O
 whose hand is found on the first frame and held, the index is the track's age, so the frames that
 read the side (age % 6 == 0, phase 0) stand beside the others.
 
-    python research/paced_frames.py [--video V] [--max-hands 1] [--set KEY=VALUE ...]
+    python research/paced_frames.py [--video V] [--max-hands 1] [--detnet F ...] [--set KEY=VALUE ...]
 
 Columns (ms, median over the frames of each phase): the whole frame (`HandTracker.process`: the
 detector, then shape and pose), the detector alone, and the DetNet reads in it (`_run_voting`).
@@ -21,9 +21,9 @@ import time
 
 import numpy as np
 
-from handmocap.perception.detector import DetectorSettings
 from handmocap.perception.tracker import HandTracker
 from handmocap.runtime.frames import read_video
+from handmocap.training.eval_cli import add_model_arguments, model_paths
 from handmocap.training.pose_data import SHARED_DATA
 
 WARMUP, FPS, PERIOD = 60, 30.0, 6
@@ -60,23 +60,16 @@ def main():
     ap.add_argument("--video", default=str(SHARED_DATA / "video" / "webcam" / "lujunwang_hand.mp4"))
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--max-hands", type=int, default=1)
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="detector settings (true/false/numbers)")
+    add_model_arguments(ap)
     args = ap.parse_args()
-    changes = {}
-    for kv in args.set:
-        key, value = kv.split("=", 1)
-        changes[key] = {"true": True, "false": False, "null": None}.get(value.lower(), value)
-        if isinstance(changes[key], str):
-            changes[key] = type(getattr(DetectorSettings(), key))(value)
+    models = model_paths(args)
     frames = read_video(args.video)[:args.frames]
-    tracker = HandTracker()
-    for key, value in {"max_hands": args.max_hands, **changes}.items():
-        setattr(tracker.detector, key, value)
+    tracker = HandTracker(**{**models, "max_hands": args.max_hands})
     for frame in frames[:WARMUP]:
         tracker.process(frame)
     tracker.reset()
-    ms = paced_times(tracker, frames)[30:]          # the first second: a new track's reads
-    print(f"{args.video.split('/')[-1]}, {len(ms)} frames at {FPS:.0f} fps, max hands {args.max_hands}, {changes or 'defaults'}")
+    ms = paced_times(tracker, frames)[int(FPS):]     # the first second: a new track's reads
+    print(f"{args.video.split('/')[-1]}, {len(ms)} frames at {FPS:.0f} fps, max hands {args.max_hands}, {models or 'defaults'}")
     print("whole frame p50 / p95 / p99 ms:", " / ".join(f"{v:.1f}" for v in np.percentile(ms[:, 0], (50, 95, 99))))
     print(f"| frame index mod {PERIOD} | whole frame | detector | DetNet reads |\n|---|---|---|---|")
     for phase in range(PERIOD):
