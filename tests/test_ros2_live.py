@@ -18,7 +18,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import DEMO_CLIP, ROOT, SHARED_DATA, chain_yaml, graph_env, handlaunch, read_bag
+from conftest import DEMO_CLIP, ROOT, SHARED_DATA, chain_yaml, graph_env, read_bag
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("rclpy") is None,
                                 reason="ROS 2's rclpy not installed (pip install -e '.[ros2]')")
@@ -198,8 +198,11 @@ def test_a_ros2_camera_feeds_the_graph_and_every_frame_comes_back(tmp_path, run_
 def test_a_best_effort_camera_is_taken_too(tmp_path, run_dir):
     """A driver that publishes best effort (sensor-data QoS) is matched too (a reliable
     subscription would get nothing from it): its JPEG frames on .../compressed arrive, every
-    one here (raw 640x480 frames best effort mostly do not: Fast DDS fragments them, and 5-8
-    of 30 came through on this host; docs/reference.md)."""
+    one here when the suite runs alone (raw 640x480 frames best effort mostly do not: Fast DDS
+    fragments them, and 5-8 of 30 came through on this host; docs/reference.md). In the full
+    suite on a slower 2-core machine 27 of 30 came, 1 run in 4: best effort may lose a frame
+    (which ones: the failure says), and what is under test is that the driver is matched at
+    all (a reliable subscription gets none of its frames), so 24 of 30 is the bound."""
     env = ros_env(run_dir, 10 + os.getpid() % 10)
     graph = subprocess.Popen([sys.executable, "-m", "handmocap.runtime.launch", str(ROOT / "launch" / "ros2.yaml"),
                               "image_topic:=/camera/image_raw/compressed", "every_frame:=true", "timeout_s:=2",
@@ -207,7 +210,8 @@ def test_a_best_effort_camera_is_taken_too(tmp_path, run_dir):
                              env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         camera = subprocess.run([sys.executable, str(ROOT / "examples" / "ros2_publish_video.py"), str(DEMO_CLIP),
-                                 "--frames", "30", "--best-effort", "--compressed"], env=env, capture_output=True,
+                                 "--frames", "30", "--best-effort", "--compressed", "--stamps", str(tmp_path / "sent")],
+                                env=env, capture_output=True,
                                 text=True, timeout=120)
         assert camera.returncode == 0, camera.stderr
         out, _ = graph.communicate(timeout=120)
@@ -217,7 +221,10 @@ def test_a_best_effort_camera_is_taken_too(tmp_path, run_dir):
             graph.wait(timeout=30)
     assert graph.returncode == 0, out
     assert "taking /camera/image_raw/compressed best effort" in out, out
-    assert len(read_bag(tmp_path / "run.mcap")["/camera/image"]) >= 28, out      # best effort: a frame may go
+    taken = {m["header"]["stamp_ns"] for m, _ in read_bag(tmp_path / "run.mcap")["/camera/image"]}
+    sent = [int(line) for line in (tmp_path / "sent").read_text().split()]
+    missing = [i for i, stamp in enumerate(sent) if stamp not in taken]
+    assert len(sent) == 30 and len(missing) <= 6, (f"frames {missing} of 30 lost", out)
 
 
 # ------------------------------------------------------------------ the pieces, in-process

@@ -1,9 +1,19 @@
 """The one way the project opens its ONNX models (CPU, onnxruntime; no torch at run time)."""
 import hashlib
 import os
+import platform
 import re
 import threading
 from pathlib import Path
+
+# Where onnxruntime's optimized copy of each model is kept, so that a node's later starts skip
+# the graph optimizations (a respawned detector's three DetNets load in ~0.05 s against ~0.22;
+# issue 49's drill wants poses back within 1 s of a kill): $HANDMOCAP_ONNX_CACHE, else
+# $XDG_CACHE_HOME/handmocap/onnx, else ~/.cache/handmocap/onnx; "none" keeps none. A copy is
+# named by its source file's SHA-256, onnxruntime's version and this CPU (onnxruntime lays an
+# optimized graph out for the CPU it ran on), so a retrained file or another machine never
+# reads a stale one; the folder may be deleted at any time.
+ONNX_CACHE_ENV = "HANDMOCAP_ONNX_CACHE"
 
 
 def cores() -> int:
@@ -34,9 +44,53 @@ def use_shared_arena(ort, opts) -> None:
     opts.add_session_config_entry("session.use_env_allocators", "1")
 
 
+def onnx_cache_dir() -> Path | None:
+    """The folder of optimized copies (ONNX_CACHE_ENV), None when turned off."""
+    given = os.environ.get(ONNX_CACHE_ENV)
+    if given:
+        return None if given.lower() == "none" else Path(given)
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "handmocap" / "onnx"
+
+
+def _this_cpu() -> str:
+    """What names this CPU for onnxruntime's layout choices: its model and instruction-set
+    flags (Linux), else the platform's processor string."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            lines = [line for line in f if line.startswith(("model name", "flags"))]
+        return "".join(sorted(set(lines)))
+    except OSError:
+        return f"{platform.machine()} {platform.processor()}"
+
+
+def optimized_copy(path: Path, ort) -> Path | None:
+    """Where the optimized copy of the model file `path` is or goes (onnx_cache_dir), None
+    when the cache is off."""
+    folder = onnx_cache_dir()
+    if folder is None:
+        return None
+    key = hashlib.sha256(f"{file_sha256(path)} {ort.__version__} {_this_cpu()}".encode()).hexdigest()[:24]
+    return folder / f"{Path(path).stem}-{key}.onnx"
+
+
+def _session_options(ort, threads: int, optimize: bool):
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_ENABLE_ALL if optimize
+                                     else ort.GraphOptimizationLevel.ORT_DISABLE_ALL)
+    # errors only: when onnxruntime folds lite0's "SAME" Pad nodes into its convolutions it
+    # warns once per constant left unused (about 60 lines a load), which says nothing to a user
+    opts.log_severity_level = 3
+    use_shared_arena(ort, opts)
+    return opts
+
+
 def open_session(path: Path, what: str, made_by: str, threads: int = 1):
     """An onnxruntime CPU session of `path`, `threads` intra-op threads (1 is fastest per call
-    on a busy 2-core machine); a missing file is one clear error naming it and the command
+    on a busy 2-core machine), from its optimized copy where one is cached (optimized_copy;
+    made on the first load); a missing file is one clear error naming it and the command
     that makes it (`made_by`); a file onnxruntime cannot load (corrupt, half-written while a
     training run exports it) is one ValueError naming it."""
     import onnxruntime as ort   # imported here: nodes that never run a model start faster
@@ -44,21 +98,43 @@ def open_session(path: Path, what: str, made_by: str, threads: int = 1):
     if not path.is_file():
         raise FileNotFoundError(f"{what} model {path} not found; make it with `{made_by}` "
                                 f"(or pass the path of an exported file)")
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    # errors only: when onnxruntime folds lite0's "SAME" Pad nodes into its convolutions it
-    # warns once per constant left unused (about 60 lines a load), which says nothing to a user
-    opts.log_severity_level = 3
-    use_shared_arena(ort, opts)
+    copy = optimized_copy(path, ort)
+    if copy is not None and copy.is_file():
+        try:
+            return ort.InferenceSession(str(copy), _session_options(ort, threads, optimize=False),
+                                        providers=["CPUExecutionProvider"])
+        except Exception:     # a copy gone bad (a disk error): made again below
+            copy.unlink(missing_ok=True)
+    opts = _session_options(ort, threads, optimize=True)
+    written = None
+    if copy is not None:
+        try:
+            copy.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+            if os.access(copy.parent, os.W_OK):
+                written = copy.with_name(f".{copy.name}.{os.getpid()}.{threading.get_ident()}")
+                opts.optimized_model_filepath = str(written)
+        except OSError:       # a read-only home: no cache, the model loads as it always did
+            written = None
     try:
-        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        try:
+            session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        except Exception:
+            if written is None:
+                raise
+            written.unlink(missing_ok=True)    # (the copy could not be written: a full disk) once more, without
+            written = None
+            session = ort.InferenceSession(str(path), _session_options(ort, threads, optimize=True),
+                                           providers=["CPUExecutionProvider"])
     except Exception as e:   # onnxruntime's own exception types (InvalidProtobuf, Fail, ...) are no OSError
         reason = re.sub(r"^\[ONNXRuntimeError\] : \d+ : ", "", str(e).strip().splitlines()[0] if str(e).strip() else "")
         raise ValueError(f"{what} model {path} cannot be loaded (corrupt, cut short, or not an ONNX model): "
                          f"{reason[:200] or type(e).__name__}; make it again with `{made_by}`") from None
+    if written is not None:
+        try:
+            os.replace(written, copy)     # whole or not at all: another process may read it now
+        except OSError:
+            written.unlink(missing_ok=True)
+    return session
 
 
 def file_sha256(path) -> str:

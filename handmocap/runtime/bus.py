@@ -45,7 +45,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import zmq
-from zmq.utils.monitor import recv_monitor_message
 
 
 EOS = b"_eos"
@@ -416,11 +415,10 @@ class Subscriber:
         and was not read yet, a publisher's last messages and its end of stream."""
         ended = []
         for s, monitor in self.monitors.items():
-            while True:
-                try:
-                    ended.append((s, recv_monitor_message(monitor, zmq.NOBLOCK)["endpoint"].decode()))
-                except zmq.Again:
-                    break
+            while monitor.poll(0, zmq.POLLIN):
+                # imported on the first ended connection, not at every node's start: it imports asyncio (~40 ms)
+                from zmq.utils.monitor import recv_monitor_message
+                ended.append((s, recv_monitor_message(monitor)["endpoint"].decode()))
         return ended
 
     @staticmethod

@@ -32,7 +32,6 @@ from pathlib import Path
 
 import zmq
 import zmq.auth
-from zmq.auth.thread import ThreadAuthenticator
 
 ENV = "HANDMOCAP_KEYS"   # the launcher passes a graph's `keys:` to its nodes as JSON
 LOG = logging.getLogger("keys")
@@ -103,7 +102,7 @@ class _AllowListed:
         return False
 
 
-_authenticators: dict[int, ThreadAuthenticator] = {}
+_authenticators: dict[int, "zmq.auth.thread.ThreadAuthenticator"] = {}
 _auth_lock = threading.Lock()
 
 
@@ -112,6 +111,7 @@ def _authenticator(ctx: zmq.Context, clients: str) -> None:
     with _auth_lock:
         if id(ctx) in _authenticators:
             return
+        from zmq.auth.thread import ThreadAuthenticator   # (it imports asyncio: ~35 ms of every start without CURVE)
         auth = ThreadAuthenticator(ctx, log=logging.getLogger("keys.zap"))
         auth.start()
         auth.configure_curve_callback("*", _AllowListed(clients))

@@ -98,6 +98,10 @@ MAX_BACKOFF_S = 30
 # respawned, as it would fail the same way on every retry (later, a camera unplugged mid-run,
 # it is); a crash this soon is a crash loop, whose respawn back-off keeps doubling
 CONFIG_ERROR_S = 10.0
+# how often the launcher looks at its children: a node that died is seen, and respawned when
+# its delay is up, within this (issue 49: poses again within 1 s of a detector's kill); a
+# look is a waitpid per child, nothing a core feels at 50 a second
+SUPERVISE_S = 0.02
 
 
 class LaunchError(Exception):
@@ -559,7 +563,8 @@ class Launcher:
                 # not required was reported; the graph still ends with the others)
                 if failed or all(c.exit_code is not None and c.restart_at is None for c in self.children):
                     break
-                time.sleep(0.05)
+                due = [c.restart_at - time.monotonic() for c in self.children if c.restart_at is not None]
+                time.sleep(max(0.0, min([SUPERVISE_S, *due])))
         finally:
             self._stop_all()
             ready_file.unlink(missing_ok=True)
