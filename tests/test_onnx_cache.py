@@ -71,3 +71,18 @@ def test_a_changed_model_file_never_reads_an_old_copy_and_none_keeps_no_copies(t
     assert onnx_models.onnx_cache_dir() is None
     open_session(model, "DetNet", "make")
     assert not other.exists()
+
+
+def test_the_cache_keeps_the_copies_used_last(tmp_path, monkeypatch):
+    import os
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    monkeypatch.setenv(ONNX_CACHE_ENV, str(cache))
+    old = [cache / f"old{i}-0.onnx" for i in range(onnx_models.ONNX_CACHE_FILES + 5)]
+    for i, p in enumerate(old):
+        p.write_bytes(b"x")
+        os.utime(p, (1000 + i, 1000 + i))
+    open_session(MODEL, "DetNet", "make")
+    left = {p.name for p in cache.glob("*.onnx")}
+    assert len(left) == onnx_models.ONNX_CACHE_FILES and onnx_models.optimized_copy(MODEL, ort).name in left
+    assert {p.name for p in old[-(onnx_models.ONNX_CACHE_FILES - 1):]} <= left     # the oldest went first

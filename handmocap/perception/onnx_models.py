@@ -1,4 +1,5 @@
 """The one way the project opens its ONNX models (CPU, onnxruntime; no torch at run time)."""
+import contextlib
 import hashlib
 import os
 import platform
@@ -12,8 +13,10 @@ from pathlib import Path
 # $XDG_CACHE_HOME/handmocap/onnx, else ~/.cache/handmocap/onnx; "none" keeps none. A copy is
 # named by its source file's SHA-256, onnxruntime's version and this CPU (onnxruntime lays an
 # optimized graph out for the CPU it ran on), so a retrained file or another machine never
-# reads a stale one; the folder may be deleted at any time.
+# reads a stale one; the folder may be deleted at any time. It keeps the ONNX_CACHE_FILES
+# copies last used (a training run's validations each load a new file: ~4 MB a copy).
 ONNX_CACHE_ENV = "HANDMOCAP_ONNX_CACHE"
+ONNX_CACHE_FILES = 32
 
 
 def cores() -> int:
@@ -101,8 +104,11 @@ def open_session(path: Path, what: str, made_by: str, threads: int = 1):
     copy = optimized_copy(path, ort)
     if copy is not None and copy.is_file():
         try:
-            return ort.InferenceSession(str(copy), _session_options(ort, threads, optimize=False),
-                                        providers=["CPUExecutionProvider"])
+            session = ort.InferenceSession(str(copy), _session_options(ort, threads, optimize=False),
+                                           providers=["CPUExecutionProvider"])
+            with contextlib.suppress(OSError):
+                os.utime(copy)        # last used now: kept over older ones (_keep_last_used)
+            return session
         except Exception:     # a copy gone bad (a disk error): made again below
             copy.unlink(missing_ok=True)
     opts = _session_options(ort, threads, optimize=True)
@@ -132,9 +138,20 @@ def open_session(path: Path, what: str, made_by: str, threads: int = 1):
     if written is not None:
         try:
             os.replace(written, copy)     # whole or not at all: another process may read it now
+            _keep_last_used(copy.parent)
         except OSError:
             written.unlink(missing_ok=True)
     return session
+
+
+def _keep_last_used(folder: Path, keep: int = ONNX_CACHE_FILES) -> None:
+    """Delete all but the `keep` copies in `folder` used last (by modification time)."""
+    copies = []
+    for p in folder.glob("*.onnx"):
+        with contextlib.suppress(OSError):       # (another process may delete one meanwhile)
+            copies.append((p.stat().st_mtime, p))
+    for _, p in sorted(copies, reverse=True)[keep:]:
+        p.unlink(missing_ok=True)
 
 
 def file_sha256(path) -> str:
