@@ -838,8 +838,8 @@ def test_averaged_checkpoints_hold_the_mean_weights_and_refuse_other_networks(tm
         nets.append(net)
         paths.append(tmp_path / f"run{seed}.pt")
         torch.save({"model": net.state_dict(), "backbone": "fast", "fine": False, "refine": "softmax"}, paths[-1])
-    avg, refine = average_checkpoints(paths)
-    assert refine == "softmax"
+    avg, refine, backbone, fine = average_checkpoints(paths)
+    assert (refine, backbone, fine) == ("softmax", "fast", False)
     for k, v in avg.state_dict().items():
         if v.is_floating_point():
             want = sum(n.state_dict()[k] for n in nets) / 3
@@ -850,6 +850,15 @@ def test_averaged_checkpoints_hold_the_mean_weights_and_refuse_other_networks(tm
         average_checkpoints([paths[0], tmp_path / "deep.pt"])
     with pytest.raises(FileNotFoundError, match="no such checkpoint"):
         average_checkpoints([paths[0], tmp_path / "missing.pt"])
+    # the CLI's float16 weights of the mean: what --init-from starts from, averaged again alike
+    from handmocap.training.average_detnet import main
+    main([*map(str, paths), "--out", str(tmp_path / "avg.onnx"), "--weights-out", str(tmp_path / "avg.pt")])
+    saved = torch.load(tmp_path / "avg.pt", weights_only=False)
+    assert saved["backbone"] == "fast" and saved["mean_of"] == [str(p) for p in paths]
+    assert saved["model"]["chirality.0.weight"].dtype == torch.float16
+    torch.testing.assert_close(saved["model"]["chirality.0.weight"].float(), avg.state_dict()["chirality.0.weight"],
+                               atol=1e-3, rtol=1e-3)
+    assert (tmp_path / "avg.onnx").stat().st_size > 1000
 
 
 def test_the_trainer_offers_every_backbone_detnet_has():

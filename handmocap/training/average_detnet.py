@@ -1,7 +1,11 @@
 """One DetNet from the mean of the weights of several fine-tunes of the same network.
 
-    python -m handmocap.training.average_detnet --out runs/detnet/avg/final.onnx \\
+    python -m handmocap.training.average_detnet --out runs/detnet/avg/final.onnx [--weights-out W.pt] \\
         runs/detnet/a/last.pt runs/detnet/b/last.pt runs/detnet/c/last.pt
+
+Checkpoints are a run's last.pt or the float16 weights files `--weights-out` writes
+(models/detnet_lite0.pt, models/candidates/*.pt); `--weights-out` writes the mean's, which
+`handtrain detnet --init-from` trains on from.
 
 Why: fine-tunes that start from one network (`handtrain detnet --init-from`) with other
 seeds or loss settings stay in one basin of the loss, and the mean of their weights (a
@@ -37,7 +41,8 @@ def average_states(states):
 
 
 def average_checkpoints(paths):
-    """(DetNet with the mean weights, refine) of `handtrain detnet` checkpoints (last.pt)."""
+    """(DetNet with the mean weights, refine, backbone, fine) of `handtrain detnet` checkpoints
+    (last.pt, or float16 weights files)."""
     import torch
 
     from handmocap.training.detnet import DetNet
@@ -54,22 +59,28 @@ def average_checkpoints(paths):
     backbone, fine = arch.pop()
     net = DetNet(backbone, fine=fine)
     net.load_state_dict(average_states([c["model"] for c in ckpts]))
-    return net.eval(), ckpts[0].get("refine", "softmax")
+    return net.eval(), ckpts[0].get("refine", "softmax"), backbone, fine
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("checkpoints", nargs="+", type=Path, help="`handtrain detnet` checkpoints (RUN_DIR/last.pt)")
     p.add_argument("--out", type=Path, required=True, help="the averaged network's ONNX file")
+    p.add_argument("--weights-out", type=Path, help="also its float16 weights (what --init-from trains on from)")
     args = p.parse_args(argv)
     from handmocap.training.detnet import export_onnx
+    from handmocap.training.detnet_init import write_weights
     try:
-        net, refine = average_checkpoints(args.checkpoints)
+        net, refine, backbone, fine = average_checkpoints(args.checkpoints)
     except (ValueError, FileNotFoundError) as e:
         raise SystemExit(f"average_detnet: {e}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     export_onnx(net, args.out, refine)
     print(f"wrote {args.out}: the mean of {len(args.checkpoints)} checkpoints (refine {refine})")
+    if args.weights_out:
+        args.weights_out.parent.mkdir(parents=True, exist_ok=True)
+        write_weights(args.weights_out, net, refine, backbone, fine, iteration=0,
+                      mean_of=[str(c) for c in args.checkpoints])
 
 
 if __name__ == "__main__":

@@ -1,10 +1,22 @@
 """Where a DetNet's weights start: a checkpoint of another network (`load_matching`, the new
 residual blocks as the identity), an exported ONNX file made trainable again
-(`state_from_onnx`), or a pretrained backbone with its first blocks frozen (`frozen_modules`).
+(`state_from_onnx`), or a pretrained backbone with its first blocks frozen (`frozen_modules`);
+and the float16 weights file that `--init-from` starts from (`write_weights`).
 """
 import numpy as np
 
 from handmocap.perception.crops import CROP
+
+
+def write_weights(path, net, refine, backbone, fine, iteration, history=(), **meta):
+    """Save `net`'s weights in float16 (half the size; `handtrain detnet --init-from` casts
+    them back) with what a run needs to go on from them, and say so. meta: more fields."""
+    import torch
+    half = {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()}
+    torch.save({"model": half, "iteration": iteration, "refine": refine, "backbone": backbone, "fine": fine,
+                "history": list(history), **meta}, path)
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB): "
+          f"`handtrain detnet --backbone {backbone} --init-from {path}` trains on from it")
 
 
 def load_matching(net, state):

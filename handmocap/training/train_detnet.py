@@ -24,7 +24,8 @@ from handmocap.training.detnet_batches import (BatchMaker, IterationBatches, deg
                                                to_torch)
 from handmocap.training.detnet_data import DATA_DIR, HARD_NEGATIVES, load_real, load_synth, synth_dirs
 from handmocap.training.detnet_eval import read_outs, real_val_set, synth_val_set, validate
-from handmocap.training.detnet_init import frozen_modules, identity_init_new_blocks, load_matching, state_from_onnx
+from handmocap.training.detnet_init import (frozen_modules, identity_init_new_blocks, load_matching, state_from_onnx,
+                                            write_weights)
 from handmocap.training.detnet_losses import LOSS_WEIGHTS, detnet_losses
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.training.training import add_pretrained_arguments, warmup_cosine_lr
@@ -216,11 +217,7 @@ def main(args):
         export_onnx(net, args.export, refine)
         print(f"exported {args.export} (refine {refine})")
         if args.weights_out:
-            half = {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()}
-            torch.save({"model": half, "iteration": start, "refine": refine, "backbone": args.backbone,
-                        "fine": args.fine_head, "history": history[-1:]}, args.weights_out)
-            print(f"wrote {args.weights_out} ({args.weights_out.stat().st_size / 1e6:.1f} MB): "
-                  f"`handtrain detnet --backbone {args.backbone} --init-from {args.weights_out}` trains on from it")
+            write_weights(args.weights_out, net, refine, args.backbone, args.fine_head, start, history[-1:])
         return
 
     if args.pack:                       # everything from the pack: nothing read from runs/detnet_data or shared
