@@ -52,7 +52,10 @@ def onnx_cache_dir() -> Path | None:
     given = os.environ.get(ONNX_CACHE_ENV)
     if given:
         return None if given.lower() == "none" else Path(given)
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "handmocap" / "onnx"
+    home = os.path.expanduser("~")
+    if not os.environ.get("XDG_CACHE_HOME") and home.startswith("~"):    # no home (a bare container): none
+        return None
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path(home) / ".cache") / "handmocap" / "onnx"
 
 
 def _this_cpu() -> str:
