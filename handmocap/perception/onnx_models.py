@@ -1,5 +1,6 @@
 """The one way the project opens its ONNX models (CPU, onnxruntime; no torch at run time)."""
 import contextlib
+import functools
 import hashlib
 import os
 import platform
@@ -58,9 +59,11 @@ def onnx_cache_dir() -> Path | None:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path(home) / ".cache") / "handmocap" / "onnx"
 
 
+@functools.cache
 def _this_cpu() -> str:
     """What names this CPU for onnxruntime's layout choices: its model and instruction-set
-    flags (Linux), else the platform's processor string."""
+    flags (Linux), else the platform's processor string. Read once a process (a detector
+    opens five networks; /proc/cpuinfo is a line per core)."""
     try:
         with open("/proc/cpuinfo") as f:
             lines = [line for line in f if line.startswith(("model name", "flags"))]
