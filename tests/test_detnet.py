@@ -1022,6 +1022,31 @@ def test_a_side_detnet_gives_the_handedness_and_nothing_else():
     assert not np.array_equal(alone_kp["handedness"], alone_side["handedness"])
 
 
+def test_the_side_network_runs_its_handedness_heads_part_alone_where_it_was_made_from_that_file(tmp_path):
+    """SideNetwork: models/detnet_int8_side.onnx (quantize_detnet --side-only) is the part of
+    the int8 network its handedness head needs, made from the committed file, and answers as
+    the whole network does, to the bit; beside a changed network it is not used (a warning
+    says so, the whole network reads)."""
+    pytest.importorskip("onnxruntime")
+    import shutil
+    import warnings
+    from handmocap.perception.detnet_runner import DETNET_GREY, DETNET_INT8, DetNetRunner, SideNetwork, head_only_path
+    side = SideNetwork.load("int8")
+    assert side.file == head_only_path(DETNET_INT8) and side.file.is_file() and side.path == DETNET_INT8, \
+        "run python -m handmocap.training.quantize_detnet --side-only"
+    x = np.random.default_rng(4).random((3, 3, 128, 128), dtype=np.float32)
+    whole = DetNetRunner.load("int8").session.run(["handedness"], {"image": x})[0]
+    assert np.array_equal(side.session.run(["handedness"], {"image": x})[0], whole)
+    assert DetNetRunner.load().side.file == side.file                   # the default pair's side reads it
+    changed = tmp_path / "detnet_int8.onnx"                             # another network under the name
+    shutil.copy(DETNET_GREY, changed)
+    shutil.copy(side.file, head_only_path(changed))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        stale = SideNetwork.load(changed)
+    assert stale.file == changed and any("made from another detnet_int8.onnx" in str(w.message) for w in caught)
+
+
 def test_a_second_thread_reads_the_side_or_half_the_crops_and_the_outputs_are_the_same():
     """beside: the pair's side network runs on a thread of its own while the keypoint network
     reads; with no side to read, half of two or more crops go to that thread; every run reads

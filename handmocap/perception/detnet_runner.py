@@ -10,7 +10,7 @@ import numpy as np
 
 from handmocap.perception.crops import CROP
 from handmocap.perception.hand_finder import to_input_tensor
-from handmocap.perception.onnx_models import cores, open_session, stale_quantization
+from handmocap.perception.onnx_models import cores, made_from_another, open_session, stale_quantization
 
 DETNET_FLOAT32 = Path(__file__).resolve().parents[2] / "models" / "detnet.onnx"   # `handtrain detnet` writes it
 DETNET_INT8 = DETNET_FLOAT32.with_name("detnet_int8.onnx")     # `python -m handmocap.training.quantize_detnet` makes it
@@ -46,14 +46,49 @@ def detnet_path(path=None) -> Path:
     return DETNET_PATH if path is None else DETNET_NAMES.get(str(path), Path(path))
 
 
+def head_only_path(path) -> Path:
+    """Where the part of the DetNet file `path` that its handedness head needs is kept:
+    `<stem>_side.onnx` beside it (made by `python -m handmocap.training.quantize_detnet
+    --side-only PATH`)."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}_side.onnx")
+
+
+class SideNetwork:
+    """The DetNet whose handedness head gives a pair's side (DetNetRunner `side`): `session`
+    answers `handedness` (N,) for crops `image` (N,3,S,S). Where the file's head-only part
+    (head_only_path) lies beside it, made from this very file, that part runs: the same
+    numbers to the bit, without the heatmap, delta and location heads the side does not read
+    (the int8 network: 1.55 against 2.7 ms for two crops; docs/experiment_log.md, session 47).
+    `path`: the whole network's file; `file`: the one that runs."""
+
+    def __init__(self, session, path, file=None):
+        self.session, self.path, self.file = session, path, file or path
+
+    @classmethod
+    def load(cls, path, threads=1):
+        path = detnet_path(path)
+        head = head_only_path(path)
+        if head.is_file():
+            session = open_session(head, "DetNet's handedness head", "python -m handmocap.training.quantize_detnet "
+                                   f"--side-only {path}", threads)
+            if made_from_another(session, head) is None:
+                return cls(session, path, head)
+            warnings.warn(f"{head} was made from another {path.name} than the one beside it: the whole network reads "
+                          f"the side (make the part again with `python -m handmocap.training.quantize_detnet "
+                          f"--side-only {path}`)", stacklevel=2)
+        runner = DetNetRunner.load(path, threads)       # checks the file and says what is wrong with it
+        return cls(runner.session, path)
+
+
 class DetNetRunner:
     """DetNet on onnxruntime (by default models/detnet_lite0_int8.onnx with the side from
     models/detnet_int8.onnx): (N,128,128,3) uint8 RGB crops -> dict of arrays
     uv (N,21,2) crop px, xyz (N,21,3), confidence (N,21), presence (N,), handedness (N,),
     uv_peak (N,21,2) crop px: the joints the detector tracks with (the heatmap peaks; files
     exported before session 17 have none, and the detector then follows uv).
-    side: another DetNetRunner whose handedness head answers instead of this one's (on the
-    same crops): one network's keypoints with another's side. Called with read_side=False,
+    side: a SideNetwork, another DetNet whose handedness head answers instead of this one's
+    (on the same crops): one network's keypoints with another's side. Called with read_side=False,
     such a pair skips the side network and gives handedness NaN (no reading); a single
     network always reads its own head, which costs nothing more.
     beside: a second thread reads beside the caller's (onnxruntime lets go of the GIL): the
@@ -93,7 +128,7 @@ class DetNetRunner:
         stale = stale_quantization(session, path, "python -m handmocap.training.quantize_detnet")
         if stale:
             warnings.warn(stale, stacklevel=2)
-        return cls(session, cls.load(side_path, threads) if side_path not in (None, "none") else None, path)
+        return cls(session, SideNetwork.load(side_path, threads) if side_path not in (None, "none") else None, path)
 
     def network_input(self, crops_rgb):
         """(N,3,S,S) float32 in [0, 1] from uint8 crops (N,S,S,3), written into a buffer kept

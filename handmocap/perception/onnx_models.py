@@ -169,15 +169,22 @@ def file_sha256(path) -> str:
     return h.hexdigest()
 
 
-def stale_quantization(session, path, made_by: str):
-    """A line saying that the int8 file `path` (its metadata `source_name`, `source_sha256`)
-    was made from another float32 file than the one beside it (retrained, not quantized
-    again with `made_by`), else None."""
+def made_from_another(session, path) -> Path | None:
+    """The file beside `path` that the model file `path` was made from (its metadata
+    `source_name`, `source_sha256`: an int8 copy's float32 file, a part's whole network)
+    where that file has changed since, else None (no such metadata, or no such file)."""
     meta = session.get_modelmeta().custom_metadata_map
     source = Path(path).parent / meta.get("source_name", "")
     if "source_sha256" not in meta or not source.is_file() or source == Path(path):
         return None
-    if file_sha256(source) == meta["source_sha256"]:
+    return None if file_sha256(source) == meta["source_sha256"] else source
+
+
+def stale_quantization(session, path, made_by: str):
+    """A line saying that the int8 file `path` was made from another float32 file than the
+    one beside it (retrained, not quantized again with `made_by`), else None."""
+    source = made_from_another(session, path)
+    if source is None:
         return None
     return (f"{path} was quantized from another {source.name} than the one beside it: make it again with "
             f"`{made_by}` (or load \"float32\")")

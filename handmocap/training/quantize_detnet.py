@@ -4,6 +4,7 @@
                                         [--n 1024] [--data 'runs/detnet_data/synth_train_*']
     python -m handmocap.training.quantize_detnet --compare models/detnet.onnx models/detnet_int8.onnx
     python -m handmocap.training.quantize_detnet --src runs/detnet/grey/final.onnx --out models/detnet_grey_int8.onnx --grey
+    python -m handmocap.training.quantize_detnet --side-only [models/detnet_int8.onnx]
 
 Why: DetNet is the largest cost of a tracked frame. With its convolutions in int8
 (onnxruntime's QLinearConv / VNNI kernels) the fast-deep network takes about 1.4 ms per
@@ -26,6 +27,9 @@ How (onnxruntime.quantization.quantize_static, QDQ format, fused into int8 kerne
   uint8 scale over them cost 0.9 mm of 3D error (held-out synthetic; 0.06 mm with them
   float32). The read-out after the heads (argmax, sub-pixel parabola, location look-up)
   and the presence / handedness Gemms stay float32 too.
+`--side-only` writes the part of a DetNet file its handedness head needs (`<stem>_side.onnx`
+beside it: what a pair's side network runs, detnet_runner.SideNetwork); quantizing into a file
+that has such a part beside it writes the part again.
 `--compare` prints the training run's held-out metrics (detnet_eval.validate: synthetic
 2D px and 3D mm, howiema 001 L8/R8, video tails, handedness, presence) for each file, so a
 quantized file is judged on the same numbers as the float one it came from.
@@ -36,9 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap.perception.detnet_runner import DETNET_FLOAT32, DETNET_INT8, DetNetRunner
+from handmocap.perception.detnet_runner import DETNET_FLOAT32, DETNET_INT8, DetNetRunner, head_only_path
 from handmocap.perception.hand_finder import greyed
-from handmocap.perception.onnx_models import quantize_static_int8
+from handmocap.perception.onnx_models import file_sha256, quantize_static_int8
 
 CALIB_SEED = 27_182_818          # own seed: not training ([seed, it]), validation or evaluation
 # Clip (ReLU6), Pad ("SAME" padding) and Resize (the FPN's upsampling): the lite0 backbone's; left float they cost a
@@ -72,6 +76,36 @@ def quantize(src, out, crops, keep_float=KEEP_FLOAT):
                          keep_float=lambda node: any(k in node.name for k in keep_float), reduce_range=True,
                          note=f"static int8 QDQ ({', '.join(QUANTIZED_OPS)}; {', '.join(keep_float) or 'nothing'} "
                               f"float32), {len(crops)} calibration crops (seed {CALIB_SEED})")
+
+
+def write_head_only(src, out=None, check_crops=8):
+    """Write the part of the DetNet file `src` that its `handedness` output needs (onnx's
+    Extractor: the backbone up to the head's branch and the head; not the heatmap, delta and
+    location heads) to `out` (default head_only_path(src)), its metadata naming `src`
+    (source_name, source_sha256: onnx_models.made_from_another); checks that it answers as
+    `src` does, to the bit, on `check_crops` random crops. Returns out."""
+    import onnx
+    import onnx.utils
+    import onnxruntime as ort
+    src = Path(src)
+    out = head_only_path(src) if out is None else Path(out)
+    model = onnx.load(str(src))
+    image = model.graph.input[0].name
+    head = onnx.utils.Extractor(model).extract_model([image], ["handedness"])
+    head.producer_name = model.producer_name
+    head.doc_string = f"{model.doc_string} (the handedness head's part alone)".strip()
+    onnx.helper.set_model_props(head, {"source_name": src.name, "source_sha256": file_sha256(src),
+                                       "part": "handedness"})
+    onnx.save(head, str(out))
+    side = model.graph.input[0].type.tensor_type.shape.dim[-1].dim_value
+    x = np.random.default_rng(0).random((check_crops, 3, side, side), dtype=np.float32)
+    whole, part = (ort.InferenceSession(str(f), providers=["CPUExecutionProvider"]).run(["handedness"], {image: x})[0]
+                   for f in (src, out))
+    if not np.array_equal(whole, part):
+        out.unlink()
+        raise RuntimeError(f"the handedness part of {src} does not answer as the whole network does "
+                           f"(largest gap {np.abs(whole - part).max():.3g}); nothing written")
+    return out
 
 
 class OnnxNet:
@@ -147,7 +181,14 @@ def main(argv=None):
                    help="with --compare: each held-out crop turned by quarter turns as the detector turns it")
     p.add_argument("--grey", action="store_true",
                    help="calibrate on grey crops (a network for grey frames); with --compare: grey held-out crops")
+    p.add_argument("--side-only", nargs="?", type=Path, const=DETNET_INT8, metavar="ONNX",
+                   help="write the part of ONNX (default %(const)s) that its handedness head needs, as "
+                        "<stem>_side.onnx beside it, instead of quantizing")
     args = p.parse_args(argv)
+    if args.side_only:
+        out = write_head_only(args.side_only)
+        print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB): the handedness head of {args.side_only}")
+        return
     if args.compare:
         sets = heldout_sets(upright=args.upright, grey=args.grey)
         for path in args.compare:
@@ -156,6 +197,8 @@ def main(argv=None):
         return
     quantize(args.src, args.out, calibration_crops(args.n, args.data, grey=args.grey))
     print(f"wrote {args.out} ({args.out.stat().st_size / 1e6:.2f} MB) from {args.src}; {args.n} calibration crops")
+    if head_only_path(args.out).is_file():     # its side part, in step with it
+        print(f"wrote {write_head_only(args.out)}: its handedness head's part")
 
 
 if __name__ == "__main__":
