@@ -733,6 +733,39 @@ def test_quantize_makes_an_int8_copy_that_agrees_and_knows_its_source(tmp_path):
     assert "quantized from another detnet.onnx" in stale_quantization(int8.session, out, "make")
 
 
+def test_lite0s_same_pads_fold_into_its_quantized_convolutions_and_the_outputs_stay(tmp_path, monkeypatch):
+    """fold_same_pads_file: the int8 lite0's "SAME" Pads (a dequantize, a float Pad and a quantize
+    each, before its strided convolutions) become the convolutions' own padding: no Pad is left
+    before a quantized convolution, and every output is the same to the bit; the shipped file
+    is folded already."""
+    torch = _torch()
+    pytest.importorskip("onnx")
+    import shutil
+    import onnx
+    from handmocap.perception import onnx_models
+    from handmocap.perception.detnet_runner import DETNET_LITE0, DetNetRunner
+    from handmocap.training.detnet import DetNet, export_onnx
+    from handmocap.training.quantize_detnet import quantize
+    torch.manual_seed(3)
+    src, padded, folded = tmp_path / "lite0.onnx", tmp_path / "padded_int8.onnx", tmp_path / "folded_int8.onnx"
+    export_onnx(DetNet("lite0"), src)
+    crops = _demo_crops(8)
+    with monkeypatch.context() as m:                      # as quantized before session 47
+        m.setattr(onnx_models, "fold_same_pads_file", lambda *a, **k: 0)
+        quantize(src, padded, crops)
+    shutil.copy(padded, folded)
+
+    def same_pads(path):        # SameConv's F.pad: "<module>/_depthwise_conv/Pad", ".../_conv_stem/Pad"
+        nodes = onnx.load(str(path)).graph.node
+        return sum(n.op_type == "Pad" and n.name.endswith(("_conv/Pad", "_conv_stem/Pad")) for n in nodes)
+    assert same_pads(padded) >= 4
+    assert onnx_models.fold_same_pads_file(folded) == same_pads(padded)
+    assert same_pads(folded) == 0 and same_pads(DETNET_LITE0) == 0
+    a, b = DetNetRunner.load(padded)(crops), DetNetRunner.load(folded)(crops)
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
 def test_quarter_turned_held_out_crops_keep_labels_on_their_pixels_and_hands_upright():
     from handmocap.perception.crops import hand_angle
     from handmocap.training.quantize_detnet import quarter_turned
