@@ -59,7 +59,7 @@ class SideNetwork:
     answers `handedness` (N,) for crops `image` (N,3,S,S). Where the file's head-only part
     (head_only_path) lies beside it, made from this very file, that part runs: the same
     numbers to the bit, without the heatmap, delta and location heads the side does not read
-    (the int8 network: 1.55 against 2.7 ms for two crops; docs/experiment_log.md, session 47).
+    (the int8 network: 1.6 against 2.8 ms for two crops; docs/experiment_log.md, session 47).
     `path`: the whole network's file; `file`: the one that runs."""
 
     def __init__(self, session, path, file=None):
