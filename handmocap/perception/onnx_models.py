@@ -244,6 +244,21 @@ def quantize_static_int8(src, out, input_name: str, inputs, batch: int, op_types
 _ELEMENTWISE = {"Relu", "Clip", "LeakyRelu", "HardSigmoid", "HardSwish", "Sigmoid", "Tanh"}
 
 
+def _attribute(node, name: str, default=None):
+    """The value of the onnx node's attribute `name` (a string one as bytes), else `default`."""
+    from onnx import helper
+    return next((helper.get_attribute_value(a) for a in node.attribute if a.name == name), default)
+
+
+def _readers(graph) -> dict:
+    """{tensor name: the nodes of the onnx `graph` that read it}."""
+    out = {}
+    for node in graph.node:
+        for name in node.input:
+            out.setdefault(name, []).append(node)
+    return out
+
+
 def pad_depthwise_convs(model, multiple: int = 8) -> int:
     """Pad the channels of each float32 depthwise conv whose channel count is no multiple of
     `multiple` (and of the 1x1 conv that reads it) with zero channels, in place on the
@@ -260,13 +275,8 @@ def pad_depthwise_convs(model, multiple: int = 8) -> int:
     from onnx import helper, numpy_helper
     graph = model.graph
     inits = {t.name: t for t in graph.initializer}
-    uses = {}
-    for node in graph.node:
-        for name in node.input:
-            uses.setdefault(name, []).append(node)
-
-    def attr(node, name, default=None):
-        return next((helper.get_attribute_value(a) for a in node.attribute if a.name == name), default)
+    uses = _readers(graph)
+    attr = _attribute
 
     def replace_init(name, array):
         inits[name].CopyFrom(numpy_helper.from_array(array.astype(np.float32), name))
@@ -335,22 +345,13 @@ def fold_same_pads(model, input_name: str, input_shape) -> int:
     graph = model.graph
     inits = {t.name: t for t in graph.initializer}
     producer = {o: n for n in graph.node for o in n.output}
-
-    def uses():
-        out = {}
-        for node in graph.node:
-            for name in node.input:
-                out.setdefault(name, []).append(node)
-        return out
-
-    def attr(node, name, default=None):
-        return next((helper.get_attribute_value(a) for a in node.attribute if a.name == name), default)
+    attr = _attribute
 
     def const(name):
         return numpy_helper.to_array(inits[name]) if name in inits else None
 
-    pads = [n for n in graph.node if n.op_type == "Pad" and attr(n, "mode", b"constant") in (b"constant", "constant")
-            and len(n.input) > 1 and n.input[1] not in inits]
+    constant_pads = [n for n in graph.node if n.op_type == "Pad" and attr(n, "mode", b"constant") == b"constant"]
+    pads = [n for n in constant_pads if len(n.input) > 1 and n.input[1] not in inits]
     if pads:       # the amounts, computed once: extra outputs of a copy of the graph
         probe = type(model)()
         probe.CopyFrom(model)
@@ -367,14 +368,13 @@ def fold_same_pads(model, input_name: str, input_shape) -> int:
             inits[const_name] = graph.initializer[-1]
             p.input[1] = const_name
     folded = 0
-    use = uses()
-    for pad in [n for n in graph.node if n.op_type == "Pad"]:
+    use = _readers(graph)
+    for pad in constant_pads:
         amounts, value = const(pad.input[1]), (const(pad.input[2]) if len(pad.input) > 2 and pad.input[2] else None)
         dq, after = producer.get(pad.input[0]), use.get(pad.output[0], [])
         if amounts is None or len(amounts) != 8 or amounts.min() < 0 or amounts[[0, 1, 4, 5]].any() \
                 or (value is not None and np.any(value != 0)) or dq is None or dq.op_type != "DequantizeLinear" \
-                or len(after) != 1 or after[0].op_type != "QuantizeLinear" \
-                or attr(pad, "mode", b"constant") not in (b"constant", "constant"):
+                or len(after) != 1 or after[0].op_type != "QuantizeLinear":
             continue
         q = after[0]
         same = all(np.array_equal(const(dq.input[k]), const(q.input[k])) and const(dq.input[k]) is not None
@@ -397,7 +397,7 @@ def fold_same_pads(model, input_name: str, input_shape) -> int:
                 del conv.attribute[:]
                 conv.attribute.extend(kept + [helper.make_attribute("pads", new)])
         folded += 1
-        use = uses()
+        use = _readers(graph)
     # nodes whose outputs nothing reads any more (the Pads, their quantize pairs, the amounts' arithmetic)
     wanted = {o.name for o in graph.output}
     kept = []
