@@ -356,10 +356,12 @@ def fold_same_pads(model, input_name: str, input_shape) -> int:
         probe = type(model)()
         probe.CopyFrom(model)
         probe.graph.output.extend(helper.make_empty_tensor_value_info(p.input[1]) for p in pads)
-        session = ort.InferenceSession(probe.SerializeToString(), providers=["CPUExecutionProvider"])
+        session = ort.InferenceSession(probe.SerializeToString(), _session_options(ort, 1, optimize=True),
+                                       providers=["CPUExecutionProvider"])
         names = [p.input[1] for p in pads]
         shape = list(input_shape)
-        values = [session.run(names, {input_name: np.zeros([b] + shape[1:], np.float32)}) for b in (shape[0], 2 * shape[0])]
+        values = [session.run(names, {input_name: np.zeros([b] + shape[1:], np.float32)})
+                  for b in (shape[0], 2 * shape[0])]
         for p, a, b in zip(pads, *values):
             if not np.array_equal(a, b):
                 continue                       # depends on the batch: left as it is
@@ -431,7 +433,8 @@ def fold_same_pads_file(path, sample=None) -> int:
     folded = fold_same_pads(model, image.name, [1] + shape[1:])
     if not folded:
         return 0
-    before, after = (ort.InferenceSession(m, providers=["CPUExecutionProvider"]).run(None, {image.name: x})
+    opts = _session_options(ort, 1, optimize=True)
+    before, after = (ort.InferenceSession(m, opts, providers=["CPUExecutionProvider"]).run(None, {image.name: x})
                      for m in (str(path), model.SerializeToString()))
     if not all(np.array_equal(a, b, equal_nan=True) for a, b in zip(before, after)):
         return 0
