@@ -1080,40 +1080,45 @@ def test_the_side_network_runs_its_handedness_heads_part_alone_where_it_was_made
     assert stale.file == changed and any("made from another detnet_int8.onnx" in str(w.message) for w in caught)
 
 
-def test_a_second_thread_reads_the_side_or_half_the_crops_and_the_outputs_are_the_same():
-    """beside: the pair's side network runs on a thread of its own while the keypoint network
-    reads; with no side to read, half of two or more crops go to that thread; every run reads
-    at most MAX_BATCH (2) crops. Every output is what the runner gives in turn, mirror votes
-    (side_only) included."""
+def test_a_second_thread_takes_half_the_reads_and_the_outputs_are_the_same():
+    """beside: a call's keypoint and side reads are split between the caller's thread and a
+    second one as split_reads says (two tracked hands on a frame that reads their side: a
+    keypoint and a side read on each thread); every run reads at most MAX_BATCH (2) crops.
+    Every output is what the runner gives in turn, to the bit, mirror votes (side_only)
+    included."""
     pytest.importorskip("onnxruntime")
     import threading
-    from handmocap.perception.detnet_runner import DetNetRunner
+    from handmocap.perception.detnet_runner import MAX_BATCH, DetNetRunner, split_reads
+    assert split_reads(2, 2) == (1, 1) and split_reads(2, 0) == (1, 0) and split_reads(1, 1) == (1, 0)
+    assert split_reads(1, 2) == (1, 0) and split_reads(3, 0) == (2, 0) and split_reads(2, 4) == (1, 2)
     crops = (np.random.default_rng(3).random((5, 128, 128, 3)) * 255).astype(np.uint8)
     beside, in_turn = DetNetRunner.load(), DetNetRunner.load()
     beside.beside, in_turn.beside = True, False
-    threads = []
+    runs = []
 
-    def recorded(session):
+    def recorded(session, kind):
         class Recorded:
             def __getattr__(self, name):
                 return getattr(session, name)
 
             def run(self, *args):
-                threads.append((session, threading.current_thread().name, len(args[1]["image"])))
+                runs.append((kind, threading.current_thread().name.startswith("detnet-beside"), len(args[1]["image"])))
                 return session.run(*args)
         return Recorded()
-    keypoint_session, side_session = beside.session, beside.side.session
-    beside.session, beside.side.session = recorded(keypoint_session), recorded(side_session)
-    for kwargs in ({}, {"side_only": 2}, {"read_side": False}):
+    beside.session, beside.side.session = recorded(beside.session, "keypoints"), recorded(beside.side.session, "side")
+    for kwargs, (crops_read, sides_read) in (({}, (5, 5)), ({"side_only": 2}, (3, 5)), ({"read_side": False}, (5, 0)),
+                                             ({"read_side": False, "side_only": 1}, (4, 0))):
+        runs.clear()
         a, b = beside(crops, **kwargs), in_turn(crops, **kwargs)
         assert a.keys() == b.keys()
         for k in a:
-            np.testing.assert_allclose(a[k], b[k], atol=1e-5, equal_nan=True, err_msg=k)
-    on_thread = lambda t: t[1].startswith("detnet-beside")   # noqa: E731
-    sides = [t for t in threads if t[0] is side_session]
-    assert all(map(on_thread, sides)) and [t[2] for t in sides] == [2, 2, 1] * 2   # both side reads, beside
-    split = [t for t in threads if t[0] is keypoint_session][5:]     # (2 + 1 crops twice before)
-    assert sorted((on_thread(t), t[2]) for t in split) == [(False, 2), (True, 1), (True, 2)]   # 2 here, 3 there
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        here_k, here_s = split_reads(crops_read, sides_read)
+        read = {(kind, there): sum(n for k, t, n in runs if (k, t) == (kind, there))
+                for kind in ("keypoints", "side") for there in (False, True)}
+        assert read == {("keypoints", False): here_k, ("keypoints", True): crops_read - here_k,
+                        ("side", False): here_s, ("side", True): sides_read - here_s}, kwargs
+        assert max(n for _, _, n in runs) <= MAX_BATCH
 
 
 def test_the_default_detnet_is_lite0_with_the_int8_networks_side_and_a_named_one_runs_alone():

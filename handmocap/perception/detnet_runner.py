@@ -33,6 +33,10 @@ MAX_BATCH = 2
 # fresh array of two crops or more costs several times the conversion itself in page faults
 # (2 crops: 272 against 33 us); reads of more crops (a new hand's turns, rare) take a fresh one
 INPUT_BUFFER_CROPS = 4
+# what a crop's side read costs against its keypoint read, for splitting a call's reads between
+# the runner's two threads (split_reads): the default pair's side part reads two crops in 1.6 ms,
+# lite0 one in 2.6 (benchmarks/bench_detnet.py, session 47); a wrong guess costs time, not outputs
+SIDE_CROP_COST = 0.3
 
 
 def run_in_batches(session, names, x):
@@ -92,11 +96,10 @@ class DetNetRunner:
     such a pair skips the side network and gives handedness NaN (no reading); a single
     network always reads its own head, which costs nothing more.
     beside: a second thread reads beside the caller's (onnxruntime lets go of the GIL): the
-    side network's crops while this one reads the keypoints, or, with no side to read, half of
-    two or more crops while the caller's thread reads the other half. A frame then costs about
-    the longer of the two runs, not their sum, where a second core is free (a crop costs the
-    same read alone or in a batch on a CPU); the outputs are the same. Default: where the
-    machine has more than one core."""
+    crops' keypoint and side reads are split between the two threads so that each has about
+    half the work (split_reads). A frame then costs about the longer of the two, not their
+    sum, where a second core is free (a crop costs the same read alone or in a batch on a
+    CPU); the outputs are the same. Default: where the machine has more than one core."""
 
     def __init__(self, session, side=None, path=None, beside=None):
         self.session, self.side, self.path = session, side, path     # path: the file, where loaded from one
@@ -146,23 +149,43 @@ class DetNetRunner:
         mirror votes: only their handedness is wanted), so every output but `handedness` has
         that many rows fewer."""
         x = self.network_input(crops_rgb)
-        keypoints = x[:len(x) - side_only] if self.side is not None and side_only else x
-        read_side = read_side and self.side is not None
-        side = half = None
-        if self.beside and (read_side or len(keypoints) >= 2):
+        crops = len(x) - side_only if self.side is not None and side_only else len(x)   # read for keypoints
+        sides = len(x) if read_side and self.side is not None else 0                   # read for the side
+        here_k, here_s = split_reads(crops, sides) if self.beside else (crops, sides)
+        there = None
+        if here_k < crops or here_s < sides:
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(1, thread_name_prefix="detnet-beside")
-            if read_side:
-                side = self._pool.submit(run_in_batches, self.side.session, ["handedness"], x)
-            else:
-                half = len(keypoints) // 2
-                rest = self._pool.submit(run_in_batches, self.session, None, keypoints[half:])
-                keypoints = keypoints[:half]
-        out = dict(zip(self.outputs, run_in_batches(self.session, None, keypoints)))
-        if half is not None:
-            out = {name: np.concatenate([out[name], more]) for name, more in zip(self.outputs, rest.result())}
+            there = self._pool.submit(self._read, x[here_k:crops], x[here_s:sides])
+        keypoints, side = self._read(x[:here_k], x[:here_s])
+        if there is not None:
+            more_keypoints, more_side = there.result()
+            keypoints = [np.concatenate(p) for p in zip(*(r for r in (keypoints, more_keypoints) if r))]
+            side = np.concatenate([r for r in (side, more_side) if r is not None]) if sides else None
+        out = dict(zip(self.outputs, keypoints))
         if self.side is not None:
-            out["handedness"] = (side.result() if side is not None else
-                                 run_in_batches(self.side.session, ["handedness"], x))[0] if read_side \
-                else np.full(len(x), np.nan, np.float32)
+            out["handedness"] = side if sides else np.full(len(x), np.nan, np.float32)
         return out
+
+    def _read(self, keypoint_crops, side_crops):
+        """(this network's outputs on keypoint_crops (a list, None for none), the side network's
+        handedness on side_crops (None for none)): one thread's share of a call."""
+        keypoints = run_in_batches(self.session, None, keypoint_crops) if len(keypoint_crops) else None
+        side = run_in_batches(self.side.session, ["handedness"], side_crops)[0] if len(side_crops) else None
+        return keypoints, side
+
+
+def split_reads(crops, sides, side_cost=SIDE_CROP_COST):
+    """(k, s): a call's first k keypoint reads and first s side reads go on the caller's
+    thread, the others on the second one, so that the busier thread has as little as can
+    be (a keypoint read costs 1, a side read `side_cost`); of splits as even, the one that
+    leaves more on the caller's thread. E.g. two tracked hands on a frame that reads their
+    side: a keypoint and a side read on each thread, not both keypoint reads on one."""
+    best = None
+    for k in range(crops + 1):
+        for s in range(sides + 1):
+            busier = max(k + side_cost * s, crops - k + side_cost * (sides - s))
+            key = (round(busier, 9), -(k + side_cost * s))
+            if best is None or key < best[0]:
+                best = (key, (k, s))
+    return best[1]
