@@ -207,6 +207,28 @@ def test_a_new_track_takes_the_quarter_turn_detnet_believes_most():
             np.testing.assert_allclose(out[0]["uv"], np.round(uv_true), atol=DOT_TOL)
 
 
+def test_a_doubted_tracked_hand_tries_the_other_quarter_turns_when_asked():
+    """turn_check_below (off by default): a tracked hand whose mean heatmap peak on this frame
+    is below it is also read at the three other quarter turns of its crop, at most once every
+    turn_check_every frames of its track, and the turn DetNet is surest of is published."""
+    from dataclasses import replace
+    frame = draw(np.zeros((H, W, 3), np.uint8), canonical_hand((320, 240), 150))
+    assert HandDetector(FakeDetNet(), FakeFinder()).turn_check_below is None
+    peaks, checks = {}, {}
+    for below in (None, 1.0):
+        det = HandDetector(FakeDetNet(prefers_upright=True), FakeFinder(), turn_check_below=below, turn_check_every=3,
+                           smooth_min_cutoff=None)
+        det.process(frame)                                    # born upright
+        peaks[below] = []
+        for _ in range(4):                                    # each frame's crop cut upside down
+            det.tracks[0].crop = replace(det.tracks[0].crop, angle=det.tracks[0].crop.angle + np.pi)
+            peaks[below].append(float(det.process(frame)[0]["confidence"].mean()))
+        checks[below] = det.stats["turn_checks"]
+    assert checks == {None: 0, 1.0: 2}                        # frames 1 and 4 of the track: every 3
+    assert peaks[1.0][0] > peaks[None][0] + 0.2 and peaks[1.0][3] > peaks[None][3] + 0.2   # read upright there
+    np.testing.assert_allclose(peaks[1.0][1:3], peaks[None][1:3])
+
+
 def test_crop_for_joints_is_the_square_around_the_joint_box_times_the_scale():
     uv = canonical_hand((320, 240), 150)
     crop = crop_for_joints(uv, scale=1.5)

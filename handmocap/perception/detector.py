@@ -154,6 +154,13 @@ class DetectorSettings:
     # hand appears upright, wrist below the middle finger's base, from its last 2D joints; a new
     # track tries the four quarter turns. Unturned, a hand hanging down read 2-4x worse
     upright_step: float | None = 90.0
+    # a tracked hand whose mean heatmap peak on this frame's crop is below this (None: never) is
+    # also read at the three other quarter turns of its crop (without the side), as a new track
+    # is, and the turn DetNet is surest of is kept: a hand read wrong way round turns its next
+    # crop by its own wrong joints and stays wrong. 3 crops more a check. Off: on the training
+    # people's clips the median did not move and found fell 0.3-1.5 points (session 48)
+    turn_check_below: float | None = None
+    turn_check_every: int = 5           # frames of a track between two turn checks at least (>= 1)
     # weight of the finder's side against one DetNet reading (0: DetNet's alone)
     finder_handedness: float = 0.3
     # every this many frames of a track (and on its first), DetNet also reads its crop flipped
@@ -202,6 +209,8 @@ class DetectorSettings:
             raise ValueError(f"handedness must be 'left', 'right' or None, got {self.handedness!r}")
         for name in ("test_time_crops", "tracked_test_time_crops", "second_look_crops"):
             _variant_count(name, getattr(self, name))
+        if self.turn_check_every < 1:
+            raise ValueError(f"turn_check_every must be >= 1, got {self.turn_check_every}")
         if self.finder_waits < 0:
             raise ValueError(f"finder_waits must be >= 0, got {self.finder_waits}")
         if (self.smooth_min_cutoff or 0.0) < 0 or self.smooth_beta < 0:
@@ -270,7 +279,7 @@ class HandDetector:
         self.lost_last_frame = False
         self._beside_pool = None    # the finder's thread when it runs beside the crops (made on first use)
         self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
-                      "evictions": 0, "handedness_turns": 0, "second_looks": 0,
+                      "evictions": 0, "handedness_turns": 0, "second_looks": 0, "turn_checks": 0,
                       "side_rereads": 0, "grey_finder_runs": 0}
 
     @classmethod
@@ -528,6 +537,8 @@ class HandDetector:
             if jumped:
                 self.stats["second_looks"] += len(jumped)
                 self._median_over_nearby_crops(image_bgr, jumped, out, self.second_look_crops)
+        if self.turn_check_below is not None and self.upright_step is not None and tracked:
+            self._check_turns(image_bgr, tracked, out)
         counted = set()
         if self.settle_side:
             counted = self._settle_sides(image_bgr, idx, out, self.test_time_crops) | \
@@ -621,21 +632,36 @@ class HandDetector:
                 self._median_over_nearby_crops(image_bgr, turned, out, test_time_crops)
         return set(idx)
 
-    def _turn_new_tracks(self, image_bgr, idx, out):
+    def _check_turns(self, image_bgr, idx, out):
+        """Tracked hands (indices `idx`) that DetNet doubts on this frame (mean heatmap peak
+        below `turn_check_below`), at most once every `turn_check_every` frames each, try the
+        other quarter turns of their crop (_turn_new_tracks)."""
+        doubted = [i for i in idx if out["presence"][i] >= self.presence_threshold and
+                   out["confidence"][i].mean() < self.turn_check_below and
+                   self.tracks[i].age - self.tracks[i].turn_checked >= self.turn_check_every]
+        for i in doubted:
+            self.tracks[i].turn_checked = self.tracks[i].age
+        if doubted:
+            self.stats["turn_checks"] += len(doubted)
+            self._turn_new_tracks(image_bgr, doubted, out, read_side=False)
+
+    def _turn_new_tracks(self, image_bgr, idx, out, read_side=True):
         """New tracks (indices `idx` into self.tracks, `out` DetNet's outputs on their crops)
         take the quarter turn of their crop on which DetNet's mean heatmap peak is highest:
         the finder's box says nothing of which way the hand points, and the first prediction
-        on an upside-down hand is too poor to turn it upright from."""
+        on an upside-down hand is too poor to turn it upright from. read_side=False: the turns
+        are read without a side network and each hand keeps its own crop's side reading."""
         turns = [replace(self.tracks[i].crop, angle=self.tracks[i].crop.angle + k * math.pi / 2)
                  for i in idx for k in (1, 2, 3)]
-        more = self._run(image_bgr, turns)
+        more = self._run(image_bgr, turns, read_side=read_side)
         peak = more["confidence"].mean(axis=1).reshape(len(idx), 3)
         for n, i in enumerate(idx):
             k = int(np.argmax(peak[n]))
             if peak[n, k] > out["confidence"][i].mean():
                 self.tracks[i].crop = turns[3 * n + k]
                 for key in out:
-                    out[key][i] = more[key][3 * n + k]
+                    if read_side or key != "handedness":    # read_side False: the crop's own side reading stays
+                        out[key][i] = more[key][3 * n + k]
 
     def _smoothed(self, track, uv):
         """uv (21,2) frame px of `track` at self.frame_time through its One Euro filter."""

@@ -36,6 +36,7 @@ class Track:
     memory: int = HANDEDNESS_MEMORY   # handedness readings the running mean is over (`handedness_memory`)
     smoother: OneEuroFilter | None = None   # its published 2D joints' filter, in units of `unit`
     unit: float = 1.0                 # px: the hand's size when the filter started
+    turn_checked: int = -1000         # its age at its last turn check (HandDetector `turn_check_below`)
 
     @property
     def is_right(self) -> bool:
