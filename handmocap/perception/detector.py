@@ -464,13 +464,19 @@ class HandDetector:
         """DetNet's outputs on the CropTransforms `crops` of a frame, then on the crops with
         indices `flipped` mirrored the other way (in the same batch, after the others);
         read_side=False: a side network (DetNetRunner `side`) is not run, handedness NaN."""
+        detnet = self.grey_detnet if self.grey_frames and self.grey_detnet is not None else self.detnet
         # cut from the BGR frame and reverse the channels of the crops only: cutting from a
         # reversed-channel view of the frame made OpenCV copy the whole frame for each crop (and
         # OpenCV's colour conversion and flip cost a tenth of numpy's strided copies)
-        rgb = [cv2.cvtColor(c.cut(image_bgr), cv2.COLOR_BGR2RGB) for c in crops]
+        cut = lambda part: [cv2.cvtColor(c.cut(image_bgr), cv2.COLOR_BGR2RGB) for c in part]   # noqa: E731
+        half = len(crops) // 2 if getattr(detnet, "beside", False) else 0
+        if half:    # the later half cut on DetNet's second thread meanwhile (OpenCV lets go of the GIL)
+            later = detnet.second_thread().submit(cut, crops[half:])
+            rgb = cut(crops[:half]) + later.result()
+        else:
+            rgb = cut(crops)
         pixels = np.stack(rgb + [cv2.flip(rgb[i], 1) for i in flipped])
         self.stats["crops"] += len(pixels)
-        detnet = self.grey_detnet if self.grey_frames and self.grey_detnet is not None else self.detnet
         # only a pair of networks (DetNetRunner `side`) has a side read to skip, and reads the
         # flipped crops (mirror votes, whose handedness alone is wanted) with the side network only
         out = detnet(pixels, read_side=read_side, side_only=len(flipped)) if getattr(detnet, "side", None) is not None \

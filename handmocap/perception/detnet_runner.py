@@ -154,9 +154,7 @@ class DetNetRunner:
         here_k, here_s = split_reads(crops, sides) if self.beside else (crops, sides)
         there = None
         if here_k < crops or here_s < sides:
-            if self._pool is None:
-                self._pool = ThreadPoolExecutor(1, thread_name_prefix="detnet-beside")
-            there = self._pool.submit(self._read, x[here_k:crops], x[here_s:sides])
+            there = self.second_thread().submit(self._read, x[here_k:crops], x[here_s:sides])
         keypoints, side = self._read(x[:here_k], x[:here_s])
         if there is not None:
             more_keypoints, more_side = there.result()
@@ -166,6 +164,13 @@ class DetNetRunner:
         if self.side is not None:
             out["handedness"] = side if sides else np.full(len(x), np.nan, np.float32)
         return out
+
+    def second_thread(self) -> ThreadPoolExecutor:
+        """The runner's second thread (`beside`), made on first use: its caller may also give it
+        work of its own between calls (the detector cuts half of a frame's crops there)."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="detnet-beside")
+        return self._pool
 
     def _read(self, keypoint_crops, side_crops):
         """(this network's outputs on keypoint_crops (a list, None for none), the side network's
