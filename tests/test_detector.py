@@ -1015,6 +1015,34 @@ def test_side_every_reads_the_side_network_on_births_and_mirror_votes_only():
         assert det.tracks[0].right_logit < 0 and det.tracks[0].samples > 0
 
 
+def test_half_of_a_calls_crops_are_cut_on_detnets_second_thread_and_the_hands_are_the_same(monkeypatch):
+    """With DetNet's second thread (`beside`), the later half of two or more crops read at once
+    (a new track's turns, a second look) is cut there while the caller cuts the first half;
+    the hands are the same to the bit as with every crop cut and read in turn."""
+    import threading
+    from handmocap.perception.crops import CropTransform
+    from handmocap.runtime.frames import read_video
+    frames = [f for _, f in zip(range(20), read_video(str(CLIP)))]
+    cut, threads = CropTransform.cut, []
+
+    def recorded(self, image):
+        threads.append(threading.current_thread().name)
+        return cut(self, image)
+    monkeypatch.setattr(CropTransform, "cut", recorded)
+    hands = {}
+    for beside in (True, False):
+        det = HandDetector.load(max_hands=2, finder_beside=False)
+        det.detnet.beside = beside
+        threads.clear()
+        hands[beside] = [det.process(f) for f in frames]
+        assert any(t.startswith("detnet-beside") for t in threads) == beside
+    for a, b in zip(hands[True], hands[False]):
+        assert [h["track_id"] for h in a] == [h["track_id"] for h in b] and a
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x["uv"], y["uv"])
+            np.testing.assert_array_equal(x["xyz_rel"], y["xyz_rel"])
+
+
 def test_the_finder_runs_beside_the_tracked_crops_on_a_thread_of_its_own():
     """finder_beside (the default): with a hand tracked, the finder's periodic run goes on the
     detector's "finder" thread while DetNet reads the same frame's crops, and the hands come out
