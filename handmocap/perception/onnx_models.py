@@ -96,6 +96,14 @@ def _session_options(ort, threads: int, optimize: bool):
     return opts
 
 
+def check_session(model):
+    """An onnxruntime CPU session of `model` (a file or a serialized ModelProto), one thread,
+    this module's options, not cached: what a rewrite's bit-equality check runs."""
+    import onnxruntime as ort
+    return ort.InferenceSession(str(model) if isinstance(model, Path) else model, _session_options(ort, 1, optimize=True),
+                                providers=["CPUExecutionProvider"])
+
+
 def open_session(path: Path, what: str, made_by: str, threads: int = 1):
     """An onnxruntime CPU session of `path`, `threads` intra-op threads (1 is fastest per call
     on a busy 2-core machine), from its optimized copy where one is cached (optimized_copy;
@@ -340,7 +348,6 @@ def fold_same_pads(model, input_name: str, input_shape) -> int:
     (a quantized convolution pads with its input's zero point, which is the value 0); nodes
     left without a use are removed."""
     import numpy as np
-    import onnxruntime as ort
     from onnx import helper, numpy_helper
     graph = model.graph
     inits = {t.name: t for t in graph.initializer}
@@ -356,8 +363,7 @@ def fold_same_pads(model, input_name: str, input_shape) -> int:
         probe = type(model)()
         probe.CopyFrom(model)
         probe.graph.output.extend(helper.make_empty_tensor_value_info(p.input[1]) for p in pads)
-        session = ort.InferenceSession(probe.SerializeToString(), _session_options(ort, 1, optimize=True),
-                                       providers=["CPUExecutionProvider"])
+        session = check_session(probe.SerializeToString())
         names = [p.input[1] for p in pads]
         shape = list(input_shape)
         values = [session.run(names, {input_name: np.zeros([b] + shape[1:], np.float32)})
@@ -423,7 +429,6 @@ def fold_same_pads_file(path, sample=None) -> int:
     Pads were folded (0: the file is unchanged)."""
     import numpy as np
     import onnx
-    import onnxruntime as ort
     path = Path(path)
     model = onnx.load(str(path))
     image = model.graph.input[0]
@@ -433,9 +438,7 @@ def fold_same_pads_file(path, sample=None) -> int:
     folded = fold_same_pads(model, image.name, [1] + shape[1:])
     if not folded:
         return 0
-    opts = _session_options(ort, 1, optimize=True)
-    before, after = (ort.InferenceSession(m, opts, providers=["CPUExecutionProvider"]).run(None, {image.name: x})
-                     for m in (str(path), model.SerializeToString()))
+    before, after = (check_session(m).run(None, {image.name: x}) for m in (path, model.SerializeToString()))
     if not all(np.array_equal(a, b, equal_nan=True) for a, b in zip(before, after)):
         return 0
     onnx.save(model, str(path))

@@ -45,7 +45,7 @@ import numpy as np
 
 from handmocap.perception.detnet_runner import DETNET_FLOAT32, DETNET_INT8, DetNetRunner, head_only_path
 from handmocap.perception.hand_finder import greyed
-from handmocap.perception.onnx_models import file_sha256, fold_same_pads_file, quantize_static_int8
+from handmocap.perception.onnx_models import check_session, file_sha256, fold_same_pads_file, quantize_static_int8
 
 CALIB_SEED = 27_182_818          # own seed: not training ([seed, it]), validation or evaluation
 # Clip (ReLU6), Pad ("SAME" padding) and Resize (the FPN's upsampling): the lite0 backbone's; left float they cost a
@@ -89,7 +89,6 @@ def write_head_only(src, out=None, check_crops=8):
     `src` does, to the bit, on `check_crops` random crops. Returns out."""
     import onnx
     import onnx.utils
-    import onnxruntime as ort
     src = Path(src)
     out = head_only_path(src) if out is None else Path(out)
     model = onnx.load(str(src))
@@ -102,8 +101,7 @@ def write_head_only(src, out=None, check_crops=8):
     onnx.save(head, str(out))
     side = model.graph.input[0].type.tensor_type.shape.dim[-1].dim_value
     x = np.random.default_rng(0).random((check_crops, 3, side, side), dtype=np.float32)
-    whole, part = (ort.InferenceSession(str(f), providers=["CPUExecutionProvider"]).run(["handedness"], {image: x})[0]
-                   for f in (src, out))
+    whole, part = (check_session(f).run(["handedness"], {image: x})[0] for f in (src, out))
     if not np.array_equal(whole, part):
         out.unlink()
         raise RuntimeError(f"the handedness part of {src} does not answer as the whole network does "
