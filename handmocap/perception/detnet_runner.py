@@ -173,8 +173,9 @@ class DetNetRunner:
         return self._pool
 
     def _read(self, keypoint_crops, side_crops):
-        """(this network's outputs on keypoint_crops (a list, None for none), the side network's
-        handedness on side_crops (None for none)): one thread's share of a call."""
+        """One thread's share of a call: (this network's outputs on keypoint_crops, a list of
+        arrays in `outputs` order, or None for no crops; the side network's handedness (M,) on
+        side_crops, or None for no crops)."""
         keypoints = run_in_batches(self.session, None, keypoint_crops) if len(keypoint_crops) else None
         side = run_in_batches(self.side.session, ["handedness"], side_crops)[0] if len(side_crops) else None
         return keypoints, side
