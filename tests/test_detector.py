@@ -731,7 +731,8 @@ def test_a_found_hand_evicts_the_track_detnet_believes_less_when_every_slot_is_t
     """max_hands 1: a track born on a partial hand (3 joints missing: mean heatmap peak
     0.86) holds the only slot when the whole hand (peak 1.0) appears. At the finder's next
     check the hand takes the slot when its peak beats the track's by evict_margin, never
-    when eviction is off or the margin is larger than the difference."""
+    when eviction is off or the margin is larger than the difference; where no peak could
+    (the track's peak plus the margin above 1), the found hand costs no DetNet read."""
     decoy, hand = canonical_hand((150, 330), 160), canonical_hand((500, 330), 120)
     frames = [draw(np.zeros((480, 640, 3), np.uint8), decoy[:18]) for _ in range(3)]
     frames += [draw(draw(np.zeros((480, 640, 3), np.uint8), decoy[:18]), hand) for _ in range(6)]
@@ -747,6 +748,9 @@ def test_a_found_hand_evicts_the_track_detnet_believes_less_when_every_slot_is_t
     assert np.abs(evicted["uv"] - hand).max() < 3 * DOT_TOL
     for kept in (last_hands(evict_margin=None)[1], last_hands(evict_margin=0.2)[1]):
         assert kept["track_id"] == 0 and np.linalg.norm(kept["uv"].mean(0) - decoy[:18].mean(0)) < 40
+    # 0.86 + 0.2 is above 1, which no heatmap peak exceeds: the found hand is not even read
+    assert last_hands(evict_margin=0.2)[0].stats["crops"] == last_hands(evict_margin=None)[0].stats["crops"]
+    assert last_hands(evict_margin=0.1)[0].stats["crops"] > last_hands(evict_margin=None)[0].stats["crops"]
 
 
 def test_a_fallback_finder_is_tried_only_where_the_first_gave_no_track():

@@ -421,8 +421,9 @@ class HandDetector:
 
     def _reseed_believed(self, image, box, right_prob, track):
         """Whether DetNet's mean heatmap peak on the crop of a found box is at least the
-        track's running peak minus `reseed_margin` (always, with no margin)."""
-        return self.reseed_margin is None or \
+        track's running peak minus `reseed_margin` (always, with no margin; and without a read
+        where that bound is not above 0, which every peak reaches)."""
+        return self.reseed_margin is None or track.confidence - self.reseed_margin <= 0.0 or \
             self._found_peaks(image, [(box, right_prob)])[0] >= track.confidence - self.reseed_margin
 
     def _new_track(self, box, right_prob):
@@ -438,7 +439,12 @@ class HandDetector:
     def _evict(self, image, fresh, keep):
         """New tracks for found boxes `fresh` ((box, right_prob) list) that DetNet believes
         more than the tracks they replace (mean heatmap peak on the box's crop above the
-        weakest track's running peak by `evict_margin`); tracks in `keep` stay."""
+        weakest track's running peak by `evict_margin`); tracks in `keep` stay. Where that bound
+        is above 1, which no heatmap peak exceeds (a sigmoid's), nothing is read: a sure track
+        (running peak 0.8 and up) costs the finder's frame no DetNet read of the found boxes."""
+        held = [t for t in self.tracks if t not in keep]
+        if not held or min(t.confidence for t in held) + self.evict_margin > 1.0:
+            return []
         peak = self._found_peaks(image, fresh)
         born = []
         for i in np.argsort(-peak, kind="stable"):
