@@ -528,7 +528,7 @@ class HandDetector:
         out = self._run_voting(image_bgr, self.tracks) if read is None else self._read_with(image_bgr, new, *read)
         idx = [i for i, t in enumerate(self.tracks) if t in new]
         if self.upright_step is not None and idx:
-            self._turn_new_tracks(image_bgr, idx, out)
+            self._take_best_quarter_turn(image_bgr, idx, out)
         if idx:                                     # a new track's crop from its own prediction
             for i in idx:
                 t = self.tracks[i]
@@ -648,7 +648,7 @@ class HandDetector:
     def _check_turns(self, image_bgr, idx, out):
         """Tracked hands (indices `idx`) that DetNet doubts on this frame (mean heatmap peak
         below `turn_check_below`), at most once every `turn_check_every` frames each, try the
-        other quarter turns of their crop (_turn_new_tracks)."""
+        other quarter turns of their crop (_take_best_quarter_turn)."""
         doubted = [i for i in idx if out["presence"][i] >= self.presence_threshold and
                    out["confidence"][i].mean() < self.turn_check_below and
                    self.tracks[i].age - self.tracks[i].turn_checked >= self.turn_check_every]
@@ -656,13 +656,14 @@ class HandDetector:
             self.tracks[i].turn_checked = self.tracks[i].age
         if doubted:
             self.stats["turn_checks"] += len(doubted)
-            self._turn_new_tracks(image_bgr, doubted, out, read_side=False)
+            self._take_best_quarter_turn(image_bgr, doubted, out, read_side=False)
 
-    def _turn_new_tracks(self, image_bgr, idx, out, read_side=True):
-        """New tracks (indices `idx` into self.tracks, `out` DetNet's outputs on their crops)
-        take the quarter turn of their crop on which DetNet's mean heatmap peak is highest:
-        the finder's box says nothing of which way the hand points, and the first prediction
-        on an upside-down hand is too poor to turn it upright from. read_side=False: the turns
+    def _take_best_quarter_turn(self, image_bgr, idx, out, read_side=True):
+        """Tracks (indices `idx` into self.tracks, `out` DetNet's outputs on their crops) take
+        the quarter turn of their crop on which DetNet's mean heatmap peak is highest. A new
+        track always does: the finder's box says nothing of which way the hand points, and the
+        first prediction on an upside-down hand is too poor to turn it upright from; a doubted
+        tracked hand does with `turn_check_below` (_check_turns). read_side=False: the turns
         are read without a side network and each hand keeps its own crop's side reading."""
         turns = [replace(self.tracks[i].crop, angle=self.tracks[i].crop.angle + k * math.pi / 2)
                  for i in idx for k in (1, 2, 3)]

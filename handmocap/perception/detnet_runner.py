@@ -157,9 +157,11 @@ class DetNetRunner:
             there = self.second_thread().submit(self._read, x[here_k:crops], x[here_s:sides])
         keypoints, side = self._read(x[:here_k], x[:here_s])
         if there is not None:
-            more_keypoints, more_side = there.result()
-            keypoints = [np.concatenate(p) for p in zip(*(r for r in (keypoints, more_keypoints) if r))]
-            side = np.concatenate([r for r in (side, more_side) if r is not None]) if sides else None
+            more_keypoints, more_side = there.result()     # joined only where both threads read some
+            keypoints = [np.concatenate(p) for p in zip(keypoints, more_keypoints)] \
+                if keypoints and more_keypoints else keypoints or more_keypoints
+            side = np.concatenate([side, more_side]) if side is not None and more_side is not None \
+                else more_side if side is None else side
         out = dict(zip(self.outputs, keypoints))
         if self.side is not None:
             out["handedness"] = side if sides else np.full(len(x), np.nan, np.float32)
