@@ -219,8 +219,11 @@ def replay(node: Node) -> None:
                 if sent == 0:
                     origin = stamp - int(1e9 * (source_span_s(source, None if is_bag else frames, float(p["start"]))))
                 stamp = origin + int(1e9 * (t_src - t_first))
-            node.publish("/camera/image", image_message(frame, p["jpeg_quality"]), stamp_ns=stamp, frame_id=p["frame_id"])
+            # the info first, as the camera nodes send it: a frame's subscribers have its K when
+            # the frame comes, and nothing delays their turn after it (in the perception
+            # container, the detector waited for the info's publish: +0.25 ms p50 measured)
             node.publish("/camera/info", info, stamp_ns=stamp, frame_id=p["frame_id"])
+            node.publish("/camera/image", image_message(frame, p["jpeg_quality"]), stamp_ns=stamp, frame_id=p["frame_id"])
             sent += 1
             progress.sent(resume + sent)
         if not p["loop"] or t_first is None or (end_at is not None and time.monotonic() >= end_at):

@@ -190,3 +190,29 @@ def test_a_trusted_decode_gives_what_the_checked_one_does(size):
     assert not trusted["data"].flags.writeable
     with pytest.raises(codec.MalformedMessage):
         codec.decode_trusted(b"\xc1 not msgpack", "Blob")
+
+
+def test_a_step_leaves_discovery_scans_to_the_executor(container, monkeypatch):
+    """A scan reads every node file (0.3-1 ms): a step must not run one, or it lands on the
+    message that woke the executor; the executor calls Node.scan when nothing is queued."""
+    sink = make_node("sink", sub="/a")
+    steps = sink.steps()
+    assert next(steps) is nm.IDLE
+    looked = []
+    monkeypatch.setattr(sink, "_scan", lambda force=False, _scan=sink._scan: looked.append(force) or _scan(force))
+    src = make_node("src", pub="/a")            # a publisher that comes later: found by a scan
+    sink._next_scan = 0.0                       # a scan is due
+    for _ in range(3):
+        assert next(steps) is nm.IDLE
+    assert looked == [] and sink.scan_due()
+    sink.scan()                                 # the executor's, when it is about to wait
+    assert looked == [False] and not sink.scan_due() and not sink.scan_overdue()
+    deadline = time.monotonic() + 10
+    while src.pub.subscriber_count("/a") < 1 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    src.publish("/a", text("found"))
+    time.sleep(0.1)
+    assert read(next(steps)) == "found"
+    steps.close()
+    sink.close()
+    src.close()

@@ -24,6 +24,7 @@ import zmq
 from handmocap.runtime import node as node_mod
 
 POLL_MS = node_mod.POLL_MS
+SCAN_QUIET_MS = 3   # how long the executor waits with nothing to do before it runs due scans
 
 
 def exit_code(fn: Callable[[], None], name: str) -> int:
@@ -96,6 +97,13 @@ def spin(started: list[tuple], on_exit: Callable[[dict, int], None]) -> None:
                 node.close()
                 on_exit(m, code)
         if live:
+            # discovery scans (each 0.3-1 ms of node files read) once nothing came for SCAN_QUIET_MS:
+            # not on the next message's path, nor on the path of what the last handler sent to
+            # another process (the recorder's receipt of /hand/pose, on a 2-core machine)
+            due = [node for _, node, _, _ in live if node.scan_due()]
+            if not due or not poller.poll(SCAN_QUIET_MS) or any(node.scan_overdue() for node in due):
+                for node in due:
+                    node.scan()
             poller.poll(POLL_MS)
 
 

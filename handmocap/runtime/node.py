@@ -189,6 +189,7 @@ class Node:
         self._ended: dict[str, set[str]] = defaultdict(set)        # topic -> names that sent EOS
         self._file_lock = threading.Lock()
         self._next_scan = 0.0
+        self._looked = False   # a scan ran since the receive loop last checked (an executor's, see scan)
         self._eos_seen = False
         self._graph_complete = False   # launched, and every node of the graph has announced itself
         self._graph_ready = "HANDMOCAP_LAUNCH_ID" not in os.environ
@@ -364,8 +365,22 @@ class Node:
     def steps(self):
         """events() that never blocks, for an executor that runs several nodes in one thread
         (handmocap.runtime.executor): yields the Messages queued now, then IDLE, and again on the
-        next call; ends as events() does."""
+        next call; ends as events() does. Its discovery scans are the executor's to run, with
+        `scan`, when no node has work: a scan costs 0.3-1 ms (the node files read), and run
+        on a step it would land on the frame that woke the executor."""
         return self._events(None, block=False)
+
+    def scan(self) -> None:
+        """Look for new publishers now if a scan is due (every SCAN_S): what a steps() loop
+        leaves to its executor, which calls it when it is about to wait."""
+        self._scan()
+
+    def scan_due(self) -> bool:
+        return time.monotonic() >= self._next_scan
+
+    def scan_overdue(self) -> bool:
+        """A scan is due for SCAN_S already (an executor that never waits runs it anyway)."""
+        return time.monotonic() >= self._next_scan + SCAN_S
 
     def sockets(self) -> list:
         """The zmq sockets this node receives on (an executor polls them)."""
@@ -399,8 +414,10 @@ class Node:
         while not self._stop.is_set():
             if self._eos_pending:
                 self._settle_eos(idle_since)
-            if self._scan() or self._eos_seen:
-                self._eos_seen = False
+            if block:   # after the consumer's work on the last message: off the message's path
+                self._scan()
+            if self._looked or self._eos_seen:
+                self._looked = self._eos_seen = False
                 if not self.info.observer and self._inputs_ended():
                     break
                 if self.sub.made != armed:   # a publisher found on a new kind of connection (tcp with keys)
@@ -629,6 +646,7 @@ class Node:
         if not force and now < self._next_scan:
             return False
         self._next_scan = now + SCAN_S
+        self._looked = True
         if not self.info.subscribes:
             return True
         # checked before reading the node files: once the launcher wrote it, every node of the
