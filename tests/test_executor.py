@@ -216,3 +216,26 @@ def test_a_step_leaves_discovery_scans_to_the_executor(container, monkeypatch):
     steps.close()
     sink.close()
     src.close()
+
+
+def test_an_idle_executor_beats_for_its_nodes_and_their_threads_leave_it(container, monkeypatch):
+    """A heartbeat (the node file rewritten, 0.3-0.6 ms) from a node's own thread lands at any
+    moment, maybe on a frame; the executor writes it when it has nothing to do (Node.beat), and
+    the thread writes only when nobody did for 0.9 x HEARTBEAT_S (a handler that runs long)."""
+    from handmocap.runtime import bus
+    writers = []
+    monkeypatch.setattr(bus, "write_node_file",
+                        lambda d, info, _w=bus.write_node_file: writers.append(threading.get_ident()) or _w(d, info))
+    n = make_node("beater", sub="/a")
+    assert not n.beat_due()                     # written when it subscribed
+    writers.clear()
+    me = threading.get_ident()
+    deadline = time.monotonic() + 3 * bus.HEARTBEAT_S
+    while time.monotonic() < deadline:          # an executor's idle moments
+        n.beat()
+        time.sleep(0.02)
+    assert writers.count(me) >= 3 and len(writers) - writers.count(me) <= 1, writers
+    writers.clear()
+    time.sleep(3 * bus.HEARTBEAT_S)             # no executor beats: the node's own thread does
+    assert len(writers) >= 2 and me not in writers
+    n.close()

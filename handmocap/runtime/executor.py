@@ -24,7 +24,7 @@ import zmq
 from handmocap.runtime import node as node_mod
 
 POLL_MS = node_mod.POLL_MS
-SCAN_QUIET_MS = 3   # how long the executor waits with nothing to do before it runs due scans
+QUIET_MS = 3   # how long the executor waits with nothing to do before it runs due scans and heartbeats
 
 
 def exit_code(fn: Callable[[], None], name: str) -> int:
@@ -97,13 +97,17 @@ def spin(started: list[tuple], on_exit: Callable[[dict, int], None]) -> None:
                 node.close()
                 on_exit(m, code)
         if live:
-            # discovery scans (each 0.3-1 ms of node files read) once nothing came for SCAN_QUIET_MS:
-            # not on the next message's path, nor on the path of what the last handler sent to
-            # another process (the recorder's receipt of /hand/pose, on a 2-core machine)
-            due = [node for _, node, _, _ in live if node.scan_due()]
-            if not due or not poller.poll(SCAN_QUIET_MS) or any(node.scan_overdue() for node in due):
-                for node in due:
+            # discovery scans (each 0.3-1 ms of node files read) and heartbeats (each 0.3-0.6 ms of a
+            # node file written) once nothing came for QUIET_MS: not on the next message's path,
+            # nor on the path of what the last handler sent to another process (the recorder's
+            # receipt of /hand/pose, on a 2-core machine)
+            scans = [node for _, node, _, _ in live if node.scan_due()]
+            beats = [node for _, node, _, _ in live if node.beat_due()]
+            if (scans or beats) and (not poller.poll(QUIET_MS) or any(node.scan_overdue() for node in scans)):
+                for node in scans:
                     node.scan()
+                for node in beats:
+                    node.beat()
             poller.poll(POLL_MS)
 
 
