@@ -43,9 +43,9 @@ from handmocap.runtime import keys
 from handmocap.runtime.keys import Keys
 from handmocap.runtime.params import parse_cli_params
 
-# an executor rewrites its nodes' files (beat) once they are this share of bus.HEARTBEAT_S old,
-# before their heartbeat threads would (at 0.9 of it)
-BEAT_EARLY = 0.7
+# an executor rewrites its nodes' files (Node.beat) once they are BEAT_EARLY of bus.HEARTBEAT_S
+# old, when it has nothing to do; a node's heartbeat thread only once they are BEAT_LATE of it
+BEAT_EARLY, BEAT_LATE = 0.7, 0.9
 SCAN_S = 0.2          # how often subscribers look for new publishers
 RESET_JUDGE_S = 1.0   # an ended connection whose publisher lives on this long after was ended by zmq
 POLL_MS = 100         # longest a receive blocks before the loop looks at scans, ticks and stop
@@ -766,7 +766,7 @@ class Node:
         """The node file rewritten every HEARTBEAT_S, unless it was rewritten since (an executor
         beats for its nodes when it has nothing to do: beat)."""
         while not self._stop.wait(bus.HEARTBEAT_S) and not self._closed:
-            if time.monotonic() - self._announced >= 0.9 * bus.HEARTBEAT_S:
+            if time.monotonic() - self._announced >= BEAT_LATE * bus.HEARTBEAT_S:
                 self._announce()
 
     def beat(self) -> None:
@@ -774,7 +774,7 @@ class Node:
         what an executor calls when it has nothing to do. Its nodes' heartbeat threads (one a
         node, each file write 0.3-0.6 ms with the interpreter lock held part of it) then find
         the file fresh and leave it, and beat only while a handler keeps the executor busy."""
-        if time.monotonic() - self._announced >= BEAT_EARLY * bus.HEARTBEAT_S:
+        if self.beat_due():
             self._announce()
 
     def beat_due(self) -> bool:
