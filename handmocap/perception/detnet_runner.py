@@ -157,14 +157,11 @@ class DetNetRunner:
             there = self.second_thread().submit(self._read, x[here_k:crops], x[here_s:sides])
         keypoints, side = self._read(x[:here_k], x[:here_s])
         if there is not None:
-            more_keypoints, more_side = there.result()     # joined only where both threads read some
-            keypoints = [np.concatenate(p) for p in zip(keypoints, more_keypoints)] \
-                if keypoints and more_keypoints else keypoints or more_keypoints
-            side = np.concatenate([side, more_side]) if side is not None and more_side is not None \
-                else more_side if side is None else side
+            more_keypoints, more_side = there.result()
+            keypoints, side = _joined(keypoints, more_keypoints), _joined(side, more_side)
         out = dict(zip(self.outputs, keypoints))
         if self.side is not None:
-            out["handedness"] = side if sides else np.full(len(x), np.nan, np.float32)
+            out["handedness"] = side[0] if sides else np.full(len(x), np.nan, np.float32)
         return out
 
     def second_thread(self) -> ThreadPoolExecutor:
@@ -176,11 +173,19 @@ class DetNetRunner:
 
     def _read(self, keypoint_crops, side_crops):
         """One thread's share of a call: (this network's outputs on keypoint_crops, a list of
-        arrays in `outputs` order, or None for no crops; the side network's handedness (M,) on
-        side_crops, or None for no crops)."""
+        arrays in `outputs` order; the side network's [handedness (M,)] on side_crops), each
+        None where it has no crops."""
         keypoints = run_in_batches(self.session, None, keypoint_crops) if len(keypoint_crops) else None
-        side = run_in_batches(self.side.session, ["handedness"], side_crops)[0] if len(side_crops) else None
+        side = run_in_batches(self.side.session, ["handedness"], side_crops) if len(side_crops) else None
         return keypoints, side
+
+
+def _joined(here, there):
+    """The caller's thread's outputs (a list of arrays) then the second thread's, row after row;
+    where one of them read no crops (None), the other's as they are (no copy)."""
+    if here is None or there is None:
+        return there if here is None else here
+    return [np.concatenate(p) for p in zip(here, there)]
 
 
 def split_reads(crops, sides, side_cost=SIDE_CROP_COST):

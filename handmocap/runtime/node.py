@@ -766,7 +766,7 @@ class Node:
         """The node file rewritten every HEARTBEAT_S, unless it was rewritten since (an executor
         beats for its nodes when it has nothing to do: beat)."""
         while not self._stop.wait(bus.HEARTBEAT_S) and not self._closed:
-            if time.monotonic() - self._announced >= BEAT_LATE * bus.HEARTBEAT_S:
+            if self.beat_due(BEAT_LATE):
                 self._announce()
 
     def beat(self) -> None:
@@ -777,8 +777,9 @@ class Node:
         if self.beat_due():
             self._announce()
 
-    def beat_due(self) -> bool:
-        return time.monotonic() - self._announced >= BEAT_EARLY * bus.HEARTBEAT_S
+    def beat_due(self, share: float = BEAT_EARLY) -> bool:
+        """The node file is `share` of HEARTBEAT_S old (or older)."""
+        return time.monotonic() - self._announced >= share * bus.HEARTBEAT_S
 
     # -- shutdown -----------------------------------------------------------------------
     def close(self) -> None:
