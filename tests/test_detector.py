@@ -452,11 +452,19 @@ def test_tracked_hands_do_not_run_the_finder_unless_it_checks_the_tracks():
     # + three more quarter turns and the refinement of each new track
     # and the mirror vote: each new track's first and refined crop, then every sixth frame (ages 6 .. 24)
     assert det.finder.calls == 1 and det.stats["crops"] == 2 * 30 + 2 * 3 + 2 + 2 * 2 + 2 * 4
-    det = detector(redetect_every=5)          # default: the finder checks the tracks every 5 frames
+    # both slots held: the finder checks the tracks every redetect_every_full frames (None: every
+    # redetect_every), and the checks read no crop when every box matches its track
+    for full, calls in ((None, 1 + 29 // 5), (15, 1 + 29 // 15)):
+        det = detector(redetect_every=5, redetect_every_full=full)
+        for f in frames:
+            det.process(f)
+        assert det.finder.calls == calls and det.stats["reseeds"] == 0
+        assert det.stats["crops"] == 2 * 30 + 2 * 3 + 2 + 2 * 2 + 2 * 4
+    # one slot free (max_hands 3): every redetect_every frames, whatever redetect_every_full says
+    det = detector(redetect_every=5, redetect_every_full=15, max_hands=3)
     for f in frames:
         det.process(f)
-    assert det.finder.calls == 1 + 29 // 5 and det.stats["reseeds"] == 0
-    assert det.stats["crops"] == 2 * 30 + 2 * 3 + 2 + 2 * 2 + 2 * 4
+    assert det.finder.calls == 1 + 29 // 5
 
 
 def test_a_periodic_finder_run_waits_for_a_frame_without_a_mirror_vote():
@@ -465,7 +473,7 @@ def test_a_periodic_finder_run_waits_for_a_frame_without_a_mirror_vote():
     def events(finder_waits):
         """Per frame after the first: (the finder ran, a track was due a mirror vote: its age a
         multiple of mirror_vote_every, 6, as the frame came)."""
-        det = detector(redetect_every=10, finder_waits=finder_waits)
+        det = detector(redetect_every=10, redetect_every_full=10, finder_waits=finder_waits)
         out = []
         for f in frames:
             calls, voting = det.finder.calls, any(t.age % 6 == 0 for t in det.tracks)
@@ -481,8 +489,33 @@ def test_a_periodic_finder_run_waits_for_a_frame_without_a_mirror_vote():
     assert max(np.diff(runs(waited))) <= 10 + 3
 
 
+def test_staggered_votes_put_two_hands_mirror_votes_on_different_frames():
+    """Two hands found on one frame vote (a crop more each) on the same frames; with
+    stagger_votes the second track's votes move half a period away, and each track still
+    votes every mirror_vote_every frames (and on its first)."""
+    frames, _ = two_hand_frames(40)
+
+    def votes(stagger):
+        """Per frame: the ids of the tracks due a mirror vote as the frame came."""
+        det = detector(stagger_votes=stagger)
+        out = []
+        for f in frames:
+            out.append({t.track_id for t in det.tracks if det._vote_due(t)})
+            det.process(f)
+        return out[1:], det
+
+    together, det = votes(False)
+    assert sum(len(v) == 2 for v in together) == 39 // 6 and det.stats["crops"] > 0
+    apart, det = votes(True)
+    assert not any(len(v) == 2 for v in apart)
+    for tid in (0, 1):
+        due = [i for i, v in enumerate(apart) if tid in v]
+        assert set(np.diff(due)) == {6}, (tid, due)
+    assert [t.period_shift for t in det.tracks] == [0, 3]
+
+
 def test_a_track_whose_joints_left_the_found_hand_is_reseeded_from_the_finder():
-    det = detector(redetect_every=5)
+    det = detector(redetect_every=5, redetect_every_full=5)
     frames, truth = two_hand_frames(12)
     for f in frames[:3]:
         det.process(f)
@@ -738,7 +771,8 @@ def test_a_found_hand_evicts_the_track_detnet_believes_less_when_every_slot_is_t
     frames += [draw(draw(np.zeros((480, 640, 3), np.uint8), decoy[:18]), hand) for _ in range(6)]
 
     def last_hands(**kwargs):
-        det = HandDetector(FakeDetNet(), FakeFinder(), max_hands=1, birth_confidence=0.0, redetect_every=5, **kwargs)
+        det = HandDetector(FakeDetNet(), FakeFinder(), max_hands=1, birth_confidence=0.0, redetect_every=5,
+                           redetect_every_full=5, **kwargs)
         hands = [det.process(f) for f in frames][-1]
         assert len(hands) == 1
         return det, hands[0]

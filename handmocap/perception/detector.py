@@ -3,7 +3,7 @@
 Per frame (`HandDetector.process`):
 1. The hand finder (hand_finder.HandFinder) runs when there is no track, when a track was
    lost on the previous frame (or dropped as a duplicate), and every `redetect_every`
-   frames. Each found box goes to the track whose joint box it overlaps best (IoU >=
+   frames (`redetect_every_full` while every track slot is held). Each found box goes to the track whose joint box it overlaps best (IoU >=
    MATCH_IOU, one box per track); a box no track matched but inside the crop of a track
    no box matched (IoU >= 0.3 or its centre inside it) is that track's too. A track's box
    informs its handedness, and re-seeds the track's crop when it overlaps the track's
@@ -110,6 +110,11 @@ class DetectorSettings:
     presence_threshold: float = 0.5
     # frames between finder runs while a track slot is free; the finder then also checks the tracks
     redetect_every: int = 10
+    # frames between the finder's checks of the tracks (re-seeds, evictions) while every track slot
+    # is held (None: redetect_every). Such a run seldom changes anything (the held-back clips: 236
+    # runs, 3 re-seeds and 1 eviction in 5,845 frames) and costs a finder run beside the frame's
+    # crops, the slowest tenth of a tracked hand's frames at 30 fps (issue 51; session 50)
+    redetect_every_full: int | None = None
     # a periodic finder run (hands tracked, none lost) due on a frame where a track is due a mirror
     # vote or a side reading waits for a frame without one, at most this many frames (0: never
     # waits). 3: no frame pays for both, the slowest 5% of frames 0.6-0.8 ms faster; off since the
@@ -127,9 +132,9 @@ class DetectorSettings:
     # a track is lost below this mean heatmap peak too: the presence head stays sure on a crop
     # that slid onto the forearm, the heatmap peaks do drop there (0: off)
     min_confidence: float = 0.1
-    # every `redetect_every` frames the finder checks the tracks: a found hand inside a track's
-    # crop whose box overlaps the track's joints less than this re-seeds the track from the
-    # finder's box (0: never; the finder then only runs while a slot is free)
+    # at each periodic run (`redetect_every`, `redetect_every_full`) the finder checks the tracks: a
+    # found hand inside a track's crop whose box overlaps the track's joints less than this re-seeds
+    # the track from the finder's box (0: never; the finder then only runs while a slot is free)
     reseed_iou: float = 0.3
     # a found hand becomes a track only from this mean heatmap peak on its refined crop on:
     # with min_confidence a hysteresis (chosen on training-side clips by
@@ -169,6 +174,10 @@ class DetectorSettings:
     # head is biased on views unlike its training data, and on a crop and its mirror image its
     # two answers share the bias, which their mean cancels
     mirror_vote_every: int | None = 6
+    # a track born while others are tracked has its periodic mirror votes and side readings shifted
+    # to the frames farthest from theirs (half a period for two hands); a lone track's are unshifted.
+    # Otherwise two hands found on one frame vote on the same frames, which then read 4 crops
+    stagger_votes: bool = False
     # with a second network for the side (DetNetRunner `side`, the default pair), a tracked
     # hand's side is read on a track's first crops, its mirror votes and every this many frames
     # only (None: every frame; above mirror_vote_every, the votes alone): spread out, a track's `handedness_memory` readings span longer than one view's
@@ -212,6 +221,9 @@ class DetectorSettings:
             _variant_count(name, getattr(self, name))
         if self.turn_check_every < 1:
             raise ValueError(f"turn_check_every must be >= 1, got {self.turn_check_every}")
+        if self.redetect_every < 0 or (self.redetect_every_full or 0) < 0:
+            raise ValueError(f"redetect_every and redetect_every_full must be >= 0, got {self.redetect_every}, "
+                             f"{self.redetect_every_full}")
         if self.finder_waits < 0:
             raise ValueError(f"finder_waits must be >= 0, got {self.finder_waits}")
         if (self.smooth_min_cutoff or 0.0) < 0 or self.smooth_beta < 0:
@@ -230,7 +242,7 @@ class HandDetector:
     finder: a HandFinder (or None: the centre square crop of the frame is tried instead, as
     the paper's release did); detnet: a DetNetRunner. presence_threshold: below it a track
     is lost; redetect_every: frames between finder runs while fewer than max_hands hands
-    are tracked; crop_scale: crop side / joint-box side; min_confidence: below this mean
+    are tracked (redetect_every_full: while max_hands are); crop_scale: crop side / joint-box side; min_confidence: below this mean
     heatmap peak a track is lost too; birth_confidence: a found hand becomes a track only
     if DetNet's mean heatmap peak on its refined crop reaches this (the two thresholds are
     a hysteresis, chosen on training-side held-out clips by scripts/detector_thresholds.py;
@@ -316,19 +328,33 @@ class HandDetector:
     def _should_find(self):
         if not self.tracks or self.lost_last_frame:
             return True
-        if self.frames_since_find < self.redetect_every:
+        full = len(self.tracks) >= self.max_hands
+        period = (self.redetect_every_full or self.redetect_every) if full else self.redetect_every
+        if self.frames_since_find < period:
             return False
-        if len(self.tracks) >= self.max_hands and not self.reseed_iou > 0:   # every slot held, no re-seeding
+        if full and not self.reseed_iou > 0:   # every slot held, no re-seeding
             return False
-        return self.frames_since_find >= self.redetect_every + self.finder_waits or not self._side_read_due()
+        return self.frames_since_find >= period + self.finder_waits or not self._side_read_due()
 
     def _vote_due(self, track):
-        """Is `track` due a mirror vote on this frame (`mirror_vote_every`)?"""
-        return bool(self.mirror_vote_every) and not track.fixed_side and track.age % self.mirror_vote_every == 0
+        """Is `track` due a mirror vote on this frame (`mirror_vote_every`; its first, and its
+        ages at its `period_shift`)?"""
+        return bool(self.mirror_vote_every) and not track.fixed_side and \
+            (track.age == 0 or (track.age - track.period_shift) % self.mirror_vote_every == 0)
 
     def _side_due(self, track):
         """Is `track` due a side reading on this frame (`side_every`; None: every frame)?"""
-        return not self.side_every or track.age % self.side_every == 0
+        return not self.side_every or track.age == 0 or (track.age - track.period_shift) % self.side_every == 0
+
+    def _staggered_shift(self, others):
+        """A new track's `period_shift` (`stagger_votes`): of 0 .. period - 1, the one whose due
+        frames lie farthest from those of the tracks `others` (the smallest of the best; 0 alone)."""
+        period = self.mirror_vote_every or self.side_every
+        if not (self.stagger_votes and period and others):
+            return 0
+        since_due = [(t.age - t.period_shift) % period for t in others]   # as this frame comes
+        apart = lambda a, b: min((a - b) % period, (b - a) % period)   # noqa: E731
+        return max(range(period), key=lambda s: (min(apart(-s % period, d) for d in since_due), -s))
 
     def _side_read_due(self):
         """Does this frame read a track's side at a cost (`_run_voting`): a mirror vote (a crop
@@ -406,7 +432,7 @@ class HandDetector:
             fresh.append((box, right_prob))
         free = self.max_hands - len(self.tracks)
         for box, right_prob in fresh[:max(free, 0)]:
-            new.append(self._new_track(box, right_prob))
+            new.append(self._new_track(box, right_prob, others=self.tracks + new))
             if centre:
                 new[-1].birth_confidence = max(self.birth_confidence, self.centre_confidence)
         self.tracks.extend(new)
@@ -426,9 +452,10 @@ class HandDetector:
         return self.reseed_margin is None or track.confidence - self.reseed_margin <= 0.0 or \
             self._found_peaks(image, [(box, right_prob)])[0] >= track.confidence - self.reseed_margin
 
-    def _new_track(self, box, right_prob):
+    def _new_track(self, box, right_prob, others=()):
+        """A track for a found box; `others`: the tracks beside it from this frame on (stagger_votes)."""
         track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale, self.crop_size),
-                      memory=self.handedness_memory)
+                      memory=self.handedness_memory, period_shift=self._staggered_shift(others))
         if self.handedness is not None:
             track.right_logit, track.fixed_side = (1.0 if self.handedness == "right" else -1.0), True
         if self.finder_handedness:
@@ -454,7 +481,7 @@ class HandDetector:
             weakest = min(held, key=lambda t: t.confidence)
             if peak[i] < weakest.confidence + self.evict_margin:
                 break
-            born.append(self._new_track(*fresh[i]))
+            born.append(self._new_track(*fresh[i], others=[t for t in self.tracks if t is not weakest]))
             self.tracks[self.tracks.index(weakest)] = born[-1]
             self.stats["evictions"] += 1
         return born
