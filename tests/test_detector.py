@@ -489,31 +489,6 @@ def test_a_periodic_finder_run_waits_for_a_frame_without_a_mirror_vote():
     assert max(np.diff(runs(waited))) <= 10 + 3
 
 
-def test_staggered_votes_put_two_hands_mirror_votes_on_different_frames():
-    """Two hands found on one frame vote (a crop more each) on the same frames; with
-    stagger_votes the second track's votes move half a period away, and each track still
-    votes every mirror_vote_every frames (and on its first)."""
-    frames, _ = two_hand_frames(40)
-
-    def votes(stagger):
-        """Per frame: the ids of the tracks due a mirror vote as the frame came."""
-        det = detector(stagger_votes=stagger)
-        out = []
-        for f in frames:
-            out.append({t.track_id for t in det.tracks if det._vote_due(t)})
-            det.process(f)
-        return out[1:], det
-
-    together, det = votes(False)
-    assert sum(len(v) == 2 for v in together) == 39 // 6 and det.stats["crops"] > 0
-    apart, det = votes(True)
-    assert not any(len(v) == 2 for v in apart)
-    for tid in (0, 1):
-        due = [i for i, v in enumerate(apart) if tid in v]
-        assert set(np.diff(due)) == {6}, (tid, due)
-    assert [t.period_shift for t in det.tracks] == [0, 3]
-
-
 def test_a_track_whose_joints_left_the_found_hand_is_reseeded_from_the_finder():
     det = detector(redetect_every=5, redetect_every_full=5)
     frames, truth = two_hand_frames(12)

@@ -174,10 +174,6 @@ class DetectorSettings:
     # head is biased on views unlike its training data, and on a crop and its mirror image its
     # two answers share the bias, which their mean cancels
     mirror_vote_every: int | None = 6
-    # a track born while others are tracked has its periodic mirror votes and side readings shifted
-    # to the frames farthest from theirs (half a period for two hands); a lone track's are unshifted.
-    # Otherwise two hands found on one frame vote on the same frames, which then read 4 crops
-    stagger_votes: bool = False
     # with a second network for the side (DetNetRunner `side`, the default pair), a tracked
     # hand's side is read on a track's first crops, its mirror votes and every this many frames
     # only (None: every frame; above mirror_vote_every, the votes alone): spread out, a track's `handedness_memory` readings span longer than one view's
@@ -337,24 +333,12 @@ class HandDetector:
         return self.frames_since_find >= period + self.finder_waits or not self._side_read_due()
 
     def _vote_due(self, track):
-        """Is `track` due a mirror vote on this frame (`mirror_vote_every`; its first, and its
-        ages at its `period_shift`)?"""
-        return bool(self.mirror_vote_every) and not track.fixed_side and \
-            (track.age == 0 or (track.age - track.period_shift) % self.mirror_vote_every == 0)
+        """Is `track` due a mirror vote on this frame (`mirror_vote_every`)?"""
+        return bool(self.mirror_vote_every) and not track.fixed_side and track.age % self.mirror_vote_every == 0
 
     def _side_due(self, track):
         """Is `track` due a side reading on this frame (`side_every`; None: every frame)?"""
-        return not self.side_every or track.age == 0 or (track.age - track.period_shift) % self.side_every == 0
-
-    def _staggered_shift(self, others):
-        """A new track's `period_shift` (`stagger_votes`): of 0 .. period - 1, the one whose due
-        frames lie farthest from those of the tracks `others` (the smallest of the best; 0 alone)."""
-        period = self.mirror_vote_every or self.side_every
-        if not (self.stagger_votes and period and others):
-            return 0
-        since_due = [(t.age - t.period_shift) % period for t in others]   # as this frame comes
-        apart = lambda a, b: min((a - b) % period, (b - a) % period)   # noqa: E731
-        return max(range(period), key=lambda s: (min(apart(-s % period, d) for d in since_due), -s))
+        return not self.side_every or track.age % self.side_every == 0
 
     def _side_read_due(self):
         """Does this frame read a track's side at a cost (`_run_voting`): a mirror vote (a crop
@@ -432,7 +416,7 @@ class HandDetector:
             fresh.append((box, right_prob))
         free = self.max_hands - len(self.tracks)
         for box, right_prob in fresh[:max(free, 0)]:
-            new.append(self._new_track(box, right_prob, others=self.tracks + new))
+            new.append(self._new_track(box, right_prob))
             if centre:
                 new[-1].birth_confidence = max(self.birth_confidence, self.centre_confidence)
         self.tracks.extend(new)
@@ -452,10 +436,9 @@ class HandDetector:
         return self.reseed_margin is None or track.confidence - self.reseed_margin <= 0.0 or \
             self._found_peaks(image, [(box, right_prob)])[0] >= track.confidence - self.reseed_margin
 
-    def _new_track(self, box, right_prob, others=()):
-        """A track for a found box; `others`: the tracks beside it from this frame on (stagger_votes)."""
+    def _new_track(self, box, right_prob):
         track = Track(self.next_id, crop_for_box(box, right_prob < 0.5, self.crop_scale, self.crop_size),
-                      memory=self.handedness_memory, period_shift=self._staggered_shift(others))
+                      memory=self.handedness_memory)
         if self.handedness is not None:
             track.right_logit, track.fixed_side = (1.0 if self.handedness == "right" else -1.0), True
         if self.finder_handedness:
@@ -481,7 +464,7 @@ class HandDetector:
             weakest = min(held, key=lambda t: t.confidence)
             if peak[i] < weakest.confidence + self.evict_margin:
                 break
-            born.append(self._new_track(*fresh[i], others=[t for t in self.tracks if t is not weakest]))
+            born.append(self._new_track(*fresh[i]))
             self.tracks[self.tracks.index(weakest)] = born[-1]
             self.stats["evictions"] += 1
         return born

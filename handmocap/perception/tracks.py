@@ -37,8 +37,6 @@ class Track:
     smoother: OneEuroFilter | None = None   # its published 2D joints' filter, in units of `unit`
     unit: float = 1.0                 # px: the hand's size when the filter started
     turn_checked: int = -1000         # its age at its last turn check (HandDetector `turn_check_below`)
-    period_shift: int = 0             # its periodic side readings and mirror votes fall at ages = this (mod
-                                      # their period), and at age 0 (HandDetector `stagger_votes`)
 
     @property
     def is_right(self) -> bool:
