@@ -1,5 +1,6 @@
 """The detector's geometry (crop <-> frame, mirroring of left hands, tracking, track ids)
 with dot-drawn hands and fake networks; then the real models, and the node in a graph."""
+import os
 import subprocess
 import sys
 
@@ -1081,3 +1082,42 @@ def test_the_finder_runs_beside_the_tracked_crops_on_a_thread_of_its_own():
     for a, b in zip(hands[True], hands[False]):
         assert [h["track_id"] for h in a] == [h["track_id"] for h in b]
         assert max(np.abs(x["uv"] - y["uv"]).max() for x, y in zip(a, b)) < 0.01
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs an affinity call and two CPUs")
+def test_helper_threads_stay_on_one_cpu_and_the_frames_thread_off_it_only_while_it_reads():
+    """pin_threads: DetNet's second thread runs on the helper CPU (onnx_models.cpu_split); the
+    thread calling process() is kept off it during the call, and its CPUs are as before after
+    it (a process it starts later inherits no pinning)."""
+    from handmocap.perception.onnx_models import cpu_split
+    caller_cpus, helper_cpus = cpu_split()
+    assert helper_cpus and not caller_cpus & helper_cpus
+    before = os.sched_getaffinity(0)
+    seen = {}
+
+    class BesideDetNet(FakeDetNet):
+        beside, pin_helper = True, True
+
+        def __call__(self, crops_rgb):
+            seen["caller"] = os.sched_getaffinity(0)
+            seen["helper"] = self.second_thread().submit(os.sched_getaffinity, 0).result()
+            return super().__call__(crops_rgb)
+
+        def second_thread(self):
+            if not hasattr(self, "_pool"):
+                from concurrent.futures import ThreadPoolExecutor
+                from handmocap.perception.onnx_models import keep_on_helper_cpu
+                self._pool = ThreadPoolExecutor(1, initializer=keep_on_helper_cpu if self.pin_helper else None)
+            return self._pool
+
+    frames, _ = two_hand_frames(3)
+    det = HandDetector(BesideDetNet(), FakeFinder(), smooth_min_cutoff=None)
+    for f in frames:
+        det.process(f)
+    assert seen["caller"] == set(caller_cpus) and seen["helper"] == set(helper_cpus)
+    assert os.sched_getaffinity(0) == before
+    seen.clear()
+    det = HandDetector(BesideDetNet(), FakeFinder(), smooth_min_cutoff=None, pin_threads=False)
+    det.process(frames[0])
+    assert seen["caller"] == before and seen["helper"] == before

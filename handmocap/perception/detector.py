@@ -71,7 +71,7 @@ from handmocap.perception.crops import (CROP, CROP_SCALE, TEST_TIME_VARIANTS, Cr
                                         crop_for_box, crop_for_joints, crop_to_frame_xyz, frame_to_crop_xyz,
                                         nearby_crops, square_box)
 from handmocap.perception.detnet_runner import DETNET_GREY, DetNetRunner
-from handmocap.perception.onnx_models import cores
+from handmocap.perception.onnx_models import cores, keep_on_helper_cpu, off_helper_cpu
 from handmocap.perception.one_euro import OneEuroFilter
 from handmocap.perception.hand_finder import GREY_PATH, HandFinder, box_iou, is_grey, sigmoid
 from handmocap.perception.rotations import mirror_points
@@ -115,6 +115,10 @@ class DetectorSettings:
     # runs, 3 re-seeds and 1 eviction in 5,845 frames) and costs a finder run beside the frame's
     # crops, the slowest tenth of a tracked hand's frames at 30 fps (issue 51; session 50)
     redetect_every_full: int | None = None
+    # the detector's helper threads (DetNet's second thread, the finder beside the crops) kept on one
+    # CPU, and the thread reading a frame off it while it does (onnx_models.cpu_split): at 30 fps
+    # Linux woke a helper on the busy CPU of the thread that handed it work, and it waited there
+    pin_threads: bool = True
     # a periodic finder run (hands tracked, none lost) due on a frame where a track is due a mirror
     # vote or a side reading waits for a frame without one, at most this many frames (0: never
     # waits). 3: no frame pays for both, the slowest 5% of frames 0.6-0.8 ms faster; off since the
@@ -265,6 +269,9 @@ class HandDetector:
             setattr(self, f.name, getattr(settings, f.name))
         self.unborn_retry = min(settings.unborn_retry, settings.redetect_every)
         self.finder_beside = settings.finder_beside and cores() > 1      # on one core it would wait its turn
+        for runner in (detnet, grey_detnet):
+            if runner is not None and hasattr(runner, "pin_helper"):
+                runner.pin_helper = settings.pin_threads
         self.test_time_crops = settings.test_time_crops or 0
         self.tracked_test_time_crops = settings.tracked_test_time_crops or 0
         self.second_look = settings.second_look or 0.0
@@ -505,6 +512,12 @@ class HandDetector:
     def process(self, image_bgr, t=None):
         """HandKeypoints hands of one BGR frame (H,W,3) uint8, sorted by track id. t: its
         capture time in seconds, for the 2D joints' filter (None: 1/30 s after the last frame)."""
+        if not self.pin_threads or not (self.finder_beside or getattr(self.detnet, "beside", False)):
+            return self._process(image_bgr, t)
+        with off_helper_cpu():
+            return self._process(image_bgr, t)
+
+    def _process(self, image_bgr, t):
         self.frame_time = self.frame_time + 1 / 30 if t is None else float(t)
         self.stats["frames"] += 1
         self.frames_since_find += 1
@@ -514,7 +527,8 @@ class HandDetector:
         finder = self._frame_finder() if searched else None
         if searched and self.finder_beside and self.tracks and hasattr(finder, "find"):   # not CENTRE
             if self._beside_pool is None:
-                self._beside_pool = ThreadPoolExecutor(1, thread_name_prefix="finder")
+                self._beside_pool = ThreadPoolExecutor(1, thread_name_prefix="finder",
+                                                       initializer=keep_on_helper_cpu if self.pin_threads else None)
             self._count_finder_run(finder)
             running = self._beside_pool.submit(finder.find, image_bgr, self.finder_threshold, self._boxes_wanted())
             tracks = list(self.tracks)

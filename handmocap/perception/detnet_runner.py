@@ -10,7 +10,8 @@ import numpy as np
 
 from handmocap.perception.crops import CROP
 from handmocap.perception.hand_finder import to_input_tensor
-from handmocap.perception.onnx_models import cores, made_from_another, open_session, stale_quantization
+from handmocap.perception.onnx_models import (cores, keep_on_helper_cpu, made_from_another, open_session,
+                                              stale_quantization)
 
 DETNET_FLOAT32 = Path(__file__).resolve().parents[2] / "models" / "detnet.onnx"   # `handtrain detnet` writes it
 DETNET_INT8 = DETNET_FLOAT32.with_name("detnet_int8.onnx")     # `python -m handmocap.training.quantize_detnet` makes it
@@ -105,6 +106,7 @@ class DetNetRunner:
         self.session, self.side, self.path = session, side, path     # path: the file, where loaded from one
         self.beside = cores() > 1 if beside is None else beside
         self._pool = None               # the second thread, made on first use
+        self.pin_helper = True          # that thread kept on onnx_models.cpu_split's helper CPU
         self._input = None              # the network input buffer (network_input), made on first use
         self.outputs = [o.name for o in session.get_outputs()]
         missing = [o for o in DETNET_OUTPUTS if o not in self.outputs]
@@ -168,7 +170,8 @@ class DetNetRunner:
         """The runner's second thread (`beside`), made on first use: its caller may also give it
         work of its own between calls (the detector cuts half of a frame's crops there)."""
         if self._pool is None:
-            self._pool = ThreadPoolExecutor(1, thread_name_prefix="detnet-beside")
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="detnet-beside",
+                                            initializer=keep_on_helper_cpu if self.pin_helper else None)
         return self._pool
 
     def _read(self, keypoint_crops, side_crops):

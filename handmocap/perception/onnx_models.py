@@ -29,6 +29,47 @@ def cores() -> int:
         return os.cpu_count() or 1
 
 
+@functools.lru_cache(maxsize=1)
+def cpu_split() -> tuple[frozenset, frozenset] | None:
+    """(the CPUs a frame's own thread runs on while it reads a frame, the one CPU helper threads
+    run on: a second network read, the finder beside the crops), from this process's CPUs when
+    first asked; None with one CPU or no affinity call on this platform.
+
+    Why: at 30 fps the threads sleep between frames, and Linux wakes a helper on the CPU of the
+    thread that woke it, which is busy with the frame's own reads: the helper waited there while
+    the other core idled. Paced at 30 fps (session 50, `runs/s50/wake2.py`), a lite0 read with
+    the side network's read of two crops beside it took 7.0 ms unpinned (the helper started 1.5 ms
+    after it was handed the work, p90 3.5-4.4) and 4.8 ms with the two threads kept apart (0.7)."""
+    try:
+        cpus = sorted(os.sched_getaffinity(0))
+    except AttributeError:          # (no affinity call on this platform)
+        return None
+    return (frozenset(cpus[:-1]), frozenset(cpus[-1:])) if len(cpus) > 1 else None
+
+
+def keep_on_helper_cpu() -> None:
+    """Keep the calling thread on the helpers' CPU (cpu_split; a thread pool's initializer)."""
+    split = cpu_split()
+    if split:
+        os.sched_setaffinity(0, split[1])
+
+
+@contextlib.contextmanager
+def off_helper_cpu():
+    """The calling thread kept off the helpers' CPU inside the block, its CPUs as they were after
+    it (a process the thread starts later, MediaPipe's in a benchmark say, inherits no pinning)."""
+    split = cpu_split()
+    if not split:
+        yield
+        return
+    before = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, split[0])
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, before)
+
+
 _shared_arena = threading.Lock()
 _shared_arena_made = False
 
