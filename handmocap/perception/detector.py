@@ -3,9 +3,10 @@
 Per frame (`HandDetector.process`):
 1. The hand finder (hand_finder.HandFinder) runs when there is no track, when a track was
    lost on the previous frame (or dropped as a duplicate), and every `redetect_every`
-   frames (`redetect_every_full` while every track slot is held). Each found box goes to the track whose joint box it overlaps best (IoU >=
-   MATCH_IOU, one box per track); a box no track matched but inside the crop of a track
-   no box matched (IoU >= 0.3 or its centre inside it) is that track's too. A track's box
+   frames (`redetect_every_full` while every track slot is held). Each found box goes to
+   the track whose joint box it overlaps best (IoU >= MATCH_IOU, one box per track); a box
+   no track matched but inside the crop of a track no box matched (IoU >= 0.3 or its centre
+   inside it) is that track's too. A track's box
    informs its handedness, and re-seeds the track's crop when it overlaps the track's
    joints less than `reseed_iou` (a track that slid up the forearm: DetNet's presence
    head alone does not catch it); the other boxes start new tracks (stable integer ids,
@@ -242,8 +243,8 @@ class HandDetector:
     finder: a HandFinder (or None: the centre square crop of the frame is tried instead, as
     the paper's release did); detnet: a DetNetRunner. presence_threshold: below it a track
     is lost; redetect_every: frames between finder runs while fewer than max_hands hands
-    are tracked (redetect_every_full: while max_hands are); crop_scale: crop side / joint-box side; min_confidence: below this mean
-    heatmap peak a track is lost too; birth_confidence: a found hand becomes a track only
+    are tracked (redetect_every_full: while max_hands are); crop_scale: crop side / joint-box
+    side; min_confidence: below this mean heatmap peak a track is lost too; birth_confidence: a found hand becomes a track only
     if DetNet's mean heatmap peak on its refined crop reaches this (the two thresholds are
     a hysteresis, chosen on training-side held-out clips by scripts/detector_thresholds.py;
     0.3 is for video, where a hand refused on one frame is proposed again `unborn_retry`

@@ -37,9 +37,9 @@ def cpu_split() -> tuple[frozenset, frozenset] | None:
 
     Why: at 30 fps the threads sleep between frames, and Linux wakes a helper on the CPU of the
     thread that woke it, which is busy with the frame's own reads: the helper waited there while
-    the other core idled. Paced at 30 fps (session 50, `runs/s50/wake2.py`), a lite0 read with
-    the side network's read of two crops beside it took 7.0 ms unpinned (the helper started 1.5 ms
-    after it was handed the work, p90 3.5-4.4) and 4.8 ms with the two threads kept apart (0.7)."""
+    the other core idled. Paced at 30 fps, a lite0 read with the side network's read of two crops
+    beside it took 7.0 ms unpinned (the helper started 1.5 ms after it was handed the work, p90
+    3.5-4.4) and 4.8 ms with the two threads kept apart (0.7; docs/experiment_log.md, session 50)."""
     try:
         cpus = sorted(os.sched_getaffinity(0))
     except AttributeError:          # (no affinity call on this platform)
@@ -47,11 +47,21 @@ def cpu_split() -> tuple[frozenset, frozenset] | None:
     return (frozenset(cpus[:-1]), frozenset(cpus[-1:])) if len(cpus) > 1 else None
 
 
+def _set_cpus(cpus) -> bool:
+    """Keep the calling thread on `cpus`; False where the system refuses (CPUs taken away since
+    cpu_split looked): the thread then runs where it may, as without pinning."""
+    try:
+        os.sched_setaffinity(0, cpus)
+        return True
+    except OSError:
+        return False
+
+
 def keep_on_helper_cpu() -> None:
     """Keep the calling thread on the helpers' CPU (cpu_split; a thread pool's initializer)."""
     split = cpu_split()
     if split:
-        os.sched_setaffinity(0, split[1])
+        _set_cpus(split[1])
 
 
 @contextlib.contextmanager
@@ -59,15 +69,13 @@ def off_helper_cpu():
     """The calling thread kept off the helpers' CPU inside the block, its CPUs as they were after
     it (a process the thread starts later, MediaPipe's in a benchmark say, inherits no pinning)."""
     split = cpu_split()
-    if not split:
-        yield
-        return
-    before = os.sched_getaffinity(0)
-    os.sched_setaffinity(0, split[0])
+    before = os.sched_getaffinity(0) if split else None
+    pinned = bool(split) and _set_cpus(split[0])
     try:
         yield
     finally:
-        os.sched_setaffinity(0, before)
+        if pinned:
+            _set_cpus(before)
 
 
 _shared_arena = threading.Lock()
