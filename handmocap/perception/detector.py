@@ -113,8 +113,8 @@ class DetectorSettings:
     redetect_every: int = 10
     # frames between the finder's checks of the tracks (re-seeds, evictions) while every track slot
     # is held (None: redetect_every). Such a run seldom changes anything (the held-back clips: 236
-    # runs, 3 re-seeds and 1 eviction in 5,845 frames) and costs a finder run beside the frame's
-    # crops, the slowest tenth of a tracked hand's frames at 30 fps (issue 51; session 50)
+    # runs, 3 re-seeds and 1 eviction in 5,845 frames); 30 took most finder frames off the slowest
+    # tenth at 30 fps but did not lower the p95 and CPU of both a one- and a two-hand clip (session 50)
     redetect_every_full: int | None = None
     # the detector's helper threads (DetNet's second thread, the finder beside the crops) kept on one
     # CPU, and the thread reading a frame off it while it does (onnx_models.cpu_split): at 30 fps
