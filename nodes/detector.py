@@ -2,7 +2,8 @@
 
 A thin loop over handmocap.perception.detector.HandDetector (hand finder when a track is lost or every
 `redetect_every` frames, `redetect_every_full` while every track slot is held, DetNet on a 128 px
-crop per tracked hand, crops tracked from the previous 2D joints, left hands mirrored into the right-hand network, stable track ids).
+crop per tracked hand, crops tracked from the previous 2D joints, left hands mirrored into the
+right-hand network, stable track ids).
 Takes the freshest image only (latest-only: a live camera never builds a backlog), or with
 every_frame:=true every image in order (offline processing of a recording); publishes one
 HandKeypoints per processed image with its stamp; `hands` may be empty.

@@ -20,13 +20,20 @@ ONNX_CACHE_ENV = "HANDMOCAP_ONNX_CACHE"
 ONNX_CACHE_FILES = 32
 
 
-def cores() -> int:
-    """CPU cores this process may run on (its affinity: a container's limit, not the machine's
-    count). Where there is one, nothing is read on a second thread: it would only wait its turn."""
+def _allowed_cpus() -> list[int] | None:
+    """The CPUs the calling thread may run on (its affinity: a container's limit, not the
+    machine's count), sorted; None where the platform has no affinity call."""
     try:
-        return len(os.sched_getaffinity(0))
+        return sorted(os.sched_getaffinity(0))
     except AttributeError:          # (no affinity call on this platform)
-        return os.cpu_count() or 1
+        return None
+
+
+def cores() -> int:
+    """CPU cores this process may run on (_allowed_cpus, else the machine's count). Where there
+    is one, nothing is read on a second thread: it would only wait its turn."""
+    cpus = _allowed_cpus()
+    return len(cpus) if cpus is not None else os.cpu_count() or 1
 
 
 @functools.lru_cache(maxsize=1)
@@ -40,11 +47,8 @@ def cpu_split() -> tuple[frozenset, frozenset] | None:
     the other core idled. Paced at 30 fps, a lite0 read with the side network's read of two crops
     beside it took 7.0 ms unpinned (the helper started 1.5 ms after it was handed the work, p90
     3.5-4.4) and 4.8 ms with the two threads kept apart (0.7; docs/experiment_log.md, session 50)."""
-    try:
-        cpus = sorted(os.sched_getaffinity(0))
-    except AttributeError:          # (no affinity call on this platform)
-        return None
-    return (frozenset(cpus[:-1]), frozenset(cpus[-1:])) if len(cpus) > 1 else None
+    cpus = _allowed_cpus()
+    return (frozenset(cpus[:-1]), frozenset(cpus[-1:])) if cpus is not None and len(cpus) > 1 else None
 
 
 def _set_cpus(cpus) -> bool:
