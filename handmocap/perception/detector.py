@@ -247,9 +247,10 @@ class HandDetector:
     side; min_confidence: below this mean heatmap peak a track is lost too; birth_confidence:
     a found hand becomes a track only if DetNet's mean heatmap peak on its refined crop
     reaches this (the two thresholds are a hysteresis, chosen on training-side held-out clips
-    by scripts/detector_thresholds.py; 0.3 is for video, where a hand refused on one frame is proposed again `unborn_retry`
-    frames later: for unrelated photos, one chance each, use 0, or PHOTO_SETTINGS with
-    HandDetector.load). Every setting is explained beside its DetectorSettings field.
+    by scripts/detector_thresholds.py; 0.3 is for video, where a hand refused on one frame is
+    proposed again `unborn_retry` frames later: for unrelated photos, one chance each, use 0,
+    or PHOTO_SETTINGS with HandDetector.load). Every setting is explained beside its
+    DetectorSettings field.
     """
 
     def __init__(self, detnet, finder=None, fallback=None, grey_finder=None, grey_detnet=None,
