@@ -175,7 +175,8 @@ def replay(node: Node) -> None:
             seq = ((ns / 1e9, f, info) for ns, f, info in bag_frames(source, float(p["start"]), resume))
         else:
             seq = ((i / frames.fps, f, None) for i, f in frames)
-        t_first = None
+        t_first = t_start = None   # source time and clock of this pass's first frame
+        decode_s = deque(maxlen=30)   # the last frames' decoding times, s
         frames_in = iter(seq)
         t_next = None   # source time of the next frame where it is known before decoding (video, folder)
         while node.ok():
@@ -197,7 +198,6 @@ def replay(node: Node) -> None:
             t_src, frame, bag_info = item
             if t_first is None:   # the clock starts with the first frame in hand
                 t_first, t_start = t_src, time.monotonic()
-                decode_s = deque(maxlen=30)
             else:
                 decode_s.append(time.monotonic() - t0)
             if not is_bag:

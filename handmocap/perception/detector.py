@@ -169,7 +169,9 @@ class DetectorSettings:
     # is, and the turn DetNet is surest of is kept: a hand read wrong way round turns its next
     # crop by its own wrong joints and stays wrong. 3 crops more a check. Off: on the training
     # people's clips the median did not move and found fell 0.3-1.5 points; on the held-back
-    # clips (0.4, 10 runs) median 0.109 against 0.110, PCK 0.559 against 0.550 (session 48)
+    # clips (0.4, 10 runs) median 0.109 against 0.110, PCK 0.559 against 0.550 (session 48); at
+    # 0.6 every 6th frame, median 0.108, PCK 0.558, side 86.5% against 83.7, found 87.6% against
+    # 88.2 (session 51)
     turn_check_below: float | None = None
     turn_check_every: int = 5           # frames of a track between two turn checks at least (>= 1)
     # weight of the finder's side against one DetNet reading (0: DetNet's alone)
