@@ -8,12 +8,13 @@ reliable MediaPipe hand) the crop the tracker read it on is read again at its th
 quarter turns (same centre, side and mirroring). Printed:
 * the share of hands whose crop's turn is not the label's own quarter turn (hand_angle of
   MediaPipe's joints, rounded to 90 degrees), their median error / hand size against the others';
-* per clip, the median as tracked and with every hand read at the turn whose mean heatmap peak
+* per clip, the median as read on the tracker's crop (before the 2D filter) and with every hand read at the turn whose mean heatmap peak
   is highest (on this frame only: the next crop is not changed, so this is not what a tracker
-  that turned its crops would reach), and at the best of the four (a bound).
-Session 51, video/wild: 21.9% of 2,285 hands sit off the label's turn, at a median 0.280 of the
-hand's size against 0.073 (Kirichovka__want 50%); the highest peak 0.1015, the best turn 0.0867,
-as tracked 0.1097.
+  that turned its crops would reach), and at the best of the four (a bound); the same pick
+  made only where the crop's own peak is below 0.4 or 0.6 (`turn_check_below`).
+Session 51, video/wild: 21.9% of 2,285 hands sit off the label's turn, at a median 0.289 of the
+hand's size against 0.070 (Kirichovka__want 50%); the highest peak 0.1015, the best turn 0.0867,
+on the tracker's crop 0.1097.
 """
 from __future__ import annotations
 
@@ -82,6 +83,11 @@ def main():
     print(f"| **all** | {len(err)} | {off.mean():.1%} | {np.median(err[:, 0]):.4f} | "
           f"{np.median(err[np.arange(len(err)), peak]):.4f} | {np.median(err.min(axis=1)):.4f} |")
     print(f"hands off the label's turn: median {np.median(err[off, 0]):.3f}; the others {np.median(err[~off, 0]):.3f}")
+    peaks = np.stack([r[1] for r in every])
+    for below in (0.4, 0.6):    # turn_check_below: only hands DetNet doubts are read at the other turns
+        pick = np.where(peaks[:, 0] < below, peak, 0)
+        print(f"highest peak of 4 only where the crop's own is below {below} ({np.mean(peaks[:, 0] < below):.0%} of "
+              f"hands): median {np.median(err[np.arange(len(err)), pick]):.4f}")
 
 
 if __name__ == "__main__":
