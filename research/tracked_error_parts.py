@@ -30,7 +30,11 @@ def main():
     detector = HandDetector.load()
     raw = {}                                    # track id -> this frame's joints before the filter
     smoothed = detector._smoothed
-    detector._smoothed = lambda track, uv: (raw.__setitem__(track.track_id, uv.copy()), smoothed(track, uv))[1]
+
+    def keep_raw(track, uv):
+        raw[track.track_id] = uv.copy()
+        return smoothed(track, uv)
+    detector._smoothed = keep_raw
     errors = []
     recut = lambda uv, left: crop_for_joints(uv, left, detector.crop_scale, detector.upright_step,   # noqa: E731
                                              detector.crop_size)
