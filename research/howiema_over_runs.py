@@ -19,9 +19,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
 from handmocap.training import eval_cli
+from handmocap.training.eval_people import moved_pixels
 from handmocap.training.real_data import SHARED_DATA
 
 SPLIT = "howiema_040"
@@ -32,7 +32,7 @@ def pipeline(arg):
     if arg == "default":
         return {}
     if arg.startswith("set:"):
-        return {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in arg[4:].split(","))}
+        return eval_cli.detector_settings(arg[4:].split(","))
     return {"detnet": arg, "side_detnet": "int8"}
 
 
@@ -41,9 +41,7 @@ def moved(files, seed, folder):
     rng = np.random.default_rng([seed, zlib.crc32(SPLIT.encode())])
     folder.mkdir(parents=True, exist_ok=True)
     for path in files:
-        image = cv2.imread(str(path)).astype(np.int16)
-        image = np.clip(image + rng.integers(-1, 2, image.shape, dtype=np.int16), 0, 255).astype(np.uint8)
-        cv2.imwrite(str(folder / path.name), image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        cv2.imwrite(str(folder / path.name), moved_pixels(cv2.imread(str(path)), rng), [cv2.IMWRITE_PNG_COMPRESSION, 1])
     return folder
 
 

@@ -20,18 +20,28 @@ from __future__ import annotations
 
 import argparse
 import math
+from dataclasses import replace
 
 import numpy as np
 
-from handmocap.perception.crops import CropTransform, hand_angle
+from handmocap.perception.crops import hand_angle
 from handmocap.perception.detector import HandDetector
 from handmocap.training import eval_people as ep
 from handmocap.training import real_data
 
 
 def turned(crop, quarter_turns):
-    return CropTransform.around(crop.centre, crop.side, crop.size, mirrored=crop.mirrored,
-                                angle=crop.angle + quarter_turns * math.pi / 2)
+    """The same crop (centre, side, mirroring) turned by more quarter turns, as the detector's."""
+    return replace(crop, angle=crop.angle + quarter_turns * math.pi / 2)
+
+
+def medians(rows):
+    """(share off the label's turn, median error at the crop's own turn, at the highest peak of
+    the four, at the best of the four) of read_four_turns rows."""
+    err = np.stack([r[0] for r in rows])
+    peak = np.stack([r[1] for r in rows]).argmax(axis=1)
+    return (np.mean([r[2] for r in rows]), np.median(err[:, 0]), np.median(err[np.arange(len(err)), peak]),
+            np.median(err.min(axis=1)))
 
 
 def read_four_turns(detector, video):
@@ -68,24 +78,21 @@ def main():
     args = p.parse_args()
     detector = HandDetector.load(args.detnet, side_detnet="int8" if args.detnet else None)
     every = []
-    print("| clip | hands | crop off the label's turn | median as tracked | highest peak of 4 turns | best of 4 |")
+    print("| clip | hands | crop off the label's turn | median on the tracker's crop | highest peak of 4 turns | best of 4 |")
     print("|---|---|---|---|---|---|")
     for video in real_data.wild_clips(real_data.SHARED_DATA, held_back=True, drops=tuple(args.drops.split(","))):
         rows = read_four_turns(detector, video)
         every += rows
         if rows:
-            err = np.stack([r[0] for r in rows])
-            peak = np.stack([r[1] for r in rows]).argmax(axis=1)
-            print(f"| {video.stem} | {len(rows)} | {np.mean([r[2] for r in rows]):.1%} | {np.median(err[:, 0]):.3f} | "
-                  f"{np.median(err[np.arange(len(err)), peak]):.3f} | {np.median(err.min(axis=1)):.3f} |", flush=True)
+            off, own, peak, best = medians(rows)
+            print(f"| {video.stem} | {len(rows)} | {off:.1%} | {own:.3f} | {peak:.3f} | {best:.3f} |", flush=True)
+    off, own, peak, best = medians(every)
+    print(f"| **all** | {len(every)} | {off:.1%} | {own:.4f} | {peak:.4f} | {best:.4f} |")
     err, off = np.stack([r[0] for r in every]), np.array([r[2] for r in every])
-    peak = np.stack([r[1] for r in every]).argmax(axis=1)
-    print(f"| **all** | {len(err)} | {off.mean():.1%} | {np.median(err[:, 0]):.4f} | "
-          f"{np.median(err[np.arange(len(err)), peak]):.4f} | {np.median(err.min(axis=1)):.4f} |")
-    print(f"hands off the label's turn: median {np.median(err[off, 0]):.3f}; the others {np.median(err[~off, 0]):.3f}")
     peaks = np.stack([r[1] for r in every])
+    print(f"hands off the label's turn: median {np.median(err[off, 0]):.3f}; the others {np.median(err[~off, 0]):.3f}")
     for below in (0.4, 0.6):    # turn_check_below: only hands DetNet doubts are read at the other turns
-        pick = np.where(peaks[:, 0] < below, peak, 0)
+        pick = np.where(peaks[:, 0] < below, peaks.argmax(axis=1), 0)
         print(f"highest peak of 4 only where the crop's own is below {below} ({np.mean(peaks[:, 0] < below):.0%} of "
               f"hands): median {np.median(err[np.arange(len(err)), pick]):.4f}")
 

@@ -43,10 +43,16 @@ def frames_of_clip(video, jitter_seed=None):
         if f >= len(lab["found"]):
             break
         if rng is not None:
-            rgb = np.clip(rgb.astype(np.int16) + rng.integers(-1, 2, rgb.shape, dtype=np.int16), 0, 255).astype(np.uint8)
+            rgb = moved_pixels(rgb, rng)
         slots = list(np.flatnonzero(lab["found"][f]))[:1 if twice[f] else 2]
         yield (np.ascontiguousarray(rgb[..., ::-1]), lab["uv"][f, slots], reliable[f, slots],
                ["right" if lab["handedness"][f, s] == 0 else "left" for s in slots])
+
+
+def moved_pixels(image, rng):
+    """uint8 `image` with every value moved by -1, 0 or +1 drawn from `rng` (clipped to 0..255): an
+    imperceptible change that a chaotic tracker answers with another run (jitter_rows)."""
+    return np.clip(image.astype(np.int16) + rng.integers(-1, 2, image.shape, dtype=np.int16), 0, 255).astype(np.uint8)
 
 
 def frames_of_photos(samples):
