@@ -14,7 +14,10 @@ quarter turns (same centre, side and mirroring). Printed:
   made only where the crop's own peak is below 0.4 or 0.6 (`turn_check_below`).
 Session 51, video/wild: 21.9% of 2,285 hands sit off the label's turn, at a median 0.289 of the
 hand's size against 0.070 (Kirichovka__want 50%); the highest peak 0.1015, the best turn 0.0867,
-on the tracker's crop 0.1097.
+on the tracker's crop 0.1097. Session 52: the turn the other three agree with most (medoid)
+0.1386, the per-joint median of the four 0.1470: the wrong turns do not scatter apart, so their
+agreement does not single out the right one. Half of Kirichovka__want's hands are
+foreshortened (research/angle_head_probe.py): "the label's turn" is ill-defined there.
 """
 from __future__ import annotations
 
@@ -37,16 +40,20 @@ def turned(crop, quarter_turns):
 
 def medians(rows):
     """(share off the label's turn, median error at the crop's own turn, at the highest peak of
-    the four, at the best of the four) of read_four_turns rows."""
+    the four, at the turn that agrees most with the other three (the medoid: least summed mean
+    joint distance), of the per-joint median of the four, at the best of the four) of
+    read_four_turns rows."""
     err = np.stack([r[0] for r in rows])
     peak = np.stack([r[1] for r in rows]).argmax(axis=1)
-    return (np.mean([r[2] for r in rows]), np.median(err[:, 0]), np.median(err[np.arange(len(err)), peak]),
-            np.median(err.min(axis=1)))
+    n = np.arange(len(err))
+    return (np.mean([r[2] for r in rows]), np.median(err[:, 0]), np.median(err[n, peak]),
+            np.median(err[n, [r[3] for r in rows]]), np.median([r[4] for r in rows]), np.median(err.min(axis=1)))
 
 
 def read_four_turns(detector, video):
     """Per scored hand of one clip: (errors (4,) at the crop's own turn and the next three, mean
-    heatmap peaks (4,), whether the crop's turn is off the label's quarter turn)."""
+    heatmap peaks (4,), whether the crop's turn is off the label's quarter turn, the medoid turn,
+    the error of the per-joint median of the four readings)."""
     detector.reset()
     fps, rows = ep.clip_fps(video), []
     for f, (image, hands, reliable, _) in enumerate(ep.frames_of_clip(video)):
@@ -63,11 +70,14 @@ def read_four_turns(detector, video):
         out = detector._run(image, crops, read_side=False)
         for i, label in enumerate(labels):
             four = range(4 * i, 4 * i + 4)
-            err = [np.linalg.norm(crops[j].to_frame(out["uv"][j]) - label, axis=-1).mean() / real_data.hand_size(label)
-                   for j in four]
+            uv = np.stack([crops[j].to_frame(out["uv"][j]) for j in four])          # (4,21,2) frame px
+            size = real_data.hand_size(label)
+            err = np.linalg.norm(uv - label, axis=-1).mean(axis=-1) / size
+            apart = np.linalg.norm(uv[:, None] - uv[None], axis=-1).mean(axis=-1)   # (4,4)
+            median = np.linalg.norm(np.median(uv, axis=0) - label, axis=-1).mean() / size
             own = round(float(hand_angle(label)) / (math.pi / 2)) * math.pi / 2
             off = abs((crops[4 * i].angle - own + math.pi) % (2 * math.pi) - math.pi) > 0.1
-            rows.append((np.asarray(err), out["confidence"][list(four)].mean(axis=1), off))
+            rows.append((err, out["confidence"][list(four)].mean(axis=1), off, int(apart.sum(axis=1).argmin()), median))
     return rows
 
 
@@ -78,16 +88,18 @@ def main():
     args = p.parse_args()
     detector = HandDetector.load(args.detnet, side_detnet="int8" if args.detnet else None)
     every = []
-    print("| clip | hands | crop off the label's turn | median on the tracker's crop | highest peak of 4 turns | best of 4 |")
-    print("|---|---|---|---|---|---|")
+    print("| clip | hands | crop off the label's turn | median on the tracker's crop | highest peak of 4 turns | "
+          "medoid of 4 | per-joint median of 4 | best of 4 |")
+    print("|---|---|---|---|---|---|---|---|")
     for video in real_data.wild_clips(real_data.SHARED_DATA, held_back=True, drops=tuple(args.drops.split(","))):
         rows = read_four_turns(detector, video)
         every += rows
         if rows:
-            off, own, peak, best = medians(rows)
-            print(f"| {video.stem} | {len(rows)} | {off:.1%} | {own:.3f} | {peak:.3f} | {best:.3f} |", flush=True)
-    off, own, peak, best = medians(every)
-    print(f"| **all** | {len(every)} | {off:.1%} | {own:.4f} | {peak:.4f} | {best:.4f} |")
+            off, *figures = medians(rows)
+            print(f"| {video.stem} | {len(rows)} | {off:.1%} | " + " | ".join(f"{x:.3f}" for x in figures) + " |",
+                  flush=True)
+    off, *figures = medians(every)
+    print(f"| **all** | {len(every)} | {off:.1%} | " + " | ".join(f"{x:.4f}" for x in figures) + " |")
     err, off = np.stack([r[0] for r in every]), np.array([r[2] for r in every])
     peaks = np.stack([r[1] for r in every])
     print(f"hands off the label's turn: median {np.median(err[off, 0]):.3f}; the others {np.median(err[~off, 0]):.3f}")
