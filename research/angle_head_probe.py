@@ -9,8 +9,9 @@ random angle about its centre, mirrored to a right hand as the detector shows it
 detector's scale x 0.9-1.15. The shipped lite0 DetNet (`models/detnet_lite0.pt`, float32, in
 eval mode) reads them; its weights are not changed. A two-layer head (features -> 256 -> cos,
 sin of the hand's angle, MSE) is fitted on the pooled features of 9,588 training people's
-crops (the FPN output pooled 4x4, the stride-32 tap 2x2, the stride-16 tap 4x4: 4,608 values)
-and scored on every held-back person's clip crop (both drops, 2,535). The hand's angle is
+crops (the FPN output pooled 4x4, the stride-32 tap 2x2, the stride-16 tap 4x4: 4,608 values;
+`handmocap.training.angle_head`, which grafts such a head onto a DetNet file, fits the same head
+on the FPN output alone) and scored on every held-back person's clip crop (both drops, 2,535). The hand's angle is
 `crops.hand_angle` of MediaPipe's joints (wrist -> middle knuckle, 0 = upright).
 
 Printed, on the held-back crops:
@@ -27,11 +28,11 @@ import time
 
 import numpy as np
 import torch
-import torch.nn as nn
 import torch.nn.functional as F
 
-from handmocap.perception.crops import CROP, hand_angle
-from handmocap.training import detnet_data, real_data
+from handmocap.perception.crops import hand_angle
+from handmocap.training import angle_head, detnet_data, real_data
+from handmocap.training.angle_head import turned_crops
 from handmocap.training.detnet import DetNet, read_out
 from handmocap.training.detnet_init import load_matching
 
@@ -41,20 +42,6 @@ CLIPS = ("Kirichovka", "CoderEnko", "huiwen", "ROSA", "SHREYASH", "piano", "limc
 def wrapped(d):
     """|d| (radians) wrapped to [0, pi]."""
     return np.abs((d + np.pi) % (2 * np.pi) - np.pi)
-
-
-def turned_crops(real, idx, rng, turns=1):
-    """Crops (n*turns,128,128,3) of real[idx], each turned by a random angle and then by
-    0, 90, ... degrees more, and the hand's angle in each (n,turns) radians."""
-    side, c = (detnet_data.CTX - 1) / detnet_data.CTX_SCALE * 1.3, (detnet_data.CTX - 1) / 2
-    images, angles = [], []
-    for i in idx:
-        a, scale = rng.uniform(-180, 180), rng.uniform(0.9, 1.15)
-        for k in range(turns):
-            M = real_data.crop_affine(c, c, side * scale, CROP, a + 90 * k, not real["right"][i])
-            images.append(real_data.warp(real["image"][i], M))
-            angles.append(hand_angle(real_data.apply_affine(M, real["uv"][i])))
-    return np.asarray(images), np.asarray(angles).reshape(len(idx), turns)
 
 
 def read(net, images):
@@ -75,29 +62,11 @@ def read(net, images):
     return np.concatenate(feats), np.concatenate(angles), np.concatenate(peaks)
 
 
-def fit_head(x, angle, epochs=60, seed=0):
-    """The angle head fitted on standardised features x (n,d) -> predict(x') -> angles (radians)."""
-    torch.manual_seed(seed)
-    mu, sd = x.mean(0), x.std(0) + 1e-6
-    X = torch.tensor((x - mu) / sd).float()
-    Y = torch.tensor(np.stack([np.cos(angle), np.sin(angle)], 1)).float()
-    head = nn.Sequential(nn.Dropout(0.2), nn.Linear(X.shape[1], 256), nn.ReLU(), nn.Linear(256, 2))
-    opt = torch.optim.AdamW(head.parameters(), 1e-3, weight_decay=1e-2)
-    for _ in range(epochs):
-        perm = torch.randperm(len(X))
-        for b in range(0, len(X), 256):
-            j = perm[b:b + 256]
-            loss = F.mse_loss(head(X[j]), Y[j])
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-    head.eval()
-
-    def predict(x_new):
-        with torch.no_grad():
-            p = head(torch.tensor((x_new - mu) / sd).float()).numpy()
-        return np.arctan2(p[:, 1], p[:, 0])
-    return predict
+def head_angles(weights, features):
+    """Angles (radians) the fitted head (angle_head.fit's weights) reads from features (n,d)."""
+    W1, b1, W2, b2 = weights
+    cos_sin = np.maximum(features @ W1.T + b1, 0.0) @ W2.T + b2
+    return np.arctan2(cos_sin[:, 1], cos_sin[:, 0])
 
 
 def main():
@@ -121,7 +90,7 @@ def main():
     images, angle = turned_crops(real, test, np.random.default_rng(2), turns=4)     # (n,4): +0, +90, ... degrees
     feats, keypoint_angle, peaks = read(net, images)
     feats, keypoint_angle, peaks = feats[::4], keypoint_angle[::4], peaks.reshape(-1, 4)
-    head_angle = fit_head(train_feats, train_angle[:, 0])(feats)
+    head_angle = head_angles(angle_head.fit(train_feats, train_angle[:, 0]), feats)
     print(f"{len(train)} training crops, {len(test)} held-back crops, {time.time() - t0:.0f} s")
 
     truth = angle[:, 0]

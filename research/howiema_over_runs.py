@@ -2,9 +2,11 @@
 by -1/0/+1 (seeds 0-8), as `handeval people --jitter` does for the clips (session 51).
 
     python research/howiema_over_runs.py default runs/detnet/X/int8.onnx set:turn_check_below=0.6,turn_check_every=6
+    python research/howiema_over_runs.py default runs/angle/detnet_lite0_int8.onnx,turn_from_head=0.5
 
 Each argument is a pipeline: `default`, a DetNet file (read with int8's side, as `handeval
---detnet F --side-detnet int8`), or `set:KEY=VALUE,...` detector settings on the default. One
+--detnet F --side-detnet int8`), `set:KEY=VALUE,...` detector settings on the default, or a
+DetNet file and settings for it (`FILE,KEY=VALUE,...`). One
 run of the split decides nothing when two networks differ by a few tenths of a pixel: the
 finder's box and the crops move with the pixels. Session 51: the default 11.92 px (spread 0.30),
 session 46's mean of two 12.03 (0.37).
@@ -33,7 +35,8 @@ def pipeline(arg):
         return {}
     if arg.startswith("set:"):
         return eval_cli.detector_settings(arg[4:].split(","))
-    return {"detnet": arg, "side_detnet": "int8"}
+    path, *settings = arg.split(",")
+    return {"detnet": path, "side_detnet": "int8", **eval_cli.detector_settings(settings)}
 
 
 def moved(files, seed, folder):

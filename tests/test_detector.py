@@ -10,7 +10,7 @@ import pytest
 
 from conftest import ROOT, graph_env
 from handmocap.perception.hand_finder import FoundHand
-from handmocap.perception.crops import CropTransform, crop_for_joints
+from handmocap.perception.crops import CropTransform, crop_for_joints, hand_angle, head_angle_in_frame
 from handmocap.perception.detector import CENTRE, HandDetector
 from handmocap.perception.tracks import HANDEDNESS_MEMORY, Track
 from handmocap.perception.rotations import mirror_points
@@ -73,10 +73,12 @@ class FakeDetNet:
     handedness. xyz: the 2D joints lifted to z = 0, normalized (or `xyz_right`, a fixed
     right hand, when given)."""
 
-    def __init__(self, xyz_right=None, prefers_upright=False, right_bias=0.0):
+    def __init__(self, xyz_right=None, prefers_upright=False, right_bias=0.0, angle_head=None):
         self.xyz_right = xyz_right
         self.prefers_upright = prefers_upright     # heatmap peaks fall as the hand turns from upright
         self.right_bias = right_bias               # logit added to the handedness head: a biased head
+        # with a (length, error radians): a `hand_angle` output, the dots' angle plus error, that long
+        self.angle_head = angle_head
         self.calls = 0
 
     def __call__(self, crops_rgb):
@@ -99,6 +101,10 @@ class FakeDetNet:
             out["presence"].append(1.0 if ok else 0.0)
             sure = 2.0 * (2 * appears_right(uv) - 1) + self.right_bias
             out["handedness"].append(1 / (1 + np.exp(-sure)) if ok else 0.5)
+            if self.angle_head is not None:
+                length, error = self.angle_head
+                a = hand_angle(uv) + error
+                out.setdefault("hand_angle", []).append(length * np.array([np.cos(a), np.sin(a)]))
         return {k: np.asarray(v, np.float32) for k, v in out.items()}
 
 
@@ -169,7 +175,6 @@ def turned_hand(centre, size, angle, right=True):
 @pytest.mark.parametrize("angle", [np.pi, np.pi / 2, -2.2])
 def test_an_upright_crop_shows_a_turned_hand_upright_and_its_joints_come_back_in_frame_axes(angle):
     uv_true = turned_hand((320, 240), 150, angle)
-    from handmocap.perception.crops import hand_angle
     assert abs(np.angle(np.exp(1j * (hand_angle(uv_true) - angle)))) < 1e-9
     crop = crop_for_joints(uv_true, upright_step=0)
     in_crop = crop.to_crop(uv_true)
@@ -228,6 +233,42 @@ def test_a_doubted_tracked_hand_tries_the_other_quarter_turns_when_asked():
     assert checks == {None: 0, 1.0: 2}                        # frames 1 and 4 of the track: every 3
     assert peaks[1.0][0] > peaks[None][0] + 0.2 and peaks[1.0][3] > peaks[None][3] + 0.2   # read upright there
     np.testing.assert_allclose(peaks[1.0][1:3], peaks[None][1:3])
+
+
+@pytest.mark.parametrize("mirrored", [False, True])
+@pytest.mark.parametrize("crop_angle", [0.0, 0.5, -1.2, 2.5])
+def test_the_angle_heads_reading_on_any_crop_is_the_hands_angle_in_the_frame(crop_angle, mirrored):
+    uv = turned_hand((320, 240), 150, 0.7)
+    crop = CropTransform.around(np.array([300.0, 250.0]), 220.0, 128, mirrored=mirrored, angle=crop_angle)
+    a = hand_angle(crop.to_crop(uv))                       # the angle the head reads in the crop's pixels
+    assert abs(head_angle_in_frame(crop, (np.cos(a), np.sin(a))) - 0.7) < 1e-9
+    assert abs(crop_for_joints(uv, upright_step=90, angle=1.4).angle - np.pi / 2) < 1e-9   # rounded as the joints'
+    assert abs(crop_for_joints(uv, upright_step=90).angle) < 1e-9
+
+
+def test_a_crop_turns_by_the_angle_head_where_it_is_sure_and_a_new_hand_is_read_at_its_turn():
+    """turn_from_head (off by default): with a DetNet that has an angle head, a tracked crop turns
+    by the head's angle where the head's (cos, sin) is that long, by the joints' elsewhere; a
+    new hand the head is sure of is read at the head's quarter turn, not at all four."""
+    uv_true = turned_hand((320, 240), 150, np.pi - 0.3)      # upside down
+    frame = draw(np.zeros((H, W, 3), np.uint8), uv_true)
+    assert HandDetector(FakeDetNet(), FakeFinder()).turn_from_head is None
+    birth_crops = {}
+    # (head's length, its error, DetNet's peaks fall off upright): sure and right, unsure, sure and wrong
+    for length, error, upright in ((0.9, 0.0, True), (0.3, 0.0, True), (0.9, np.pi / 2, False)):
+        det = HandDetector(FakeDetNet(prefers_upright=upright, angle_head=(length, error)), FakeFinder(),
+                           birth_confidence=0.5, turn_from_head=0.5, smooth_min_cutoff=None)
+        det.process(frame)
+        birth_crops[length, error] = det.stats["crops"]
+        sure = length >= 0.5
+        assert det.stats["head_turns"] == int(sure)
+        for _ in range(3):      # the head's turn every frame: off upright by its error (either way: mirrored)
+            off = abs(np.angle(np.exp(1j * (det.tracks[0].crop.angle - np.pi))))
+            assert abs(off - (error if sure else 0.0)) < 0.05, (length, error, off)
+            det.process(frame)
+    assert birth_crops[0.9, 0.0] == birth_crops[0.3, 0.0] - 2     # one turned read instead of three
+    with pytest.raises(ValueError, match="turn_from_head"):
+        HandDetector(FakeDetNet(), FakeFinder(), turn_from_head=-1.0)
 
 
 def test_crop_for_joints_is_the_square_around_the_joint_box_times_the_scale():

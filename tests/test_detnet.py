@@ -1148,3 +1148,25 @@ def test_the_handedness_loss_weighs_both_sides_alike_whatever_the_left_share():
         batch = BatchMaker(synth, None, 0.0, 0.0, share, upright=None)._synth(4000, rng)
         left = batch["right"] < 0.5
         assert batch["w_hand"][left].sum() == pytest.approx(batch["w_hand"][~left].sum(), rel=0.1)
+
+
+def test_an_angle_head_grafted_on_the_shipped_lite0_leaves_every_output_as_it_was(tmp_path):
+    """training/angle_head.py: the head reads the features beside the heatmap head's coordinate
+    channels, pooled 4x4, through two Gemms; the file's own outputs answer to the bit as before
+    (graft checks it too), and `hand_angle` is what numpy computes from those features."""
+    pytest.importorskip("onnx")
+    from handmocap.perception.detnet_runner import DETNET_LITE0, DetNetRunner
+    from handmocap.training import angle_head
+    rng = np.random.default_rng(0)
+    features = 96 * angle_head.POOL ** 2
+    weights = (rng.normal(0, 0.05, (8, features)).astype(np.float32), rng.normal(0, 0.1, 8).astype(np.float32),
+               rng.normal(0, 0.5, (2, 8)).astype(np.float32), np.array([0.3, -0.2], np.float32))
+    out = angle_head.graft(DETNET_LITE0, tmp_path / "with_head.onnx", weights)
+    crops = rng.integers(0, 255, (3, 128, 128, 3), dtype=np.uint8)
+    before, after = DetNetRunner.load(DETNET_LITE0)(crops), DetNetRunner.load(out)(crops)
+    assert set(after) == set(before) | {"hand_angle"} and after["hand_angle"].shape == (3, 2)
+    for key in before:
+        np.testing.assert_array_equal(after[key], before[key])
+    W1, b1, W2, b2 = weights
+    pooled = angle_head.pooled_features(DETNET_LITE0, crops)
+    np.testing.assert_allclose(after["hand_angle"], np.maximum(pooled @ W1.T + b1, 0) @ W2.T + b2, atol=1e-4)

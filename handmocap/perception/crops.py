@@ -148,17 +148,30 @@ def hand_angle(uv):
     return np.arctan2(v[..., 0], -v[..., 1])
 
 
-def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE, upright_step=None, size=CROP):
+def head_angle_in_frame(crop, cos_sin):
+    """The hand's angle in the frame (radians, as hand_angle) from DetNet's angle head on `crop`:
+    cos_sin (2,) = (cos, sin) of its angle in the crop (training/angle_head.py)."""
+    a = math.atan2(float(cos_sin[1]), float(cos_sin[0]))
+    centre = np.full(2, (crop.size - 1) / 2)
+    wrist, knuckle = crop.to_frame(np.stack([centre, centre + 10.0 * np.array([math.sin(a), -math.cos(a)])]))
+    v = knuckle - wrist
+    return math.atan2(v[0], -v[1])
+
+
+def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE, upright_step=None, size=CROP, angle=None):
     """The DetNet crop (`size` px) of a hand whose 2D joints are uv (21,2) frame px: the square
     around their box times `scale`. upright_step (degrees): the crop turned by hand_angle rounded to
     whole steps of it (90: quarter turns; 0: any angle), the box taken in the turned axes (as
-    MediaPipe cuts its landmark crops); None: never turned."""
-    angle = 0.0
-    if upright_step is not None and np.all(np.isfinite(uv[[0, 9]])):
+    MediaPipe cuts its landmark crops); None: never turned. angle (radians, as hand_angle): the
+    hand's angle from elsewhere (DetNet's angle head), rounded the same way, instead of the joints'."""
+    given, angle = angle, 0.0
+    if upright_step is not None and given is not None:
+        angle = float(given)
+    elif upright_step is not None and np.all(np.isfinite(uv[[0, 9]])):
         angle = float(hand_angle(uv))
-        if upright_step:
-            step = math.radians(float(upright_step))
-            angle = round(angle / step) * step
+    if upright_step:
+        step = math.radians(float(upright_step))
+        angle = round(angle / step) * step
     c, s = math.cos(angle), math.sin(angle)
     R = np.array([[c, s], [-s, c]])
     turned = uv @ R.T
