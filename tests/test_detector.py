@@ -267,6 +267,12 @@ def test_a_crop_turns_by_the_angle_head_where_it_is_sure_and_a_new_hand_is_read_
             assert abs(off - (error if sure else 0.0)) < 0.05, (length, error, off)
             det.process(frame)
     assert birth_crops[0.9, 0.0] == birth_crops[0.3, 0.0] - 2     # one turned read instead of three
+    # the head for new hands only: read at its (wrong) turn when born, then turned by the joints, upright
+    det = HandDetector(FakeDetNet(angle_head=(0.9, np.pi / 2)), FakeFinder(), birth_confidence=0.5,
+                       turn_from_head=0.5, turn_tracked_from_head=False, smooth_min_cutoff=None)
+    for _ in range(2):
+        det.process(frame)
+        assert det.stats["head_turns"] == 1 and abs(np.angle(np.exp(1j * (det.tracks[0].crop.angle - np.pi)))) < 0.05
     with pytest.raises(ValueError, match="turn_from_head"):
         HandDetector(FakeDetNet(), FakeFinder(), turn_from_head=-1.0)
 

@@ -179,8 +179,13 @@ class DetectorSettings:
     # certainty) instead of by the keypoints' angle, and a new hand the head is sure of is read at
     # the head's turn rather than at all four quarter turns (None: the keypoints' angle, four turns).
     # On held-back crops turned at random the head's angle is more than 45 degrees off on 6% of
-    # crops at 0.5 and up, the keypoints' on 30% (session 52)
+    # crops at 0.5 and up, the keypoints' on 30%. Off: tracked at 0.5 (runs/angle's file, session 52),
+    # the held-back clips' median 0.112 against 0.110, PCK 0.554 against 0.550, false hands 0.037
+    # against 0.041, howiema 040 11.76 px against 11.92
     turn_from_head: float | None = None
+    # with turn_from_head, tracked crops turn by the head too (false: only a new hand's first crops;
+    # the training people's clips then found 91.5% against 92.2, session 52)
+    turn_tracked_from_head: bool = True
     # weight of the finder's side against one DetNet reading (0: DetNet's alone)
     finder_handedness: float = 0.3
     # every this many frames of a track (and on its first), DetNet also reads its crop flipped
@@ -633,7 +638,8 @@ class HandDetector:
                           "score": presence, "bbox": t.crop.box.astype(np.float32),
                           "uv": uv.astype(np.float32), "confidence": np.asarray(out["confidence"][i], np.float32),
                           "xyz_rel": xyz.astype(np.float32)})
-            t.crop = self._next_crop(t, followed, self._head_angle(t.crop, out, i))
+            head = self._head_angle(t.crop, out, i) if self.turn_tracked_from_head else None
+            t.crop = self._next_crop(t, followed, head)
             keep.append(t)
         self.tracks = keep
         hands = self._drop_duplicates(hands, {t.track_id: t.uv for t in keep})
