@@ -273,8 +273,20 @@ def test_a_crop_turns_by_the_angle_head_where_it_is_sure_and_a_new_hand_is_read_
     for _ in range(2):
         det.process(frame)
         assert det.stats["head_turns"] == 1 and abs(np.angle(np.exp(1j * (det.tracks[0].crop.angle - np.pi)))) < 0.05
+    # a head 50 degrees off after birth: within turn_head_margin (60) the crop keeps its turn, at 45 it turns
+    down = draw(np.zeros((H, W, 3), np.uint8), turned_hand((320, 240), 150, np.pi))
+    for margin, turns in ((60.0, False), (45.0, True)):
+        det = HandDetector(FakeDetNet(angle_head=(0.9, 0.0)), FakeFinder(), birth_confidence=0.5,
+                           turn_from_head=0.5, turn_head_margin=margin, smooth_min_cutoff=None)
+        det.process(down)
+        det.detnet.angle_head = (0.9, np.radians(50))
+        det.process(down)
+        off = abs(np.angle(np.exp(1j * (det.tracks[0].crop.angle - np.pi))))
+        assert abs(off - (np.pi / 2 if turns else 0.0)) < 0.05, (margin, off)
     with pytest.raises(ValueError, match="turn_from_head"):
         HandDetector(FakeDetNet(), FakeFinder(), turn_from_head=-1.0)
+    with pytest.raises(ValueError, match="turn_head_margin"):
+        HandDetector(FakeDetNet(), FakeFinder(), turn_head_margin=30.0)
 
 
 def test_crop_for_joints_is_the_square_around_the_joint_box_times_the_scale():
