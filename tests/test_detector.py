@@ -283,8 +283,23 @@ def test_a_crop_turns_by_the_angle_head_where_it_is_sure_and_a_new_hand_is_read_
         det.process(down)
         off = abs(np.angle(np.exp(1j * (det.tracks[0].crop.angle - np.pi))))
         assert abs(off - (np.pi / 2 if turns else 0.0)) < 0.05, (margin, off)
+    # a head that swings 50 degrees either way from frame to frame: each swing turns the crop at a
+    # margin of 45; its running mean (turn_head_memory) stays near the hand's angle, and the crop too
+    for memory, turns in ((None, True), (0.3, False)):
+        det = HandDetector(FakeDetNet(angle_head=(0.9, 0.0)), FakeFinder(), birth_confidence=0.5,
+                           turn_from_head=0.5, turn_head_margin=45.0, turn_head_memory=memory,
+                           smooth_min_cutoff=None)
+        det.process(down)
+        angles = []
+        for k in range(6):
+            det.detnet.angle_head = (0.9, np.radians(50) * (-1) ** k)
+            det.process(down)
+            angles.append(det.tracks[0].crop.angle)
+        assert (len(set(np.round(angles, 3))) > 1) == turns, (memory, angles)
     with pytest.raises(ValueError, match="turn_from_head"):
         HandDetector(FakeDetNet(), FakeFinder(), turn_from_head=-1.0)
+    with pytest.raises(ValueError, match="turn_head_memory"):
+        HandDetector(FakeDetNet(), FakeFinder(), turn_head_memory=0.0)
     with pytest.raises(ValueError, match="turn_head_margin"):
         HandDetector(FakeDetNet(), FakeFinder(), turn_head_margin=30.0)
 

@@ -186,6 +186,12 @@ class DetectorSettings:
     # with turn_from_head, tracked crops turn by the head too (false: only a new hand's first crops;
     # the training people's clips then found 91.5% against 92.2, session 52)
     turn_tracked_from_head: bool = True
+    # with turn_from_head, a new hand is read at the head's turn (false: at all four, as without it)
+    turn_births_from_head: bool = True
+    # with turn_from_head, a tracked crop turns by the running mean of the head's (cos, sin) in the
+    # frame, each frame's reading weighing this much (None: this frame's alone); its length is then
+    # what turn_from_head bounds: readings that disagree from frame to frame shorten it
+    turn_head_memory: float | None = None
     # a tracked crop keeps its turn while the head's angle is within this many degrees of it (45:
     # the head's nearest quarter turn every frame): unbiased, the head's angle of a hand pointing
     # about diagonally crosses 45 degrees back and forth, and each crossing turned the crop (one
@@ -242,6 +248,8 @@ class DetectorSettings:
             _variant_count(name, getattr(self, name))
         if self.turn_from_head is not None and self.turn_from_head < 0:
             raise ValueError(f"turn_from_head must be >= 0 or None, got {self.turn_from_head}")
+        if self.turn_head_memory is not None and not 0.0 < self.turn_head_memory <= 1.0:
+            raise ValueError(f"turn_head_memory must be in (0, 1] or None, got {self.turn_head_memory}")
         if not 45.0 <= self.turn_head_margin <= 180.0:
             raise ValueError(f"turn_head_margin must be 45..180 degrees, got {self.turn_head_margin}")
         if self.turn_check_every < 1:
@@ -442,7 +450,7 @@ class HandDetector:
                     # the track's joints no longer match the hand the finder sees in its crop
                     # (a track sliding up the forearm): start the crop again from the finder's box
                     t.crop = crop_for_box(box, not t.is_right, self.crop_scale, self.crop_size)
-                    t.velocity, t.uv, t.smoother = np.zeros(2), None, None
+                    t.velocity, t.uv, t.smoother, t.head_dir = np.zeros(2), None, None, None
                     self.stats["reseeds"] += 1
                     reseeded.append(t)
                 continue
@@ -646,7 +654,7 @@ class HandDetector:
                           "score": presence, "bbox": t.crop.box.astype(np.float32),
                           "uv": uv.astype(np.float32), "confidence": np.asarray(out["confidence"][i], np.float32),
                           "xyz_rel": xyz.astype(np.float32)})
-            head = self._head_angle(t.crop, out, i) if self.turn_tracked_from_head else None
+            head = self._tracked_head_angle(t, out, i) if self.turn_tracked_from_head else None
             if head is not None and abs((head - t.crop.angle + math.pi) % (2 * math.pi) - math.pi) <= \
                     math.radians(self.turn_head_margin):
                 head = t.crop.angle                 # near enough the crop's own turn: it stays
@@ -722,11 +730,27 @@ class HandDetector:
         cos_sin = out["hand_angle"][i]
         return head_angle_in_frame(crop, cos_sin) if np.hypot(*cos_sin) >= self.turn_from_head else None
 
+    def _tracked_head_angle(self, track, out, i):
+        """A tracked hand's angle in the frame (radians) from the angle head (`out` row i, read on
+        track.crop), through its running mean (`turn_head_memory`); None where there is no head,
+        turn_from_head is off or the (mean) reading is shorter than it."""
+        if self.turn_from_head is None or "hand_angle" not in out:
+            return None
+        if self.turn_head_memory is None:
+            return self._head_angle(track.crop, out, i)
+        a = head_angle_in_frame(track.crop, out["hand_angle"][i])
+        seen = float(np.hypot(*out["hand_angle"][i])) * np.array([math.cos(a), math.sin(a)])
+        mean = seen if track.head_dir is None else track.head_dir + self.turn_head_memory * (seen - track.head_dir)
+        track.head_dir = mean
+        return math.atan2(mean[1], mean[0]) if np.hypot(*mean) >= self.turn_from_head else None
+
     def _turn_by_head(self, image_bgr, idx, out):
         """New tracks (indices `idx`, `out` DetNet's outputs on their crops, replaced in place)
         whose angle head is sure (_head_angle) turn their crop to the head's turn (rounded to
         `upright_step`) and are read there, where that is not the crop's turn already. -> the
         indices of the others (no head, or unsure), for _take_best_quarter_turn."""
+        if not self.turn_births_from_head:
+            return list(idx)
         step = math.radians(self.upright_step) if self.upright_step else None
         unsure, turned, crops = [], [], []
         for i in idx:

@@ -37,6 +37,7 @@ class Track:
     smoother: OneEuroFilter | None = None   # its published 2D joints' filter, in units of `unit`
     unit: float = 1.0                 # px: the hand's size when the filter started
     turn_checked: int = -1000         # its age at its last turn check (HandDetector `turn_check_below`)
+    head_dir: np.ndarray | None = None   # running mean of the angle head's (cos, sin) in the frame (`turn_head_memory`)
 
     @property
     def is_right(self) -> bool:
