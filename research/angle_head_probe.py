@@ -30,18 +30,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from handmocap.perception.crops import hand_angle
+from handmocap.perception.crops import angle_apart, hand_angle
 from handmocap.training import angle_head, detnet_data, real_data
 from handmocap.training.angle_head import turned_crops
 from handmocap.training.detnet import DetNet, read_out
 from handmocap.training.detnet_init import load_matching
 
 CLIPS = ("Kirichovka", "CoderEnko", "huiwen", "ROSA", "SHREYASH", "piano", "limchaesung", "AlpYksl")
-
-
-def wrapped(d):
-    """|d| (radians) wrapped to [0, pi]."""
-    return np.abs((d + np.pi) % (2 * np.pi) - np.pi)
 
 
 def read(net, images):
@@ -94,9 +89,9 @@ def main():
     print(f"{len(train)} training crops, {len(test)} held-back crops, {time.time() - t0:.0f} s")
 
     truth = angle[:, 0]
-    err_head, err_kp = wrapped(head_angle - truth), wrapped(keypoint_angle - truth)
+    err_head, err_kp = angle_apart(head_angle, truth), angle_apart(keypoint_angle, truth)
     peak_turn = peaks.argmax(1)
-    upright_peak = wrapped(angle[np.arange(len(angle)), peak_turn]) <= np.pi / 4
+    upright_peak = angle_apart(angle[np.arange(len(angle)), peak_turn], 0.0) <= np.pi / 4
     upright_head = err_head <= np.pi / 4        # the crop turned by the head's angle is off by its error
     hands = real["uv"][test]
     short = np.linalg.norm(hands[:, 9] - hands[:, 0], axis=-1) / np.array([real_data.hand_size(u) for u in hands]) < 0.25

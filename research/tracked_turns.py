@@ -27,7 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from handmocap.perception.crops import hand_angle
+from handmocap.perception.crops import angle_apart, hand_angle
 from handmocap.perception.detector import HandDetector
 from handmocap.training import eval_people as ep
 from handmocap.training import real_data
@@ -76,7 +76,7 @@ def read_four_turns(detector, video):
             apart = np.linalg.norm(uv[:, None] - uv[None], axis=-1).mean(axis=-1)   # (4,4)
             median = np.linalg.norm(np.median(uv, axis=0) - label, axis=-1).mean() / size
             own = round(float(hand_angle(label)) / (math.pi / 2)) * math.pi / 2
-            off = abs((crops[4 * i].angle - own + math.pi) % (2 * math.pi) - math.pi) > 0.1
+            off = angle_apart(crops[4 * i].angle, own) > 0.1
             rows.append((err, out["confidence"][list(four)].mean(axis=1), off, int(apart.sum(axis=1).argmin()), median))
     return rows
 

@@ -148,6 +148,11 @@ def hand_angle(uv):
     return np.arctan2(v[..., 0], -v[..., 1])
 
 
+def angle_apart(a, b):
+    """|a - b| of two angles (radians; scalars or arrays), wrapped to [0, pi]."""
+    return np.abs((np.subtract(a, b) + np.pi) % (2 * np.pi) - np.pi)
+
+
 def head_angle_in_frame(crop, cos_sin):
     """The hand's angle in the frame (radians, as hand_angle) from DetNet's angle head on `crop`:
     cos_sin (2,) = (cos, sin) of its angle in the crop (training/angle_head.py)."""

@@ -68,9 +68,9 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from handmocap.perception.crops import (CROP, CROP_SCALE, TEST_TIME_VARIANTS, CropTransform, box_overlap_of_smaller,
-                                        crop_for_box, crop_for_joints, crop_to_frame_xyz, frame_to_crop_xyz,
-                                        head_angle_in_frame, nearby_crops, square_box)
+from handmocap.perception.crops import (CROP, CROP_SCALE, TEST_TIME_VARIANTS, CropTransform, angle_apart,
+                                        box_overlap_of_smaller, crop_for_box, crop_for_joints, crop_to_frame_xyz,
+                                        frame_to_crop_xyz, head_angle_in_frame, nearby_crops, square_box)
 from handmocap.perception.detnet_runner import DETNET_GREY, DetNetRunner
 from handmocap.perception.onnx_models import cores, keep_on_helper_cpu, off_helper_cpu
 from handmocap.perception.one_euro import OneEuroFilter
@@ -656,11 +656,7 @@ class HandDetector:
                           "score": presence, "bbox": t.crop.box.astype(np.float32),
                           "uv": uv.astype(np.float32), "confidence": np.asarray(out["confidence"][i], np.float32),
                           "xyz_rel": xyz.astype(np.float32)})
-            head = self._tracked_head_angle(t, out, i) if self.turn_tracked_from_head else None
-            if head is not None and abs((head - t.crop.angle + math.pi) % (2 * math.pi) - math.pi) <= \
-                    math.radians(self.turn_head_margin):
-                head = t.crop.angle                 # near enough the crop's own turn: it stays
-            t.crop = self._next_crop(t, followed, head)
+            t.crop = self._next_crop(t, followed, self._tracked_head_angle(t, out, i))
             keep.append(t)
         self.tracks = keep
         hands = self._drop_duplicates(hands, {t.track_id: t.uv for t in keep})
@@ -733,18 +729,24 @@ class HandDetector:
         return head_angle_in_frame(crop, cos_sin) if np.hypot(*cos_sin) >= self.turn_from_head else None
 
     def _tracked_head_angle(self, track, out, i):
-        """A tracked hand's angle in the frame (radians) from the angle head (`out` row i, read on
-        track.crop), through its running mean (`turn_head_memory`); None where there is no head,
-        turn_from_head is off or the (mean) reading is shorter than it."""
-        if self.turn_from_head is None or "hand_angle" not in out:
+        """The angle (radians, in the frame) a tracked hand's next crop turns by, from the angle
+        head (`out` row i, read on track.crop), through its running mean (`turn_head_memory`): the
+        crop's own where the head is within `turn_head_margin` of it; None (the joints' angle)
+        where there is no head, turn_from_head or turn_tracked_from_head is off, or the (mean)
+        reading is shorter than turn_from_head."""
+        if self.turn_from_head is None or not self.turn_tracked_from_head or "hand_angle" not in out:
             return None
         if self.turn_head_memory is None:
-            return self._head_angle(track.crop, out, i)
-        a = head_angle_in_frame(track.crop, out["hand_angle"][i])
-        seen = float(np.hypot(*out["hand_angle"][i])) * np.array([math.cos(a), math.sin(a)])
-        mean = seen if track.head_dir is None else track.head_dir + self.turn_head_memory * (seen - track.head_dir)
-        track.head_dir = mean
-        return math.atan2(mean[1], mean[0]) if np.hypot(*mean) >= self.turn_from_head else None
+            angle = self._head_angle(track.crop, out, i)
+        else:
+            a = head_angle_in_frame(track.crop, out["hand_angle"][i])
+            seen = float(np.hypot(*out["hand_angle"][i])) * np.array([math.cos(a), math.sin(a)])
+            mean = seen if track.head_dir is None else track.head_dir + self.turn_head_memory * (seen - track.head_dir)
+            track.head_dir = mean
+            angle = math.atan2(mean[1], mean[0]) if np.hypot(*mean) >= self.turn_from_head else None
+        if angle is not None and angle_apart(angle, track.crop.angle) <= math.radians(self.turn_head_margin):
+            return track.crop.angle                 # near enough the crop's own turn: it stays
+        return angle
 
     def _turn_by_head(self, image_bgr, idx, out):
         """New tracks (indices `idx`, `out` DetNet's outputs on their crops, replaced in place)
@@ -761,7 +763,7 @@ class HandDetector:
                 unsure.append(i)
                 continue
             angle = round(angle / step) * step if step else angle
-            if abs((angle - self.tracks[i].crop.angle + math.pi) % (2 * math.pi) - math.pi) > 1e-6:
+            if angle_apart(angle, self.tracks[i].crop.angle) > 1e-6:
                 turned.append(i)
                 crops.append(replace(self.tracks[i].crop, angle=angle))
         self.stats["head_turns"] += len(idx) - len(unsure)

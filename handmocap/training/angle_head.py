@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from handmocap.perception.crops import CROP, hand_angle
+from handmocap.perception.crops import CROP, angle_apart, hand_angle
 from handmocap.perception.onnx_models import check_session, file_sha256
 
 OUTPUT = "hand_angle"
@@ -187,7 +187,7 @@ def main(argv=None):
     runner = check_session(args.out)
     x = np.ascontiguousarray(images.transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
     cs = np.concatenate([runner.run([OUTPUT], {"image": x[k:k + 64]})[0] for k in range(0, len(x), 64)])
-    err = np.abs((np.arctan2(cs[:, 1], cs[:, 0]) - angles[:, 0] + np.pi) % (2 * np.pi) - np.pi)
+    err = angle_apart(np.arctan2(cs[:, 1], cs[:, 0]), angles[:, 0])
     sure = np.linalg.norm(cs, axis=1) >= 0.5
     print(f"wrote {args.out}: on {len(test)} held-back crops turned at random, the angle is more than 45 degrees "
           f"off on {np.mean(err > np.pi / 4):.1%} ({np.mean(err[sure] > np.pi / 4):.1%} of the {sure.mean():.0%} "
