@@ -20,13 +20,13 @@ from handmocap.perception.crops import hand_angle
 from handmocap.perception.tracks import logit
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.training.quantize_detnet import OnnxNet
-from handmocap.training.detnet_data import CTX, CTX_SCALE, load_real
+from handmocap.training.detnet_data import CTX, CTX_CROP_SIDE, load_real
 
 
 def heldout_crops(real):
     """(crops (N,128,128,3) RGB as filmed, the same flipped, right (N,) bool, source (N,) str)."""
     idx = np.flatnonzero(real["held"])
-    side, centre = (CTX - 1) / CTX_SCALE * 1.3, (CTX - 1) / 2     # the detector's crop in context px
+    side, centre = CTX_CROP_SIDE, (CTX - 1) / 2     # the detector's crop in context px
     quarter = np.pi / 2
     crops, flipped = [], []
     for i in idx:

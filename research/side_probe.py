@@ -20,13 +20,13 @@ import torch
 
 from handmocap.perception.crops import CROP, hand_angle
 from handmocap.training import real_data
-from handmocap.training.detnet_data import CTX, CTX_SCALE, HELD_BACK_SOURCE, load_real
+from handmocap.training.detnet_data import CTX, CTX_CROP_SIDE, HELD_BACK_SOURCE, load_real
 from handmocap.training.pose_data import SHARED_DATA
 
 
 def upright_crops(real):
     """(N,128,128,3) RGB crops of every cached hand, as the tracker cuts them, unmirrored."""
-    side, c = (CTX - 1) / CTX_SCALE * 1.3, (CTX - 1) / 2
+    side, c = CTX_CROP_SIDE, (CTX - 1) / 2
     k = np.round(hand_angle(real["uv"]) / (np.pi / 2)) % 4
     out = np.empty((len(real["uv"]), CROP, CROP, 3), np.uint8)
     for i in range(len(out)):

@@ -39,17 +39,12 @@ def main():
     recut = lambda uv, left: crop_for_joints(uv, left, detector.crop_scale, detector.upright_step,   # noqa: E731
                                              detector.crop_size)
     for video in real_data.wild_clips(real_data.SHARED_DATA, held_back=True, drops=tuple(args.drops.split(","))):
-        detector.reset()
-        fps = ep.clip_fps(video)
-        for f, (image, hands, reliable, _) in enumerate(ep.frames_of_clip(video)):
-            raw.clear()
+        for image, hands in ep.scored_hands(detector, video):     # keep_raw fills raw as each frame is read
             scored = []
-            for h in detector.process(image, f / fps):
-                k, dist = ep.nearest_label(h["uv"], hands)
-                if dist < ep.ON_HAND and reliable[k]:
-                    left = h["handedness"] == "left"
-                    label = hands[k].astype(np.float64)
-                    scored.append((label, h["uv"], raw[h["track_id"]], recut(raw[h["track_id"]], left), recut(label, left)))
+            for h, label, _ in hands:
+                left = h["handedness"] == "left"
+                scored.append((label, h["uv"], raw[h["track_id"]], recut(raw[h["track_id"]], left), recut(label, left)))
+            raw.clear()
             if not scored:
                 continue
             crops = [s[3] for s in scored] + [s[4] for s in scored]

@@ -27,7 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from handmocap.perception.crops import angle_apart, hand_angle
+from handmocap.perception.crops import angle_apart, hand_angle, rounded_turn
 from handmocap.perception.detector import HandDetector
 from handmocap.training import eval_people as ep
 from handmocap.training import real_data
@@ -54,16 +54,12 @@ def read_four_turns(detector, video):
     """Per scored hand of one clip: (errors (4,) at the crop's own turn and the next three, mean
     heatmap peaks (4,), whether the crop's turn is off the label's quarter turn, the medoid turn,
     the error of the per-joint median of the four readings)."""
-    detector.reset()
-    fps, rows = ep.clip_fps(video), []
-    for f, (image, hands, reliable, _) in enumerate(ep.frames_of_clip(video)):
-        used = {t.track_id: t.crop for t in detector.tracks}    # the crops this frame is read on
+    rows = []
+    for image, scored in ep.scored_hands(detector, video):
         labels, crops = [], []
-        for h in detector.process(image, f / fps):
-            k, dist = ep.nearest_label(h["uv"], hands)
-            crop = used.get(h["track_id"])
-            if dist < ep.ON_HAND and reliable[k] and crop is not None:
-                labels.append(hands[k].astype(np.float64))
+        for _, label, crop in scored:
+            if crop is not None:
+                labels.append(label)
                 crops += [turned(crop, q) for q in range(4)]
         if not labels:
             continue
@@ -75,7 +71,7 @@ def read_four_turns(detector, video):
             err = np.linalg.norm(uv - label, axis=-1).mean(axis=-1) / size
             apart = np.linalg.norm(uv[:, None] - uv[None], axis=-1).mean(axis=-1)   # (4,4)
             median = np.linalg.norm(np.median(uv, axis=0) - label, axis=-1).mean() / size
-            own = round(float(hand_angle(label)) / (math.pi / 2)) * math.pi / 2
+            own = rounded_turn(float(hand_angle(label)), 90)
             off = angle_apart(crops[4 * i].angle, own) > 0.1
             rows.append((err, out["confidence"][list(four)].mean(axis=1), off, int(apart.sum(axis=1).argmin()), median))
     return rows

@@ -28,13 +28,9 @@ from handmocap.training import real_data
 
 def turn_changes(detector, video):
     """(turn changes, errors / hand size of the scored hands) of one clip tracked by `detector`."""
-    detector.reset()
-    fps, last, changes, errors = ep.clip_fps(video), {}, 0, []
-    for f, (image, hands, reliable, _) in enumerate(ep.frames_of_clip(video)):
-        for h in detector.process(image, f / fps):
-            k, dist = ep.nearest_label(h["uv"], hands)
-            if dist < ep.ON_HAND and reliable[k]:
-                errors.append(np.linalg.norm(h["uv"] - hands[k], axis=-1).mean() / real_data.hand_size(hands[k]))
+    last, changes, errors = {}, 0, []
+    for _, scored in ep.scored_hands(detector, video):
+        errors += [np.linalg.norm(h["uv"] - label, axis=-1).mean() / real_data.hand_size(label) for h, label, _ in scored]
         for t in detector.tracks:
             changes += t.track_id in last and abs(t.crop.angle - last[t.track_id]) > 0.1
             last[t.track_id] = t.crop.angle

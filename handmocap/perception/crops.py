@@ -163,20 +163,25 @@ def head_angle_in_frame(crop, cos_sin):
     return math.atan2(v[0], -v[1])
 
 
+def rounded_turn(angle, upright_step):
+    """angle (radians) rounded to whole steps of upright_step degrees (0 or None: as it is)."""
+    if not upright_step:
+        return angle
+    step = math.radians(float(upright_step))
+    return round(angle / step) * step
+
+
 def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE, upright_step=None, size=CROP, angle=None):
     """The DetNet crop (`size` px) of a hand whose 2D joints are uv (21,2) frame px: the square
     around their box times `scale`. upright_step (degrees): the crop turned by hand_angle rounded to
     whole steps of it (90: quarter turns; 0: any angle), the box taken in the turned axes (as
     MediaPipe cuts its landmark crops); None: never turned. angle (radians, as hand_angle): the
     hand's angle from elsewhere (DetNet's angle head), rounded the same way, instead of the joints'."""
-    given, angle = angle, 0.0
-    if upright_step is not None and given is not None:
-        angle = float(given)
-    elif upright_step is not None and np.all(np.isfinite(uv[[0, 9]])):
-        angle = float(hand_angle(uv))
-    if upright_step:
-        step = math.radians(float(upright_step))
-        angle = round(angle / step) * step
+    if upright_step is None:
+        angle = 0.0
+    elif angle is None:
+        angle = float(hand_angle(uv)) if np.all(np.isfinite(uv[[0, 9]])) else 0.0
+    angle = rounded_turn(float(angle), upright_step)
     c, s = math.cos(angle), math.sin(angle)
     R = np.array([[c, s], [-s, c]])
     turned = uv @ R.T

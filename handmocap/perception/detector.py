@@ -70,7 +70,8 @@ import numpy as np
 
 from handmocap.perception.crops import (CROP, CROP_SCALE, TEST_TIME_VARIANTS, CropTransform, angle_apart,
                                         box_overlap_of_smaller, crop_for_box, crop_for_joints, crop_to_frame_xyz,
-                                        frame_to_crop_xyz, head_angle_in_frame, nearby_crops, square_box)
+                                        frame_to_crop_xyz, head_angle_in_frame, nearby_crops, rounded_turn,
+                                        square_box)
 from handmocap.perception.detnet_runner import DETNET_GREY, DetNetRunner
 from handmocap.perception.onnx_models import cores, keep_on_helper_cpu, off_helper_cpu
 from handmocap.perception.one_euro import OneEuroFilter
@@ -755,14 +756,13 @@ class HandDetector:
         indices of the others (no head, or unsure), for _take_best_quarter_turn."""
         if not self.turn_births_from_head:
             return list(idx)
-        step = math.radians(self.upright_step) if self.upright_step else None
         unsure, turned, crops = [], [], []
         for i in idx:
             angle = self._head_angle(self.tracks[i].crop, out, i)
             if angle is None:
                 unsure.append(i)
                 continue
-            angle = round(angle / step) * step if step else angle
+            angle = rounded_turn(angle, self.upright_step)
             if angle_apart(angle, self.tracks[i].crop.angle) > 1e-6:
                 turned.append(i)
                 crops.append(replace(self.tracks[i].crop, angle=angle))

@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from handmocap.perception.crops import CROP, angle_apart, hand_angle
+from handmocap.perception.detnet_runner import DetNetRunner
+from handmocap.perception.hand_finder import to_input_tensor
 from handmocap.perception.onnx_models import check_session, file_sha256
 
 OUTPUT = "hand_angle"
@@ -43,7 +45,7 @@ def turned_crops(real, idx, rng, turns=1):
     at the detector's scale x U(0.9, 1.15), each turned by a random angle and then by 0, 90, ...
     degrees more; and the hand's angle in each, (n,turns) radians (crops.hand_angle)."""
     from handmocap.training import detnet_data, real_data
-    side, c = (detnet_data.CTX - 1) / detnet_data.CTX_SCALE * 1.3, (detnet_data.CTX - 1) / 2
+    side, c = detnet_data.CTX_CROP_SIDE, (detnet_data.CTX - 1) / 2
     images, angles = [], []
     for i in idx:
         a, scale = rng.uniform(-180, 180), rng.uniform(0.9, 1.15)
@@ -90,8 +92,7 @@ def pooled_features(path, images, batch=64):
     session = check_session(with_feature_output(model, name).SerializeToString())
     out = []
     for k in range(0, len(images), batch):
-        x = np.ascontiguousarray(images[k:k + batch].transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
-        f = session.run([name], {model.graph.input[0].name: x})[0]
+        f = session.run([name], {model.graph.input[0].name: to_input_tensor(images[k:k + batch])})[0]
         n, c, g, _ = f.shape
         out.append(f.reshape(n, c, POOL, g // POOL, POOL, g // POOL).mean(axis=(3, 5)).reshape(n, -1))
     return np.concatenate(out)
@@ -132,6 +133,7 @@ def graft(src, out, weights, check_crops=16):
     src, out = Path(src), Path(out)
     model = onnx.load(str(src))
     feat = feature_tensor(model)
+    names = [o.name for o in model.graph.output]     # the outputs src had, checked below
     W1, b1, W2, b2 = weights
     g = model.graph
     g.initializer.extend([numpy_helper.from_array(a, f"{OUTPUT}/{n}") for a, n in
@@ -151,7 +153,6 @@ def graft(src, out, weights, check_crops=16):
     onnx.helper.set_model_props(model, {**{p.key: p.value for p in model.metadata_props},
                                         "angle_head_source": src.name, "angle_head_source_sha256": file_sha256(src)})
     onnx.checker.check_model(model)
-    names = [o.name for o in onnx.load(str(src)).graph.output]
     s = g.input[0].type.tensor_type.shape.dim[-1].dim_value
     x = np.random.default_rng(0).random((check_crops, 3, s, s), dtype=np.float32)
     before = check_session(src).run(names, {g.input[0].name: x})
@@ -184,9 +185,8 @@ def main(argv=None):
     weights = fit(pooled_features(args.src, images), angles[:, 0])
     graft(args.src, args.out, weights)
     images, angles = turned_crops(real, test, np.random.default_rng(2))
-    runner = check_session(args.out)
-    x = np.ascontiguousarray(images.transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
-    cs = np.concatenate([runner.run([OUTPUT], {"image": x[k:k + 64]})[0] for k in range(0, len(x), 64)])
+    runner = DetNetRunner.load(args.out)
+    cs = np.concatenate([runner(images[k:k + 64])[OUTPUT] for k in range(0, len(images), 64)])
     err = angle_apart(np.arctan2(cs[:, 1], cs[:, 0]), angles[:, 0])
     sure = np.linalg.norm(cs, axis=1) >= 0.5
     print(f"wrote {args.out}: on {len(test)} held-back crops turned at random, the angle is more than 45 degrees "

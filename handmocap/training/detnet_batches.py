@@ -44,7 +44,7 @@ import numpy as np
 from handmocap.perception.crops import CROP, hand_angle
 from handmocap.perception.skeleton import BONES
 from handmocap.training import real_data
-from handmocap.training.detnet_data import CTX, CTX_SCALE, HARD_NEGATIVES, WILD_SOURCE
+from handmocap.training.detnet_data import CTX, CTX_CROP_SIDE, HARD_NEGATIVES, WILD_SOURCE
 
 
 # ------------------------------------------------------------------ batches
@@ -163,7 +163,7 @@ class BatchMaker:
             idx = np.where(from_wild, wild[rng.integers(0, len(wild), n)], other[rng.integers(0, len(other), n)])
         show_left, mirror = self._present(n, r["right"][idx].astype(bool), rng)
         images, uv = np.empty((n, CROP, CROP, 3), np.uint8), np.empty((n, 21, 2), np.float32)
-        side0 = (CTX - 1) / CTX_SCALE * 1.3           # the detector's crop side in context px
+        side0 = CTX_CROP_SIDE                         # the detector's crop side in context px
         angles = np.empty(n)
         for i in range(n):
             side = side0 * rng.uniform(*self.real_scale)

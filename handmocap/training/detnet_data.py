@@ -19,6 +19,7 @@ from handmocap.perception.crops import CROP
 DATA_DIR = Path("runs/detnet_data")
 CTX = 176                    # real hand context crops: px, covering CTX_SCALE x the keypoint box
 CTX_SCALE = 2.4
+CTX_CROP_SIDE = (CTX - 1) / CTX_SCALE * 1.3   # context px: the detector's crop (the keypoint box x 1.3) in a context crop
 REAL_CACHE = "real_v5.npz"          # v2: + arm-only negatives; v3: frame edges repeated as the detector repeats them;
                                     # v4: + MediaPipe world landmarks of the video hands (xyz, has_3d);
                                     # v5: + video/wild, 11K Hands, images/scenes; pseudo-labels filtered

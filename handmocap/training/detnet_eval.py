@@ -9,7 +9,7 @@ from handmocap.perception.tracks import logit
 from handmocap.perception.skeleton import ROOT
 from handmocap.training import real_data
 from handmocap.training.detnet_batches import rotate_mirror_3d
-from handmocap.training.detnet_data import CTX, CTX_SCALE, DROP_CACHES, HARD_NEGATIVES, HELD_BACK_SOURCE, load_synth
+from handmocap.training.detnet_data import CTX, CTX_CROP_SIDE, DROP_CACHES, HARD_NEGATIVES, HELD_BACK_SOURCE, load_synth
 from handmocap.perception.crops import CROP
 
 
@@ -80,7 +80,7 @@ def real_val_set(real):
     how = np.char.startswith(real["source"][idx].astype(str), "howiema")
     people = np.char.startswith(real["source"][idx].astype(str), HELD_BACK_SOURCE)
     idx = np.concatenate([idx[how], idx[people], idx[~how & ~people][::3]])
-    side = (CTX - 1) / CTX_SCALE * 1.3
+    side = CTX_CROP_SIDE
     c = (CTX - 1) / 2
     images, uv = [], []
     for i in idx:

@@ -76,6 +76,23 @@ def clip_fps(video):
     return fps if 1.0 <= fps <= 240.0 else 30.0
 
 
+def scored_hands(detector, video):
+    """A clip tracked by `detector` (reset first), frame by frame as score_outputs scores it:
+    (frame BGR, [(output hand, its reliable MediaPipe label (21,2) float64, the crop its track
+    read it on, None for a track new on this frame)]), for the studies that look again at the
+    hands `handeval people` scores (research/tracked_turns.py and others)."""
+    detector.reset()
+    fps = clip_fps(video)
+    for f, (image, hands, reliable, _) in enumerate(frames_of_clip(video)):
+        read_on = {t.track_id: t.crop for t in detector.tracks}     # the crops this frame is read on
+        scored = []
+        for h in detector.process(image, f / fps):
+            k, dist = nearest_label(h["uv"], hands)
+            if dist < ON_HAND and reliable[k]:
+                scored.append((h, hands[k].astype(np.float64), read_on.get(h["track_id"])))
+        yield image, scored
+
+
 def shake(track):
     """|uv(t) - 2 uv(t-1) + uv(t-2)| of a hand's last three (21,2) joints, median over the
     joints, / its size: how much the joints jump about from frame to frame (a hand moving
