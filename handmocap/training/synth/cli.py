@@ -55,7 +55,8 @@ def contact_sheet(batch, count, cols=8, scale=1):
 def _config(args):
     return SynthConfig(mode="frame" if args.frames else "crop", size=args.size or (256 if args.frames else 128),
                        backgrounds="procedural" if args.procedural else "auto",
-                       occluder=args.occluder, second_hand=args.second_hand, touching=args.touching)
+                       occluder=args.occluder, second_hand=args.second_hand, touching=args.touching,
+                       pitched=args.pitched)
 
 
 def cmd_sheet(args):
@@ -136,6 +137,8 @@ def main(argv=None):
                        help="probability of a second hand")
         p.add_argument("--touching", type=float, default=SynthConfig.touching,
                        help="share of the second hands placed palm to palm with the first (rubbing, clasped)")
+        p.add_argument("--pitched", type=float, default=SynthConfig.pitched,
+                       help="share of hands pitched 60-88 deg: fingers towards or away from the camera, foreshortened")
 
     p = sub.add_parser("sheet", help="PNG grid of random samples with their labels")
     p.add_argument("-n", type=int, default=64)

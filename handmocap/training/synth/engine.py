@@ -47,6 +47,7 @@ class SynthConfig:
     left_fraction: float = 0.5
     second_hand: float = 0.2           # probability of a second hand in the image
     touching: float = 0.0              # share of second hands placed palm to palm with the first
+    pitched: float = 0.0               # share of first hands foreshortened (scene.sample_rotations)
     occluder: float = 0.35             # probability of 1-2 objects in front of the hand
     backgrounds: str = "auto"          # auto (real when cached / available), procedural
     real_fraction: float = 0.85        # share of real backgrounds when there are any
@@ -120,7 +121,7 @@ class SynthEngine:
         verts, normals, joints = self.hand.pose(np.concatenate([pose1, pose2]), np.concatenate([beta1, beta1[has2]]),
                                                 np.concatenate([left1, left2]))
         # -- primary hands: camera and crop
-        R1, c1, p1, K_full = scene.place_hands(rng, joints[:n], cfg.mode, T)
+        R1, c1, p1, K_full = scene.place_hands(rng, joints[:n], cfg.mode, T, pitched_share=cfg.pitched)
         def to_cam(x, R, c, p):     # (n,P,3) model frame -> camera frame, batched matmul
             return ((x - c[:, None].astype(x.dtype)) @ np.swapaxes(R, 1, 2).astype(x.dtype)
                     + p[:, None].astype(x.dtype))
