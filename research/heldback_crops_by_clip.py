@@ -1,7 +1,8 @@
 """DetNet files side by side on the held-back people's held-out crops, clip by clip: the median
 2D error / joint-box side of each crop cut around its label, upright and shown as a right
 hand (detnet_eval.real_val_set, a perfect finder, tracker and side), so a change aimed
-at some clips' conditions (two hands touching, a sink from above) shows where it lands.
+at some clips' conditions (two hands touching, a sink from above, hands foreshortened) shows
+where it lands.
 
     python research/heldback_crops_by_clip.py models/detnet_int8.onnx runs/detnet/X/final_int8.onnx ...
     python research/heldback_crops_by_clip.py --as-cut ...     (unturned: the crops `quantize_detnet --compare` reads)
@@ -9,7 +10,8 @@ at some clips' conditions (two hands touching, a sink from above) shows where it
 import argparse
 
 import numpy as np
-from read_fusion import relative_error          # research/ is on the path when run as a script
+from foreshortened_share import foreshortened  # research/ is on the path when run as a script
+from read_fusion import relative_error
 
 from handmocap.training.quantize_detnet import OnnxNet, heldout_sets
 from handmocap.training.detnet_data import HELD_BACK_SOURCE
@@ -28,6 +30,8 @@ def main():
     clips, source = held["held-back clips"], crops["source"].astype(str)      # a clip's crops: heldback/<clip>
     groups = {name[len(HELD_BACK_SOURCE):]: clips & (source == name) for name in sorted(set(source[clips]))}
     groups["11K Hands photos"], groups["all held-back clips"] = held["held-back photos"], clips
+    short = foreshortened(crops["uv"])      # palm to the camera, fingers first (session 52)
+    groups["held-back clips, foreshortened"], groups["held-back clips, the others"] = clips & short, clips & ~short
     errors = [relative_error(OnnxNet(path).predict(crops["image"])[0][0], crops["uv"]) for path in args.detnet]
     print("| held-back crops | n | " + " | ".join(args.detnet) + " |")
     print("|---|---|" + "---|" * len(args.detnet))
