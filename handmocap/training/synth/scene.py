@@ -122,15 +122,14 @@ def place_hands(rng, joints_model, mode, tile, depth_range=(0.2, 1.2), fov_deg=(
     u = rng.uniform(margin, 1 - margin, n) * width
     v = rng.uniform(margin, 1 - margin, n) * height
     p = np.stack([(u - K_full[:, 0, 2]) / f * z, (v - K_full[:, 1, 2]) / f * z, z], 1)
-    along_ray = toward_ray(p) if pitched_share > 0 else np.eye(3)
+    along_ray = toward_ray(p) if pitched_share > 0 else np.broadcast_to(np.eye(3), (n, 3, 3))
     R = along_ray @ sample_rotations(rng, n, pitched_share=pitched_share)
     arm_end = np.array([0.0, FOREARM_END_Y, 0.0])
     for _ in range(20):
         bad = np.einsum("nij,nj->ni", R, arm_end - c)[:, 2] + p[:, 2] < 0.08
         if not bad.any():
             break
-        R[bad] = (along_ray[bad] if pitched_share > 0 else np.eye(3)) @ sample_rotations(
-            rng, int(bad.sum()), pitched_share=pitched_share)
+        R[bad] = along_ray[bad] @ sample_rotations(rng, int(bad.sum()), pitched_share=pitched_share)
     return R, c, p, K_full
 
 
