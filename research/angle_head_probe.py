@@ -58,11 +58,6 @@ def read(net, images):
     return np.concatenate(feats), np.concatenate(angles), np.concatenate(peaks)
 
 
-def foreshortened(hands):
-    """(n,) bool: hands (n,21,2) whose wrist -> middle knuckle is under a quarter of the hand's size."""
-    return np.linalg.norm(hands[:, 9] - hands[:, 0], axis=-1) / np.array([real_data.hand_size(u) for u in hands]) < 0.25
-
-
 def head_angles(weights, features):
     """Angles (radians) the fitted head (angle_head.fit's weights) reads from features (n,d)."""
     W1, b1, W2, b2 = weights
@@ -99,9 +94,9 @@ def main():
     peak_turn = peaks.argmax(1)
     upright_peak = angle_apart(angle[np.arange(len(angle)), peak_turn], 0.0) <= np.pi / 4
     upright_head = err_head <= np.pi / 4        # the crop turned by the head's angle is off by its error
-    short = foreshortened(real["uv"][test])
+    short = real_data.foreshortened(real["uv"][test])
     print(f"foreshortened hands: {short.mean():.1%} of the held-back crops, "
-          f"{foreshortened(real['uv'][train]).mean():.1%} of the {len(train)} training crops")
+          f"{real_data.foreshortened(real['uv'][train]).mean():.1%} of the {len(train)} training crops")
     print(f"angle error, median: head {np.degrees(np.median(err_head)):.1f} deg, DetNet's keypoints "
           f"{np.degrees(np.median(err_kp)):.1f}; over 45 deg: head {np.mean(err_head > np.pi / 4):.1%}, "
           f"keypoints {np.mean(err_kp > np.pi / 4):.1%}")

@@ -10,14 +10,7 @@ views are drawn at random (session 52: 2.8% of 24,576).
 """
 import argparse
 
-import numpy as np
-
 from handmocap.training import real_data
-
-
-def foreshortened(hands):
-    """(n,) bool: hands (n,21,2) whose wrist -> middle knuckle is under a quarter of the hand's size."""
-    return np.linalg.norm(hands[:, 9] - hands[:, 0], axis=-1) / real_data.hand_size(hands) < 0.25
 
 
 def main():
@@ -32,7 +25,7 @@ def main():
                 lab = real_data.load_pseudo_labels(video)
                 uv = lab["uv"][real_data.reliable_hands(lab)]
                 if len(uv):
-                    n = int(foreshortened(uv).sum())
+                    n = int(real_data.foreshortened(uv).sum())
                     hands, short, per[video.stem] = hands + len(uv), short + n, n
             most = ", ".join(f"{k} {v}" for k, v in sorted(per.items(), key=lambda kv: -kv[1])[:2] if v)
             print(f"| {drop} | {'held back' if held else 'training'} | {hands} | {short} ({short / max(hands, 1):.1%}) | {most} |")
@@ -41,7 +34,7 @@ def main():
         synth = load_synth(synth_dirs([args.synth]), 1 << 20)
         if synth is None:
             raise SystemExit(f"no rendered shards match {args.synth}")
-        short = foreshortened(synth["uv"])
+        short = real_data.foreshortened(synth["uv"])
         print(f"| rendered | {args.synth} | {len(short)} crops | {short.sum()} ({short.mean():.1%}) | |")
 
 

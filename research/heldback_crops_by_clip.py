@@ -10,12 +10,12 @@ where it lands.
 import argparse
 
 import numpy as np
-from foreshortened_share import foreshortened  # research/ is on the path when run as a script
-from read_fusion import relative_error
+from read_fusion import relative_error          # research/ is on the path when run as a script
 
 from handmocap.training.quantize_detnet import OnnxNet, heldout_sets
 from handmocap.training.detnet_data import HELD_BACK_SOURCE
 from handmocap.training.detnet_eval import heldout_groups
+from handmocap.training.real_data import foreshortened
 
 
 def main():
