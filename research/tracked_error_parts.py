@@ -41,7 +41,7 @@ def main():
     for video in real_data.wild_clips(real_data.SHARED_DATA, held_back=True, drops=tuple(args.drops.split(","))):
         for image, hands in ep.scored_hands(detector, video):     # keep_raw fills raw as each frame is read
             scored = []
-            for h, label, _ in hands:
+            for h, label, _, _ in hands:
                 left = h["handedness"] == "left"
                 scored.append((label, h["uv"], raw[h["track_id"]], recut(raw[h["track_id"]], left), recut(label, left)))
             raw.clear()

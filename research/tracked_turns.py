@@ -57,7 +57,7 @@ def read_four_turns(detector, video):
     rows = []
     for image, scored in ep.scored_hands(detector, video):
         labels, crops = [], []
-        for _, label, crop in scored:
+        for _, label, crop, _ in scored:
             if crop is not None:
                 labels.append(label)
                 crops += [turned(crop, q) for q in range(4)]

@@ -20,6 +20,7 @@ import argparse
 
 import numpy as np
 
+from handmocap.perception.crops import angle_apart
 from handmocap.perception.detector import HandDetector
 from handmocap.training import eval_cli
 from handmocap.training import eval_people as ep
@@ -30,9 +31,9 @@ def turn_changes(detector, video):
     """(turn changes, errors / hand size of the scored hands) of one clip tracked by `detector`."""
     last, changes, errors = {}, 0, []
     for _, scored in ep.scored_hands(detector, video):
-        errors += [np.linalg.norm(h["uv"] - label, axis=-1).mean() / real_data.hand_size(label) for h, label, _ in scored]
+        errors += [np.linalg.norm(h["uv"] - label, axis=-1).mean() / real_data.hand_size(label) for h, label, _, _ in scored]
         for t in detector.tracks:
-            changes += t.track_id in last and abs(t.crop.angle - last[t.track_id]) > 0.1
+            changes += t.track_id in last and angle_apart(t.crop.angle, last[t.track_id]) > 0.1
             last[t.track_id] = t.crop.angle
     return changes, errors
 

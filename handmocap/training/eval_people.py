@@ -79,17 +79,18 @@ def clip_fps(video):
 def scored_hands(detector, video):
     """A clip tracked by `detector` (reset first), frame by frame as score_outputs scores it:
     (frame BGR, [(output hand, its reliable MediaPipe label (21,2) float64, the crop its track
-    read it on, None for a track new on this frame)]), for the studies that look again at the
-    hands `handeval people` scores (research/tracked_turns.py and others)."""
+    read it on, None for a track new on this frame, MediaPipe's side "right" / "left")]), for the
+    studies that look again at the hands `handeval people` scores (research/tracked_turns.py and
+    others)."""
     detector.reset()
     fps = clip_fps(video)
-    for f, (image, hands, reliable, _) in enumerate(frames_of_clip(video)):
+    for f, (image, hands, reliable, sides) in enumerate(frames_of_clip(video)):
         read_on = {t.track_id: t.crop for t in detector.tracks}     # the crops this frame is read on
         scored = []
         for h in detector.process(image, f / fps):
             k, dist = nearest_label(h["uv"], hands)
             if dist < ON_HAND and reliable[k]:
-                scored.append((h, hands[k].astype(np.float64), read_on.get(h["track_id"])))
+                scored.append((h, hands[k].astype(np.float64), read_on.get(h["track_id"]), sides[k]))
         yield image, scored
 
 
