@@ -76,7 +76,8 @@ def fit_probe(x, y, weight_decay, steps=300):
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--trunk", nargs="+", default=["imagenet", "models/detnet_lite0.pt"])
+    p.add_argument("--trunk", nargs="*", default=["imagenet", "models/detnet_lite0.pt"],
+                   help="trunks to probe (none: the side heads alone)")
     p.add_argument("--side-onnx", nargs="*", default=["models/detnet_int8.onnx", "models/detnet_lite0_int8.onnx"])
     args = p.parse_args()
     real = load_real(SHARED_DATA, log=lambda *a: None)
