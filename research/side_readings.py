@@ -10,8 +10,9 @@ votes, the finder's) with the track's age. A scored hand (on MediaPipe's reliabl
 `handeval people` scores) keeps its track, age and MediaPipe's side. Then each sum below is replayed
 over the same readings, and its side at each scored hand's frame is checked:
 
-- "running mean": the tracker's own (a mean of logits clipped to +-6 over the last
-  HANDEDNESS_MEMORY readings); replayed, it must give the published side (printed as a check);
+- "running mean": the tracker's own (a mean of logits clipped to +-HANDEDNESS_LOGIT_BOUND over
+  the last HANDEDNESS_MEMORY readings); replayed, it must give the published side (printed as a
+  check);
 - the same with the logits clipped to +-C, or over all of the track's readings;
 - "votes": each reading one vote (its sign), over the same memory.
 
@@ -27,7 +28,7 @@ import numpy as np
 
 from handmocap.perception import tracks as tracks_module
 from handmocap.perception.detector import HandDetector
-from handmocap.perception.tracks import HANDEDNESS_MEMORY, logit
+from handmocap.perception.tracks import HANDEDNESS_LOGIT_BOUND, HANDEDNESS_MEMORY, logit
 from handmocap.training import eval_people as ep
 from handmocap.training import real_data
 
@@ -43,8 +44,9 @@ def logged_clip(detector, video):
     return scored
 
 
-def running_mean(readings, age, clip=6.0, memory=HANDEDNESS_MEMORY):
-    """The tracker's sum of one track's readings [(age, p_right, weight)] taken up to `age`."""
+def running_mean(readings, age, clip=HANDEDNESS_LOGIT_BOUND, memory=HANDEDNESS_MEMORY):
+    """The tracker's sum of one track's readings [(age, p_right, weight)] taken up to `age`
+    (`Track.add_handedness`, with its bound and memory as arguments)."""
     value, samples = 0.0, 0.0
     for a, p, w in readings:
         if a > age:

@@ -18,6 +18,9 @@ def logit(p):
 # readings a track's running handedness is over (DetectorSettings.handedness_memory; chosen
 # on training-side clips, docs/experiment_log.md, "Session 27")
 HANDEDNESS_MEMORY = 60
+# a reading's logit is clipped to +-this before it joins the running mean, so one sure reading
+# cannot outweigh many (research/side_readings.py replays other bounds)
+HANDEDNESS_LOGIT_BOUND = 6.0
 
 
 @dataclass
@@ -55,5 +58,5 @@ class Track:
         if self.fixed_side:
             return
         n = min(self.samples + weight, self.memory)
-        self.right_logit += (float(np.clip(logit(p_right), -6, 6)) - self.right_logit) * weight / n
+        self.right_logit += (float(np.clip(logit(p_right), -HANDEDNESS_LOGIT_BOUND, HANDEDNESS_LOGIT_BOUND)) - self.right_logit) * weight / n
         self.samples = min(self.samples + weight, self.memory)
