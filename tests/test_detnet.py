@@ -1170,3 +1170,35 @@ def test_an_angle_head_grafted_on_the_shipped_lite0_leaves_every_output_as_it_wa
     W1, b1, W2, b2 = weights
     pooled = angle_head.pooled_features(DETNET_LITE0, crops)
     np.testing.assert_allclose(after["hand_angle"], np.maximum(pooled @ W1.T + b1, 0) @ W2.T + b2, atol=1e-4)
+
+
+def test_handtrain_detnet_ema_keeps_a_moving_average_through_a_resume_and_exports_it_beside(tmp_path):
+    """`handtrain detnet --ema DECAY`: the checkpoint holds a moving average updated once an
+    iteration (its count goes on over --resume), which differs from the last weights, and is
+    exported beside --export as NAME_ema.onnx (by --export-only too)."""
+    torch = _torch()
+    pytest.importorskip("moderngl")
+    import subprocess
+    import sys
+    shards = tmp_path / "synth"
+    r = subprocess.run([sys.executable, "-m", "handmocap.training.synth.cli", "generate", "-n", "24", "-o", str(shards),
+                        "--procedural", "--workers", "1", "--quiet"], capture_output=True, text=True)
+    if r.returncode:
+        pytest.skip(f"no synthetic crops (no EGL context?): {r.stderr[-200:]}")
+    from handmocap.training.train_cli import main
+    common = ["detnet", "--backbone", "fast", "--data", str(shards), "--val", str(shards), "--shared",
+              str(tmp_path / "no_pack"), "--batch", "4", "--max-synth", "24", "--val-every", "3", "--ema", "0.5",
+              "--run-dir", str(tmp_path / "run"), "--export", str(tmp_path / "a.onnx")]
+    main([*common, "--iters", "3"])
+    ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
+    assert int(ckpt["ema"]["n_averaged"]) == 3
+    w = next(k for k, v in ckpt["model"].items() if v.is_floating_point() and v.dim() == 4)
+    assert not torch.equal(ckpt["ema"][f"module.{w}"], ckpt["model"][w])
+    assert (tmp_path / "a_ema.onnx").is_file()
+    main([*common, "--iters", "5", "--resume"])
+    assert int(torch.load(tmp_path / "run" / "last.pt", weights_only=False)["ema"]["n_averaged"]) == 5
+    (tmp_path / "a_ema.onnx").unlink()
+    main([*common, "--export-only"])
+    assert (tmp_path / "a_ema.onnx").is_file()
+    with pytest.raises(SystemExit, match="expected a decay between 0 and 1"):
+        main([*common[:-6], "--ema", "1.5", "--iters", "1", "--run-dir", str(tmp_path / "bad")])

@@ -135,6 +135,11 @@ def add_arguments(p):
     p.add_argument("--export", type=Path, default=None,
                    help="ONNX output (default RUN_DIR/detnet.onnx: the shipped models/detnet.onnx is replaced only "
                         "when you name it)")
+    p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
+                   help="also keep an exponential moving average of the weights and BatchNorm statistics "
+                        "(torch's AveragedModel), updated every iteration with this decay (0.998: about the last "
+                        "500 iterations; default 0: off); it is checkpointed with the run and exported beside "
+                        "--export as NAME_ema.onnx (--export-only too)")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
     p.add_argument("--export-only", action="store_true", help="export RUN_DIR/last.pt and stop")
     p.add_argument("--weights-out", type=Path, default=None, metavar="PT",
@@ -144,6 +149,26 @@ def add_arguments(p):
                    help="start from this checkpoint's weights (e.g. a `fast` run's last.pt for `fast-deep`: the "
                         "blocks it lacks start as the identity), or from an exported .onnx (models/detnet.onnx), "
                         "at iteration 0 with a fresh schedule and AdamW")
+
+
+def ema_path(export):
+    """Where a run's moving average of the weights (--ema) is exported: beside `export`, NAME_ema.onnx."""
+    return export.with_name(f"{export.stem}_ema{export.suffix}")
+
+
+def averaged(net, decay, state=None):
+    """torch's AveragedModel of `net` as an exponential moving average with `decay` (weights and
+    BatchNorm statistics alike), from `state` (a checkpoint's) where given, else from net's weights
+    now; None for decay 0 (no average kept)."""
+    if not decay:
+        return None
+    if not 0 < decay < 1 and state is None:
+        raise SystemExit(f"--ema {decay}: expected a decay between 0 and 1 (e.g. 0.998), or 0 for none")
+    from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+    ema = AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(decay), use_buffers=True)
+    if state is not None:
+        ema.load_state_dict(state)
+    return ema
 
 
 def main(args):
@@ -201,7 +226,7 @@ def main(args):
     opt = torch.optim.AdamW([{"params": params} for params, _ in groups], lr=args.lr, weight_decay=args.weight_decay)
     lr_scales = [scale for _, scale in groups]
     ckpt_path = run_dir / "last.pt"
-    start, history, refine = 0, [], "softmax"
+    start, history, refine, ckpt = 0, [], "softmax", {}
     if args.resume or args.export_only:
         if not ckpt_path.exists():
             raise SystemExit(f"no checkpoint at {ckpt_path}: train from scratch with `handtrain detnet`")
@@ -216,6 +241,9 @@ def main(args):
     if args.export_only:
         export_onnx(net, args.export, refine)
         print(f"exported {args.export} (refine {refine})")
+        if ckpt.get("ema") is not None:             # the run kept a moving average (--ema): it goes beside
+            export_onnx(averaged(net, 1.0, ckpt["ema"]).module, ema_path(args.export), refine)
+            print(f"exported the weights' moving average to {ema_path(args.export)}")
         if args.weights_out:
             write_weights(args.weights_out, net, refine, args.backbone, args.fine_head, start, history[-1:])
         return
@@ -285,12 +313,14 @@ def main(args):
         print(f"initialised from {args.init_from}; new: {', '.join(sorted(fresh)) or 'nothing'} "
               f"(residual blocks starting as the identity: {', '.join(grown) or 'none'})")
     run_dir.mkdir(parents=True, exist_ok=True)
+    ema = averaged(net, args.ema, ckpt.get("ema") if args.resume else None)
 
     def save(it):
         tmp = ckpt_path.with_suffix(".tmp")
         torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "iteration": it, "refine": refine,
                     "history": history, "backbone": args.backbone, "fine": args.fine_head,
-                    "args": {k: str(v) for k, v in vars(args).items()}}, tmp)
+                    "args": {k: str(v) for k, v in vars(args).items()},
+                    **({"ema": ema.state_dict()} if ema is not None else {})}, tmp)
         os.replace(tmp, ckpt_path)
 
     weights = {**LOSS_WEIGHTS, "hand": args.hand_weight, "coord": args.coord_weight}
@@ -371,6 +401,8 @@ def main(args):
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        if ema is not None:
+            ema.update_parameters(net)
         if it % 20 == 0:
             bar.set_postfix({k: f"{v.item():.4f}" for k, v in losses.items()})
         done = it + 1
@@ -384,3 +416,6 @@ def main(args):
     export_onnx(net, args.export, refine)
     print(f"exported {args.export} ({args.export.stat().st_size / 1e6:.1f} MB, refine {refine}) "
           f"after {done} iterations")
+    if ema is not None:
+        export_onnx(ema.module, ema_path(args.export), refine)
+        print(f"exported the weights' moving average (--ema {args.ema}) to {ema_path(args.export)}")
