@@ -1175,7 +1175,8 @@ def test_an_angle_head_grafted_on_the_shipped_lite0_leaves_every_output_as_it_wa
 def test_handtrain_detnet_ema_keeps_a_moving_average_through_a_resume_and_exports_it_beside(tmp_path):
     """`handtrain detnet --ema DECAY`: the checkpoint holds a moving average updated once an
     iteration (its count goes on over --resume), which differs from the last weights, and is
-    exported beside --export as NAME_ema.onnx (by --export-only too)."""
+    exported beside --export as NAME_ema.onnx (by --export-only too, whose --weights-out then
+    writes its float16 weights as NAME_ema.pt)."""
     torch = _torch()
     pytest.importorskip("moderngl")
     import subprocess
@@ -1198,7 +1199,10 @@ def test_handtrain_detnet_ema_keeps_a_moving_average_through_a_resume_and_export
     main([*common, "--iters", "5", "--resume"])
     assert int(torch.load(tmp_path / "run" / "last.pt", weights_only=False)["ema"]["n_averaged"]) == 5
     (tmp_path / "a_ema.onnx").unlink()
-    main([*common, "--export-only"])
+    main([*common, "--export-only", "--weights-out", str(tmp_path / "w.pt")])
     assert (tmp_path / "a_ema.onnx").is_file()
+    average = torch.load(tmp_path / "w_ema.pt", weights_only=False)["model"]
+    assert torch.allclose(average[w].float(), torch.load(tmp_path / "run" / "last.pt", weights_only=False)["ema"][f"module.{w}"],
+                          atol=1e-3)
     with pytest.raises(SystemExit, match="expected a decay between 0 and 1"):
         main([*common[:-6], "--ema", "1.5", "--iters", "1", "--run-dir", str(tmp_path / "bad")])

@@ -139,7 +139,7 @@ def add_arguments(p):
                    help="also keep an exponential moving average of the weights and BatchNorm statistics "
                         "(torch's AveragedModel), updated every iteration with this decay (0.998: about the last "
                         "500 iterations; default 0: off); it is checkpointed with the run and exported beside "
-                        "--export as NAME_ema.onnx (--export-only too)")
+                        "--export as NAME_ema.onnx (--export-only too, and with --weights-out its weights as NAME_ema.pt)")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
     p.add_argument("--export-only", action="store_true", help="export RUN_DIR/last.pt and stop")
     p.add_argument("--weights-out", type=Path, default=None, metavar="PT",
@@ -152,7 +152,8 @@ def add_arguments(p):
 
 
 def ema_path(export):
-    """Where a run's moving average of the weights (--ema) is exported: beside `export`, NAME_ema.onnx."""
+    """Where a run's moving average of the weights (--ema) is written: beside `export` (an .onnx or
+    --weights-out's .pt), NAME_ema with the same suffix."""
     return export.with_name(f"{export.stem}_ema{export.suffix}")
 
 
@@ -241,11 +242,15 @@ def main(args):
     if args.export_only:
         export_onnx(net, args.export, refine)
         print(f"exported {args.export} (refine {refine})")
-        if ckpt.get("ema") is not None:             # the run kept a moving average (--ema): it goes beside
-            export_onnx(averaged(net, 1.0, ckpt["ema"]).module, ema_path(args.export), refine)
-            print(f"exported the weights' moving average to {ema_path(args.export)}")
         if args.weights_out:
             write_weights(args.weights_out, net, refine, args.backbone, args.fine_head, start, history[-1:])
+        if ckpt.get("ema") is not None:             # the run kept a moving average (--ema): it goes beside
+            average = averaged(net, 1.0, ckpt["ema"]).module
+            export_onnx(average, ema_path(args.export), refine)
+            print(f"exported the weights' moving average to {ema_path(args.export)}")
+            if args.weights_out:
+                write_weights(ema_path(args.weights_out), average, refine, args.backbone, args.fine_head, start,
+                              history[-1:], moving_average=args.ema or True)
         return
 
     if args.pack:                       # everything from the pack: nothing read from runs/detnet_data or shared
