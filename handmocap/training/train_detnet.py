@@ -163,7 +163,7 @@ def averaged(net, decay, state=None):
     now; None for decay 0 (no average kept)."""
     if not decay:
         return None
-    if not 0 < decay < 1 and state is None:
+    if not 0 < decay < 1:
         raise SystemExit(f"--ema {decay}: expected a decay between 0 and 1 (e.g. 0.998), or 0 for none")
     from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
     ema = AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(decay), use_buffers=True)
@@ -245,12 +245,13 @@ def main(args):
         if args.weights_out:
             write_weights(args.weights_out, net, refine, args.backbone, args.fine_head, start, history[-1:])
         if ckpt.get("ema") is not None:             # the run kept a moving average (--ema): it goes beside
-            average = averaged(net, 1.0, ckpt["ema"]).module
+            decay = float(ckpt["args"]["ema"])      # the run's own
+            average = averaged(net, decay, ckpt["ema"]).module
             export_onnx(average, ema_path(args.export), refine)
             print(f"exported the weights' moving average to {ema_path(args.export)}")
             if args.weights_out:
                 write_weights(ema_path(args.weights_out), average, refine, args.backbone, args.fine_head, start,
-                              history[-1:], moving_average=args.ema or True)
+                              history[-1:], moving_average=decay)
         return
 
     if args.pack:                       # everything from the pack: nothing read from runs/detnet_data or shared
