@@ -298,7 +298,7 @@ def test_oversized_messages_are_refused_unread_and_the_graph_goes_on(tmp_path, r
 
 
 REAL_CLIP = ROOT.parent / "shared" / "data" / "video" / "webcam" / "lujunwang_hand.mp4"
-RESPAWN_WITHIN_S = 1.0       # issue 49: poses back within 1 s of a detector kill (capture time after the kill, from the bag)
+RESPAWN_WITHIN_S = 1.0       # issue 49: poses back within 1 s of a detector kill (capture time, from the bag)
 
 
 @pytest.mark.parametrize("clip", [DEMO_CLIP, pytest.param(REAL_CLIP, marks=pytest.mark.skipif(
@@ -358,10 +358,10 @@ def test_every_fault_at_once_on_a_live_graph(tmp_path, run_dir, clip):
             assert decoded["header"]["stamp_ns"] <= m.log_time, topic
             msgs.setdefault(topic, []).append(decoded["header"]["stamp_ns"])
     poses = np.array(msgs["/hand/pose"])
-    # issue 49's figure: from the kill to the first pose on a frame captured after it; the gap
-    # from the last pose before the kill also holds the pipeline's latency before the kill
-    back_s = (poses[poses > kill_ns].min() - kill_ns) / 1e9
+    # the gap without poses, from the last pose before the kill to the first after it (which
+    # also holds the pipeline's latency before the kill; the kill alone is printed beside it)
     gap_s = (poses[poses > kill_ns].min() - poses[poses < kill_ns].max()) / 1e9
-    print(f"\n{clip.name}: detector SIGKILL -> poses again after {back_s:.2f} s of capture time ({gap_s:.2f} s after "
-          f"the last pose before it); peak RSS growth MB {growth}")
-    assert back_s <= RESPAWN_WITHIN_S
+    back_s = (poses[poses > kill_ns].min() - kill_ns) / 1e9
+    print(f"\n{clip.name}: detector SIGKILL -> poses again after {gap_s:.2f} s of capture time without poses "
+          f"({back_s:.2f} s after the kill); peak RSS growth MB {growth}")
+    assert gap_s <= RESPAWN_WITHIN_S
