@@ -249,3 +249,26 @@ def test_the_launcher_runs_without_numpy_or_the_codec():
                         f"print([m for m in {heavy!r} if m in sys.modules])"],
                        capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
+
+
+def test_nodes_keep_compiled_modules_in_a_cache_where_bytecode_writes_are_off(tmp_path, run_dir):
+    """Where PYTHONDONTWRITEBYTECODE is set, a node process (and a respawned one) would compile
+    the package's modules again at each start: handlaunch gives its nodes a bytecode cache in
+    the user's cache folder instead (bytecode_env), nothing beside the sources; a prefix of the
+    user's own, or no such setting, is left alone."""
+    from conftest import graph_env
+    from handmocap.runtime.launch import bytecode_env
+    env = {"HOME": "/h", "PYTHONDONTWRITEBYTECODE": "1"}
+    assert bytecode_env(env) == {"HOME": "/h", "PYTHONPYCACHEPREFIX": "/h/.cache/handmocap/pycache"}
+    assert bytecode_env({**env, "XDG_CACHE_HOME": "/c"})["PYTHONPYCACHEPREFIX"] == "/c/handmocap/pycache"
+    for kept in ({**env, "PYTHONPYCACHEPREFIX": "/mine"}, {"HOME": "/h"}, {"PYTHONDONTWRITEBYTECODE": "1"}):
+        assert bytecode_env(kept) == kept
+    g = write(tmp_path, "nodes:\n  ticker: {node: graphnodes.ticker, params: {count: 3}, required: true}\n")
+    cache = tmp_path / "cache"
+    launch_env = {**graph_env(run_dir), "PYTHONDONTWRITEBYTECODE": "1", "XDG_CACHE_HOME": str(cache)}
+    launch_env.pop("PYTHONPYCACHEPREFIX", None)
+    r = subprocess.run([sys.executable, "-m", "handmocap.runtime.launch", str(g)], capture_output=True, text=True,
+                       timeout=60, env=launch_env)
+    assert r.returncode == 0, r.stdout + r.stderr
+    compiled = {p.name for p in (cache / "handmocap" / "pycache").rglob("*.pyc")}
+    assert {f"node.{sys.implementation.cache_tag}.pyc", f"ticker.{sys.implementation.cache_tag}.pyc"} <= compiled
