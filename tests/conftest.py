@@ -14,6 +14,15 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
+# the suite starts several hundred Python processes (nodes, graphs, CLIs): where
+# PYTHONDONTWRITEBYTECODE is set (CI runners, container images) each would compile the package's
+# modules again, so they share the bytecode cache handlaunch gives its nodes
+from handmocap.runtime.launch import bytecode_env  # noqa: E402
+_env = bytecode_env(os.environ)
+if _env != dict(os.environ):
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+    os.environ.update(_env)
+
 
 @pytest.fixture
 def run_dir(monkeypatch):
