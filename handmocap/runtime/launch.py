@@ -104,9 +104,11 @@ CONFIG_ERROR_S = 10.0
 SUPERVISE_S = 0.02
 # Where node processes keep this package's compiled modules when PYTHONDONTWRITEBYTECODE is set
 # (container images and CI runners often set it): without a cache every start, and every
-# respawn, compiles the package's modules again (0.08-0.18 s of a respawned detector's 0.6 s
-# of imports on a 2-core AMD EPYC; issue 49's drill wants poses back within 1 s of a kill).
-# Python keeps them under this folder (PYTHONPYCACHEPREFIX), never beside the sources:
+# respawn, compiles the package's modules again (0.08 s of the perception container's 0.4 s of
+# imports on a quiet 2-core AMD EPYC, more under load; issue 49's drill wants poses back within
+# 1 s of a kill). The first start fills the cache (every module Python reads from then on comes
+# from it, about 2 s once). Python keeps them under this folder (PYTHONPYCACHEPREFIX), never
+# beside the sources:
 # $XDG_CACHE_HOME/handmocap/pycache, else ~/.cache/handmocap/pycache. A PYTHONPYCACHEPREFIX
 # of the user's own is kept; without PYTHONDONTWRITEBYTECODE nothing changes.
 PYCACHE_SUBDIR = ("handmocap", "pycache")
