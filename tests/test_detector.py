@@ -1195,3 +1195,18 @@ def test_helper_threads_stay_on_one_cpu_and_the_frames_thread_off_it_only_while_
     det = HandDetector(BesideDetNet(), FakeFinder(), smooth_min_cutoff=None, pin_threads=False)
     det.process(frames[0])
     assert seen["caller"] == before and seen["helper"] == before
+
+
+@pytest.mark.parametrize("param, wrong, words", [
+    ("finder", "iknet.onnx", "hand finder model models/iknet.onnx does not take a frame"),
+    ("grey_finder", "iknet.onnx", "hand finder model models/iknet.onnx does not take a frame"),
+    ("grey_detnet", "finder.onnx", "models/finder.onnx is not a DetNet"),
+    ("detnet", "iknet.onnx", "models/iknet.onnx is not a DetNet"),
+])
+def test_the_detector_node_refuses_a_model_file_that_is_another_network_at_start(param, wrong, words, run_dir):
+    """A file that exists and loads but is not the network its param names fails the node at its
+    start (exit 2, one error line naming the file), not on the first frame that would use it: a
+    grey-frame network included, which a colour camera may never reach."""
+    r = subprocess.run([sys.executable, "-m", "nodes.detector", f"{param}:=models/{wrong}"], cwd=ROOT,
+                       env=graph_env(run_dir), capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and words in r.stderr and "Traceback" not in r.stderr, r.stderr[-2000:]
