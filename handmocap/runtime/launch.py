@@ -107,10 +107,10 @@ SUPERVISE_S = 0.02
 # respawn, compiles the package's modules again (0.08 s of the perception container's 0.4 s of
 # imports on a quiet 2-core AMD EPYC, more under load; issue 49's drill wants poses back within
 # 1 s of a kill). The first start fills the cache (every module Python reads from then on comes
-# from it: a second or two, once). Python keeps them under this folder (PYTHONPYCACHEPREFIX), never
-# beside the sources:
-# $XDG_CACHE_HOME/handmocap/pycache, else ~/.cache/handmocap/pycache. A PYTHONPYCACHEPREFIX
-# of the user's own is kept; without PYTHONDONTWRITEBYTECODE nothing changes.
+# from it: a second or two, once). Python keeps them under this folder (PYTHONPYCACHEPREFIX),
+# never beside the sources: $XDG_CACHE_HOME/handmocap/pycache, else ~/.cache/handmocap/pycache
+# (the same rule as onnx_models.onnx_cache_dir's, read here from the children's environment).
+# A PYTHONPYCACHEPREFIX of the user's own is kept; without PYTHONDONTWRITEBYTECODE nothing changes.
 PYCACHE_SUBDIR = ("handmocap", "pycache")
 
 
