@@ -46,14 +46,19 @@ PARAMS = {"detnet": None, "side_detnet": None, "finder": None, "grey_finder": No
 
 def setting(name: str, value):
     """A TUNABLE param as HandDetector takes it: null stays None (off) where the class allows
-    it (NULLABLE), a number the default's type (int or float), handedness "left" or "right"."""
+    it (NULLABLE), a number the default's type (int or float), handedness "left" or "right", a
+    word where the default is one (turn_by)."""
     if value is None:
         if name not in NULLABLE:
             raise ValueError(f"detector param {name}: expected a number, got null")
         return None
-    if name == "handedness":                      # the one setting that is a word
+    if name == "handedness":
         if value not in ("left", "right"):
             raise ValueError(f"detector param handedness: expected left, right or null, got {value!r}")
+        return value
+    if isinstance(PARAMS[name], str):             # a word (turn_by): DetectorSettings checks which
+        if not isinstance(value, str):
+            raise ValueError(f"detector param {name}: expected a word, got {value!r}")
         return value
     if isinstance(PARAMS[name], bool):
         if not isinstance(value, bool):

@@ -10,7 +10,7 @@ import pytest
 
 from conftest import ROOT, graph_env
 from handmocap.perception.hand_finder import FoundHand
-from handmocap.perception.crops import CropTransform, crop_for_joints, hand_angle, head_angle_in_frame
+from handmocap.perception.crops import CropTransform, crop_for_joints, hand_angle, head_angle_in_frame, palm_angle
 from handmocap.perception.detector import CENTRE, HandDetector
 from handmocap.perception.tracks import HANDEDNESS_MEMORY, Track
 from handmocap.perception.rotations import mirror_points
@@ -191,6 +191,44 @@ def test_an_upright_crop_shows_a_turned_hand_upright_and_its_joints_come_back_in
         # the fake DetNet lifts the crop's 2D to 3D: back in frame axes it is the frame's 2D lifted
         lifted = normalize_joints(np.concatenate([out[0]["uv"], np.zeros((21, 1))], 1))
         np.testing.assert_allclose(out[0]["xyz_rel"], lifted, atol=0.03)
+
+
+def foreshortened_hand(centre, size):
+    """canonical_hand with its wrist drawn up beside the middle finger's base, as a palm seen with
+    the fingers toward the camera shows it: the wrist -> middle knuckle points left and down."""
+    uv = canonical_hand(centre, size)
+    uv[0] = uv[9] + np.array([0.12, 0.06]) * size
+    return uv
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.8, np.pi, -2.2])
+def test_the_palms_angle_turns_with_the_hand_and_holds_where_the_wrist_is_foreshortened(angle):
+    c = np.array([320.0, 240.0])
+    turn = lambda uv: (uv - c) @ np.array([[np.cos(angle), np.sin(angle)], [-np.sin(angle), np.cos(angle)]]) + c   # noqa: E731
+    apart = lambda a, b: abs(np.angle(np.exp(1j * (a - b))))                                                      # noqa: E731
+    assert apart(palm_angle(turn(canonical_hand(c, 150))), angle) < np.radians(3)   # an open hand: as hand_angle
+    short = turn(foreshortened_hand(c, 150))
+    assert apart(hand_angle(short), angle) > np.radians(60)                      # the wrist's way: a quarter turn off
+    assert apart(palm_angle(short), angle) < np.radians(15)
+    both = np.stack([short, turn(canonical_hand(c, 150))])
+    np.testing.assert_allclose(palm_angle(both), [palm_angle(short), palm_angle(both[1])])   # (..., 21, 2)
+
+
+def test_a_tracked_crop_turns_by_the_palm_when_asked():
+    """turn_by="palm": a tracked crop is turned by crops.palm_angle of the last joints, so a palm
+    whose wrist shows beside the middle knuckle keeps an upright crop; by default the wrist ->
+    middle knuckle turns it a quarter turn."""
+    frame = draw(np.zeros((H, W, 3), np.uint8), foreshortened_hand((320, 240), 150))
+    angles = {}
+    for turn_by in ("wrist_knuckle", "palm"):
+        det = HandDetector(FakeDetNet(), FakeFinder(), turn_by=turn_by, smooth_min_cutoff=None)
+        for _ in range(3):
+            out = det.process(frame)
+        assert len(out) == 1
+        angles[turn_by] = det.tracks[0].crop.angle
+    assert abs(angles["palm"]) < 1e-9 and abs(abs(angles["wrist_knuckle"]) - np.pi / 2) < 1e-9, angles
+    with pytest.raises(ValueError, match="turn_by"):
+        HandDetector(FakeDetNet(), FakeFinder(), turn_by="thumb")
 
 
 def test_a_new_track_takes_the_quarter_turn_detnet_believes_most():
@@ -1003,6 +1041,11 @@ def test_detector_node_params_take_null_and_booleans_as_the_class_does():
     with pytest.raises(ValueError, match="detector param smooth_min_cutoff and smooth_beta"):
         check_params({"smooth_beta": -1.0})
     check_params({"test_time_crops": 4, "handedness": "left"})
+    assert setting("turn_by", "palm") == "palm"              # a word the settings check themselves
+    with pytest.raises(ValueError, match="turn_by: expected a word"):
+        setting("turn_by", 2)
+    with pytest.raises(ValueError, match="turn_by must be one of wrist_knuckle, palm"):
+        check_params({"turn_by": "thumb"})
 
 
 def test_one_settings_dataclass_for_the_detector_the_node_and_handeval():

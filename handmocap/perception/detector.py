@@ -70,7 +70,7 @@ import numpy as np
 
 from handmocap.perception.crops import (CROP, CROP_SCALE, TEST_TIME_VARIANTS, CropTransform, angle_apart,
                                         box_overlap_of_smaller, crop_for_box, crop_for_joints, crop_to_frame_xyz,
-                                        frame_to_crop_xyz, head_angle_in_frame, nearby_crops, rounded_turn,
+                                        frame_to_crop_xyz, head_angle_in_frame, nearby_crops, palm_angle, rounded_turn,
                                         square_box)
 from handmocap.perception.detnet_runner import DETNET_GREY, DetNetRunner
 from handmocap.perception.onnx_models import cores, keep_on_helper_cpu, off_helper_cpu
@@ -82,6 +82,8 @@ from handmocap.perception.tracks import HANDEDNESS_MEMORY, Track, logit
 
 CENTRE = "centre"           # the fallback that tries the centre square of the frame
 MATCH_IOU = 0.3             # a found box is a track's own hand from this overlap with its joint box on
+TURN_BY = ("wrist_knuckle", "palm")   # DetectorSettings.turn_by's choices
+PALM_JOINTS = (0, 5, 9, 13, 17)       # the joints crops.palm_angle reads
 # HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
 # so no birth threshold; a close-up the finder misses is tried on the centre square; each
 # hand read on its crop and 4 variants of it (chosen on training-side stills, docs/models_history.md)
@@ -165,6 +167,13 @@ class DetectorSettings:
     # hand appears upright, wrist below the middle finger's base, from its last 2D joints; a new
     # track tries the four quarter turns. Unturned, a hand hanging down read 2-4x worse
     upright_step: float | None = 90.0
+    # which way is up for that turn: "wrist_knuckle", the wrist -> middle finger's base (0 -> 9) of
+    # the last joints; "palm", that plus the normal of the knuckle line (crops.palm_angle), which
+    # stays as long as the palm is wide where the fingers point at or away from the camera. "palm"
+    # is off: held back (10 runs, session 58) median 0.097 against 0.099, PCK 0.574 against 0.572,
+    # found 87.5% against 88.7 (the foreshortened Kirichovka__want read worse, 0.223 against 0.200;
+    # the small-handed signer rodrmilano00__ROSA better, 0.142 against 0.206)
+    turn_by: str = "wrist_knuckle"
     # a tracked hand whose mean heatmap peak on this frame's crop is below this (None: never) is
     # also read at the three other quarter turns of its crop (without the side), as a new track
     # is, and the turn DetNet is surest of is kept: a hand read wrong way round turns its next
@@ -255,6 +264,8 @@ class DetectorSettings:
             raise ValueError(f"turn_head_memory must be in (0, 1] or None, got {self.turn_head_memory}")
         if not 45.0 <= self.turn_head_margin <= 180.0:
             raise ValueError(f"turn_head_margin must be 45..180 degrees, got {self.turn_head_margin}")
+        if self.turn_by not in TURN_BY:
+            raise ValueError(f"turn_by must be one of {', '.join(TURN_BY)}, got {self.turn_by!r}")
         if self.turn_check_every < 1:
             raise ValueError(f"turn_check_every must be >= 1, got {self.turn_check_every}")
         if self.redetect_every < 0 or (self.redetect_every_full or 0) < 0:
@@ -597,8 +608,10 @@ class HandDetector:
                 t = self.tracks[i]
                 if out["presence"][i] >= self.presence_threshold:
                     t.add_head_reading(float(out["handedness"][i]), t.crop.mirrored)
-                    t.crop = crop_for_joints(t.crop.to_frame(out["uv_peak"][i]), not t.is_right, self.crop_scale,
-                                             self.upright_step, self.crop_size, self._head_angle(t.crop, out, i))
+                    uv = t.crop.to_frame(out["uv_peak"][i])
+                    angle = self._head_angle(t.crop, out, i)
+                    t.crop = crop_for_joints(uv, not t.is_right, self.crop_scale, self.upright_step, self.crop_size,
+                                             self._joints_angle(uv) if angle is None else angle)
             again = self._run_voting(image_bgr, [self.tracks[i] for i in idx])   # a new track votes again here
             for k, i in enumerate(idx):
                 for key in out:
@@ -852,10 +865,18 @@ class HandDetector:
         does not change size that fast: a collapsing or exploding prediction must not take
         the crop with it). angle: the hand's angle (the angle head's) to turn it by instead of
         the joints'."""
-        crop = crop_for_joints(uv + 0.5 * track.velocity, not track.is_right, self.crop_scale, self.upright_step,
-                               self.crop_size, angle)
+        uv = uv + 0.5 * track.velocity
+        crop = crop_for_joints(uv, not track.is_right, self.crop_scale, self.upright_step, self.crop_size,
+                               self._joints_angle(uv) if angle is None else angle)
         side = float(np.clip(crop.side, track.crop.side / max_change, track.crop.side * max_change))
         return CropTransform.around(crop.centre, side, crop.size, mirrored=crop.mirrored, angle=crop.angle)
+
+    def _joints_angle(self, uv):
+        """The hand's angle (radians, as hand_angle) from its joints (21,2) by `turn_by`, or None for
+        crop_for_joints' own (the wrist -> middle finger's base)."""
+        if self.turn_by == "palm" and np.all(np.isfinite(uv[PALM_JOINTS, :])):
+            return float(palm_angle(uv))
+        return None
 
     @staticmethod
     def _plausible(uv, shape):
