@@ -407,24 +407,27 @@ def test_motion_blur_smears_the_asked_share_of_hand_crops_about_the_same_centre(
     np.testing.assert_array_equal(out, motion_blur(image.copy(), hand, 0.4, np.random.default_rng(3)))
 
 
-def test_upright_batches_show_every_hand_upright_within_the_spread():
+@pytest.mark.parametrize("upright_by", ["wrist_knuckle", "palm"])
+def test_upright_batches_show_every_hand_upright_within_the_spread(upright_by):
     """--upright D: each synthetic crop is turned so its hand's wrist is below its middle
-    finger's base, then by at most D degrees (mirrored crops too)."""
-    from handmocap.perception.crops import hand_angle
+    finger's base (--upright-by palm: its palm up, crops.palm_angle), then by at most D degrees
+    (mirrored crops too)."""
+    from handmocap.perception.crops import HAND_ANGLES
     from handmocap.training.detnet_batches import BatchMaker
     rng = np.random.default_rng(2)
     n = 16
     uv = np.tile(rng.uniform(30, 98, (1, 21, 2)), (n, 1, 1))
     uv[:, 0], uv[:, 9] = (64, 90), (64, 40)                    # upright as drawn ...
-    c, s = np.cos(rng.uniform(-np.pi, np.pi, n)), np.sin(rng.uniform(-np.pi, np.pi, n))
+    turned = rng.uniform(-np.pi, np.pi, n)
+    c, s = np.cos(turned), np.sin(turned)
     turn = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
     uv = np.einsum("nij,nkj->nki", turn, uv - 64) + 64          # ... then turned any way
     synth = {"image": np.zeros((n, 128, 128, 3), np.uint8), "uv": uv, "xyz_rel": np.zeros((n, 21, 3)),
              "handedness": np.zeros(n, np.int8)}
     for spread in (0.0, 20.0):
-        batch = BatchMaker(synth, None, 0.0, 0.0, 0.5, upright=spread)._synth(n, rng)
-        angles = np.degrees(hand_angle(batch["uv"]))
-        assert np.all(np.abs(angles) <= spread + 1e-6), angles
+        batch = BatchMaker(synth, None, 0.0, 0.0, 0.5, upright=spread, upright_by=upright_by)._synth(n, rng)
+        angles = np.degrees(HAND_ANGLES[upright_by](batch["uv"]))
+        assert np.all(np.abs(angles) <= spread + 1e-4), angles     # float32 joints
 
 
 def test_real_3d_labels_turn_and_mirror_with_their_crops():

@@ -164,6 +164,10 @@ def palm_angle(uv):
     return np.arctan2(v[..., 0], -v[..., 1])
 
 
+# what "upright" is, by name: the detector's `turn_by` and `handtrain detnet --upright-by` (one table)
+HAND_ANGLES = {"wrist_knuckle": hand_angle, "palm": palm_angle}
+
+
 def angle_apart(a, b):
     """|a - b| of two angles (radians; scalars or arrays), wrapped to [0, pi]."""
     return np.abs((np.subtract(a, b) + np.pi) % (2 * np.pi) - np.pi)

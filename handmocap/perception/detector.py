@@ -68,9 +68,9 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from handmocap.perception.crops import (CROP, CROP_SCALE, TEST_TIME_VARIANTS, CropTransform, angle_apart,
+from handmocap.perception.crops import (CROP, CROP_SCALE, HAND_ANGLES, TEST_TIME_VARIANTS, CropTransform, angle_apart,
                                         box_overlap_of_smaller, crop_for_box, crop_for_joints, crop_to_frame_xyz,
-                                        frame_to_crop_xyz, head_angle_in_frame, nearby_crops, palm_angle, rounded_turn,
+                                        frame_to_crop_xyz, head_angle_in_frame, nearby_crops, rounded_turn,
                                         square_box)
 from handmocap.perception.detnet_runner import DETNET_GREY, DetNetRunner
 from handmocap.perception.onnx_models import cores, keep_on_helper_cpu, off_helper_cpu
@@ -82,7 +82,6 @@ from handmocap.perception.tracks import HANDEDNESS_MEMORY, Track, logit
 
 CENTRE = "centre"           # the fallback that tries the centre square of the frame
 MATCH_IOU = 0.3             # a found box is a track's own hand from this overlap with its joint box on
-TURN_BY = ("wrist_knuckle", "palm")   # DetectorSettings.turn_by's choices
 PALM_JOINTS = (0, 5, 9, 13, 17)       # the joints crops.palm_angle reads
 # HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
 # so no birth threshold; a close-up the finder misses is tried on the centre square; each
@@ -264,8 +263,8 @@ class DetectorSettings:
             raise ValueError(f"turn_head_memory must be in (0, 1] or None, got {self.turn_head_memory}")
         if not 45.0 <= self.turn_head_margin <= 180.0:
             raise ValueError(f"turn_head_margin must be 45..180 degrees, got {self.turn_head_margin}")
-        if self.turn_by not in TURN_BY:
-            raise ValueError(f"turn_by must be one of {', '.join(TURN_BY)}, got {self.turn_by!r}")
+        if self.turn_by not in HAND_ANGLES:
+            raise ValueError(f"turn_by must be one of {', '.join(HAND_ANGLES)}, got {self.turn_by!r}")
         if self.turn_check_every < 1:
             raise ValueError(f"turn_check_every must be >= 1, got {self.turn_check_every}")
         if self.redetect_every < 0 or (self.redetect_every_full or 0) < 0:
@@ -874,8 +873,8 @@ class HandDetector:
     def _joints_angle(self, uv):
         """The hand's angle (radians, as hand_angle) from its joints (21,2) by `turn_by`, or None for
         crop_for_joints' own (the wrist -> middle finger's base)."""
-        if self.turn_by == "palm" and np.all(np.isfinite(uv[PALM_JOINTS, :])):
-            return float(palm_angle(uv))
+        if self.turn_by != "wrist_knuckle" and np.all(np.isfinite(uv[PALM_JOINTS, :])):
+            return float(HAND_ANGLES[self.turn_by](uv))
         return None
 
     @staticmethod

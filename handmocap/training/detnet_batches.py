@@ -41,7 +41,7 @@ it, cut out along its joints (`hand_occluders`: two hands touching or crossing).
 import cv2
 import numpy as np
 
-from handmocap.perception.crops import CROP, hand_angle
+from handmocap.perception.crops import CROP, HAND_ANGLES
 from handmocap.perception.skeleton import BONES
 from handmocap.training import real_data
 from handmocap.training.detnet_data import CTX, CTX_CROP_SIDE, HARD_NEGATIVES, WILD_SOURCE
@@ -63,12 +63,13 @@ class BatchMaker:
     presence, right, w_hand (B,) float32."""
 
     def __init__(self, synth, real, share_real, share_neg, share_left, upright=None, real_3d=0.0, left_2d=0.0,
-                 hard=None, real_scale=(0.9, 1.1), real_shift=0.1, wild_share=None):
+                 hard=None, real_scale=(0.9, 1.1), real_shift=0.1, wild_share=None, upright_by="wrist_knuckle"):
         """hard: {kind: (its cache, share)} of HARD_NEGATIVES, each taught as that share of the
         negatives (a cache holds <kind> (m,128,128,3) and <kind>_held (m,) bool). real_scale
         (lo, hi): a real crop's side is the keypoint box x 1.3 x uniform(lo, hi); real_shift:
         its centre moves by up to this share of its side on each axis. wild_share: the share
-        of the real crops drawn from the video/wild clips (None: as many as the cache holds)."""
+        of the real crops drawn from the video/wild clips (None: as many as the cache holds).
+        upright_by: what "upright" is for `upright` (crops.HAND_ANGLES' names)."""
         self.synth, self.real = synth, real
         # (crops (m,128,128,3), training indices, share) of each hard negative in use
         self.hard = [(pool[kind], np.flatnonzero(~pool[f"{kind}_held"]), share)
@@ -81,6 +82,7 @@ class BatchMaker:
         self.left_2d = left_2d
         self.share_left = share_left
         self.upright = upright
+        self.hand_angle = HAND_ANGLES[upright_by]
         self.real_scale, self.real_shift = tuple(real_scale), real_shift
         self.real_train = np.flatnonzero(~real["held"]) if real is not None else np.zeros(0, int)
         self.neg_train = np.flatnonzero(~real["neg_held"]) if real is not None else np.zeros(0, int)
@@ -120,7 +122,7 @@ class BatchMaker:
         the crop as it is, or with `upright` +-upright about the hand turned upright."""
         if self.upright is None:
             return rng.uniform(-90, 90, len(uv))
-        return np.degrees(hand_angle(uv)) + rng.uniform(-self.upright, self.upright, len(uv))
+        return np.degrees(self.hand_angle(uv)) + rng.uniform(-self.upright, self.upright, len(uv))
 
     def _present(self, n, appears_right, rng):
         """Which crops to show as left hands; mirror flag that makes the rest right hands."""

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from handmocap.perception.crops import HAND_ANGLES
+
 from handmocap.training.detnet_batches import (BatchMaker, IterationBatches, degrade, hand_occluders, motion_blur,
                                                to_torch)
 from handmocap.training.detnet_data import DATA_DIR, HARD_NEGATIVES, load_real, load_synth, synth_dirs
@@ -61,6 +63,10 @@ def add_arguments(p):
                    help="turn each hand crop upright (wrist below the middle finger's base, from its 2D labels) "
                         "and then by +-DEG, as the detector's quarter-turned crops show hands (default: no "
                         "turning, +-90 deg about the crop as rendered or filmed)"),
+    p.add_argument("--upright-by", choices=tuple(HAND_ANGLES), default="wrist_knuckle",
+                   help="what upright is for --upright: wrist_knuckle, the wrist below the middle finger's base "
+                        "(the default); palm, that plus the knuckle line's normal (crops.palm_angle), as the "
+                        "detector's turn_by")
     p.add_argument("--real-scale", type=float, nargs=2, default=(0.9, 1.1), metavar=("LO", "HI"),
                    help="a real hand crop's side is its keypoint box x 1.3 x uniform(LO, HI) (default 0.9 1.1, "
                         "the paper's; the detector's tracked crops are the box x 1.5, x 0.92-1.27 in 90%% of "
@@ -284,7 +290,7 @@ def main(args):
                   + ("" if share else f", measured only (--{kind}-neg 0)"))
     maker = BatchMaker(synth, real, args.share_real, args.share_neg, args.share_left, args.upright, args.real_3d,
                        args.left_2d, {kind: (hard[kind], getattr(args, f"{kind}_neg")) for kind in HARD_NEGATIVES},
-                       args.real_scale, args.real_shift, args.wild_share)
+                       args.real_scale, args.real_shift, args.wild_share, args.upright_by)
     if args.hand_occluder and not len(maker.real_train):
         raise SystemExit(f"--hand-occluder puts real hands over the crops: it needs the real training crops "
                          f"(the data pack at {args.shared}, or a --pack that holds them), and there are none")
