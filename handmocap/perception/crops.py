@@ -148,6 +148,9 @@ def hand_angle(uv):
     return np.arctan2(v[..., 0], -v[..., 1])
 
 
+PALM_ANGLE_JOINTS = (0, 5, 9, 13, 17)   # the joints palm_angle reads
+
+
 def palm_angle(uv):
     """Direction (radians, as hand_angle) the palm points to, from joints uv (..., 21, 2) px: the
     wrist -> middle knuckle (0 -> 9) plus the normal of the knuckle line (index base 5 -> little

@@ -68,10 +68,10 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from handmocap.perception.crops import (CROP, CROP_SCALE, HAND_ANGLES, TEST_TIME_VARIANTS, CropTransform, angle_apart,
-                                        box_overlap_of_smaller, crop_for_box, crop_for_joints, crop_to_frame_xyz,
-                                        frame_to_crop_xyz, head_angle_in_frame, nearby_crops, rounded_turn,
-                                        square_box)
+from handmocap.perception.crops import (CROP, CROP_SCALE, HAND_ANGLES, PALM_ANGLE_JOINTS, TEST_TIME_VARIANTS,
+                                        CropTransform, angle_apart, box_overlap_of_smaller, crop_for_box,
+                                        crop_for_joints, crop_to_frame_xyz, frame_to_crop_xyz, head_angle_in_frame,
+                                        nearby_crops, rounded_turn, square_box)
 from handmocap.perception.detnet_runner import DETNET_GREY, DetNetRunner
 from handmocap.perception.onnx_models import cores, keep_on_helper_cpu, off_helper_cpu
 from handmocap.perception.one_euro import OneEuroFilter
@@ -82,7 +82,6 @@ from handmocap.perception.tracks import HANDEDNESS_MEMORY, Track, logit
 
 CENTRE = "centre"           # the fallback that tries the centre square of the frame
 MATCH_IOU = 0.3             # a found box is a track's own hand from this overlap with its joint box on
-PALM_JOINTS = (0, 5, 9, 13, 17)       # the joints crops.palm_angle reads
 # HandDetector.load's keywords for unrelated photos (reset before each): one chance per hand,
 # so no birth threshold; a close-up the finder misses is tried on the centre square; each
 # hand read on its crop and 4 variants of it (chosen on training-side stills, docs/models_history.md)
@@ -873,7 +872,7 @@ class HandDetector:
     def _joints_angle(self, uv):
         """The hand's angle (radians, as hand_angle) from its joints (21,2) by `turn_by`, or None for
         crop_for_joints' own (the wrist -> middle finger's base)."""
-        if self.turn_by != "wrist_knuckle" and np.all(np.isfinite(uv[PALM_JOINTS, :])):
+        if self.turn_by != "wrist_knuckle" and np.all(np.isfinite(uv[PALM_ANGLE_JOINTS, :])):
             return float(HAND_ANGLES[self.turn_by](uv))
         return None
 
