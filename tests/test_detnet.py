@@ -544,7 +544,8 @@ def test_left_2d_trains_the_heatmaps_of_crops_shown_as_left_hands_but_never_thei
 
 
 @pytest.mark.parametrize("path", [MODEL, MODEL.with_name("detnet_int8.onnx"), MODEL.with_name("detnet_grey_int8.onnx"),
-                                  MODEL.with_name("detnet_lite0_int8.onnx")], ids=lambda p: p.name)
+                                  MODEL.with_name("detnet_lite0_int8.onnx"), MODEL.with_name("detnet_lite0_palm_int8.onnx")],
+                         ids=lambda p: p.name)
 def test_committed_model_interface(path):
     ort = pytest.importorskip("onnxruntime")
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
