@@ -170,7 +170,9 @@ class DetectorSettings:
     # stays as long as the palm is wide where the fingers point at or away from the camera. "palm"
     # is off: held back (10 runs, session 58) median 0.097 against 0.099, PCK 0.574 against 0.572,
     # found 87.5% against 88.7 (the foreshortened Kirichovka__want read worse, 0.223 against 0.200;
-    # the small-handed signer rodrmilano00__ROSA better, 0.142 against 0.206)
+    # the small-handed signer rodrmilano00__ROSA better, 0.142 against 0.206). With the DetNet trained
+    # for it (models/detnet_lite0_palm_int8.onnx): median 0.091, PCK 0.584, but 0.025 false hands a frame
+    # against 0.020 (session 58; not the default)
     turn_by: str = "wrist_knuckle"
     # a tracked hand whose mean heatmap peak on this frame's crop is below this (None: never) is
     # also read at the three other quarter turns of its crop (without the side), as a new track
