@@ -24,7 +24,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from handmocap.perception.crops import hand_angle, palm_angle, rounded_turn
+from handmocap.perception.crops import hand_angle, knuckle_line_normal, palm_angle, rounded_turn
 from handmocap.perception.detector import HandDetector
 from handmocap.training import eval_people as ep
 from handmocap.training import real_data
@@ -34,14 +34,6 @@ def unit(v):
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
 
 
-def knuckle_normal(uv):
-    """(N,2) normal of the knuckle line 5 -> 17, turned toward the knuckles' side of the wrist."""
-    across = uv[:, 17] - uv[:, 5]
-    normal = np.stack([-across[:, 1], across[:, 0]], axis=1)
-    toward = uv[:, [5, 9, 13, 17]].mean(axis=1) - uv[:, 0]
-    return np.where((np.sum(normal * toward, axis=1) < 0)[:, None], -normal, normal)
-
-
 def angle_of(v):
     """(N,) angle (radians, as hand_angle) of direction vectors v (N,2) px."""
     return np.arctan2(v[:, 0], -v[:, 1])
@@ -49,8 +41,8 @@ def angle_of(v):
 
 DEFINITIONS = {   # name: (N,21,2) joints -> (N,) angles
     "wrist -> middle knuckle (today's)": hand_angle,
-    "knuckle line's normal": lambda uv: angle_of(knuckle_normal(uv)),
-    "sum of the two, unit vectors": lambda uv: angle_of(unit(uv[:, 9] - uv[:, 0]) + unit(knuckle_normal(uv))),
+    "knuckle line's normal": lambda uv: angle_of(knuckle_line_normal(uv)),
+    "sum of the two, unit vectors": lambda uv: angle_of(unit(uv[:, 9] - uv[:, 0]) + unit(knuckle_line_normal(uv))),
     "sum of the two, px (palm_angle)": palm_angle,
     "wrist -> mean of the knuckles": lambda uv: angle_of(uv[:, [5, 9, 13, 17]].mean(axis=1) - uv[:, 0]),
 }

@@ -427,7 +427,8 @@ def test_upright_batches_show_every_hand_upright_within_the_spread(upright_by):
     for spread in (0.0, 20.0):
         batch = BatchMaker(synth, None, 0.0, 0.0, 0.5, upright=spread, upright_by=upright_by)._synth(n, rng)
         angles = np.degrees(HAND_ANGLES[upright_by](batch["uv"]))
-        assert np.all(np.abs(angles) <= spread + 1e-4), angles     # float32 joints
+        # float32 joints: palm_angle's sum of two vectors rounds to a few millionths of a degree
+        assert np.all(np.abs(angles) <= spread + (1e-6 if upright_by == "wrist_knuckle" else 1e-4)), angles
 
 
 def test_real_3d_labels_turn_and_mirror_with_their_crops():

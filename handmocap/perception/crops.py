@@ -151,19 +151,23 @@ def hand_angle(uv):
 PALM_ANGLE_JOINTS = (0, 5, 9, 13, 17)   # the joints palm_angle reads
 
 
-def palm_angle(uv):
-    """Direction (radians, as hand_angle) the palm points to, from joints uv (..., 21, 2) px: the
-    wrist -> middle knuckle (0 -> 9) plus the normal of the knuckle line (index base 5 -> little
-    base 17, turned toward the knuckles' side of the wrist), both in px. With the fingers toward
-    or away from the camera the first is short and its direction noise, the second still as long
-    as the palm is wide (DetNet's `turn_by` "palm")."""
+def knuckle_line_normal(uv):
+    """(..., 2) px: the knuckle line (index base 5 -> little base 17) of joints uv (..., 21, 2)
+    turned a quarter turn, toward the knuckles' side of the wrist; as long as the palm is wide."""
     uv = np.asarray(uv, dtype=np.float64)
-    up = uv[..., 9, :] - uv[..., 0, :]
     across = uv[..., 17, :] - uv[..., 5, :]
     normal = np.stack([-across[..., 1], across[..., 0]], axis=-1)
     toward = uv[..., [5, 9, 13, 17], :].mean(axis=-2) - uv[..., 0, :]
-    normal = np.where(np.sum(normal * toward, axis=-1, keepdims=True) < 0, -normal, normal)
-    v = up + normal
+    return np.where(np.sum(normal * toward, axis=-1, keepdims=True) < 0, -normal, normal)
+
+
+def palm_angle(uv):
+    """Direction (radians, as hand_angle) the palm points to, from joints uv (..., 21, 2) px: the
+    wrist -> middle knuckle (0 -> 9) plus knuckle_line_normal, both in px. With the fingers toward
+    or away from the camera the first is short and its direction noise, the second still as long
+    as the palm is wide (DetNet's `turn_by` "palm")."""
+    uv = np.asarray(uv, dtype=np.float64)
+    v = uv[..., 9, :] - uv[..., 0, :] + knuckle_line_normal(uv)
     return np.arctan2(v[..., 0], -v[..., 1])
 
 
