@@ -1118,51 +1118,12 @@ class FakePair:
         self.keypoints, self.side = keypoints, side
         self.side_crops, self.keypoint_crops = [], []   # crops each network read, per call
 
-    def __call__(self, crops_rgb, read_side=True, side_only=0, side_pixels=None):
+    def __call__(self, crops_rgb, read_side=True, side_only=0):
         out = self.keypoints(crops_rgb[:len(crops_rgb) - side_only])
         self.keypoint_crops.append(len(crops_rgb) - side_only)
         self.side_crops.append(len(crops_rgb) if read_side else 0)
-        side_rgb = crops_rgb if side_pixels is None else side_pixels
-        assert len(side_rgb) == len(crops_rgb)
-        out["handedness"] = self.side(side_rgb)["handedness"] if read_side else np.full(len(crops_rgb), np.nan)
+        out["handedness"] = self.side(crops_rgb)["handedness"] if read_side else np.full(len(crops_rgb), np.nan)
         return out
-
-
-class AngleRecordingDetNet(FakeDetNet):
-    """A FakeDetNet that keeps the wrist -> middle knuckle angle (crops.hand_angle, radians) of the
-    hand on every crop it reads (`angles`)."""
-
-    def __init__(self, **kwargs):
-        super().__init__(**kwargs)
-        self.angles = []
-
-    def __call__(self, crops_rgb):
-        out = super().__call__(crops_rgb)
-        self.angles += [float(hand_angle(uv)) for uv in out["uv"]]
-        return out
-
-
-def test_with_turn_by_palm_the_side_network_reads_the_square_turned_its_own_way():
-    """turn_by="palm" turns a foreshortened hand's crop upright by its palm, a quarter turn from the
-    wrist -> middle knuckle up the side network was trained for: by default (side_turn_by
-    "wrist_knuckle") the side network reads the same square turned its way (the hand's wrist ->
-    knuckle within 30 degrees of upright in its crops, against 60 or more on the keypoints' crop,
-    which side_turn_by "crop" reads), and the hand keeps its side."""
-    frame = draw(np.zeros((H, W, 3), np.uint8), foreshortened_hand((320, 240), 150))
-    angles, sides = {}, {}
-    for side_turn_by in ("wrist_knuckle", "crop"):
-        pair = FakePair(FakeDetNet(), AngleRecordingDetNet())
-        det = HandDetector(pair, FakeFinder(), turn_by="palm", side_turn_by=side_turn_by, side_every=None,
-                           finder_handedness=0.0, smooth_min_cutoff=None)
-        sides[side_turn_by] = [h["handedness"] for _ in range(8) for h in det.process(frame)]
-        assert abs(det.tracks[0].crop.angle) < 1e-9                      # the keypoints' crop: palm up
-        angles[side_turn_by] = np.abs(pair.side.angles[-4:])             # tracked frames' side reads
-        assert (det.stats["side_crops"] > 0) == (side_turn_by == "wrist_knuckle")
-    assert np.all(angles["wrist_knuckle"] < np.radians(30)), angles
-    assert np.all(angles["crop"] > np.radians(60)), angles
-    assert sides["wrist_knuckle"][-4:] == ["right"] * 4, sides
-    with pytest.raises(ValueError, match="side_turn_by"):
-        HandDetector(FakeDetNet(), FakeFinder(), side_turn_by="thumb")
 
 
 def test_side_every_reads_the_side_network_on_births_and_mirror_votes_only():

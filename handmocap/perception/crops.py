@@ -9,7 +9,7 @@ hand's from a found box (`crop_for_box`), and the variants a reading is averaged
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -45,22 +45,14 @@ class CropTransform:
     size: int = CROP
     mirrored: bool = False
     angle: float = 0.0
-    # radians: the turn a second network reads this square at for the side, where it was trained
-    # for another "up" than the keypoint network this crop is turned for (the detector's
-    # `turn_by`); None: `angle`
-    side_angle: float | None = None
 
     @classmethod
-    def around(cls, centre, side, size=CROP, mirrored=False, angle=0.0, side_angle=None):
+    def around(cls, centre, side, size=CROP, mirrored=False, angle=0.0):
         """The crop of about `side` px (at least MIN_CROP_SIDE) centred on `centre` (2,) px."""
         side = int(round(max(float(side), MIN_CROP_SIDE)))
         x0 = int(math.floor(centre[0] - (side - 1) / 2 + 0.5))
         y0 = int(math.floor(centre[1] - (side - 1) / 2 + 0.5))
-        return cls(x0, y0, side, size, bool(mirrored), float(angle), None if side_angle is None else float(side_angle))
-
-    def for_side(self):
-        """The crop the side network reads: this square turned by `side_angle` (itself where None)."""
-        return self if self.side_angle is None else replace(self, angle=self.side_angle, side_angle=None)
+        return cls(x0, y0, side, size, bool(mirrored), float(angle))
 
     @property
     def centre(self):
@@ -206,29 +198,23 @@ def rounded_turn(angle, upright_step):
     return round(angle / step) * step
 
 
-def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE, upright_step=None, size=CROP, angle=None,
-                    side_angle=None):
+def crop_for_joints(uv, mirrored=False, scale=CROP_SCALE, upright_step=None, size=CROP, angle=None):
     """The DetNet crop (`size` px) of a hand whose 2D joints are uv (21,2) frame px: the square
     around their box times `scale`. upright_step (degrees): the crop turned by hand_angle rounded to
     whole steps of it (90: quarter turns; 0: any angle), the box taken in the turned axes (as
     MediaPipe cuts its landmark crops); None: never turned. angle (radians, as hand_angle): the
-    hand's angle from elsewhere (DetNet's angle head, `palm_angle`), rounded the same way, instead
-    of the joints'. side_angle (radians): the angle the side network turns the same square by
-    (CropTransform.side_angle), rounded the same way; None: none of its own."""
+    hand's angle from elsewhere (DetNet's angle head), rounded the same way, instead of the joints'."""
     if upright_step is None:
-        angle, side_angle = 0.0, None
+        angle = 0.0
     elif angle is None:
         angle = float(hand_angle(uv)) if np.all(np.isfinite(uv[[0, 9]])) else 0.0
     angle = rounded_turn(float(angle), upright_step)
-    if side_angle is not None:
-        side_angle = rounded_turn(float(side_angle), upright_step)
-        side_angle = None if angle_apart(side_angle, angle) < 1e-6 else side_angle
     c, s = math.cos(angle), math.sin(angle)
     R = np.array([[c, s], [-s, c]])
     turned = uv @ R.T
     lo, hi = np.nanmin(turned, axis=0), np.nanmax(turned, axis=0)
     return CropTransform.around(R.T @ ((lo + hi) / 2), float(np.max(hi - lo)) * scale, size, mirrored=mirrored,
-                                angle=angle, side_angle=side_angle)
+                                angle=angle)
 
 
 def square_box(uv):

@@ -174,11 +174,6 @@ class DetectorSettings:
     # for it (models/detnet_lite0_palm_int8.onnx): median 0.091, PCK 0.584, but 0.025 false hands a frame
     # against 0.020 (session 58; not the default)
     turn_by: str = "wrist_knuckle"
-    # which way is up for the crops a second network reads the side on (DetNetRunner `side`; the
-    # default pair's was trained on crops turned by "wrist_knuckle"): a tracked crop turned by
-    # another `turn_by` is read for the side on the same square turned this way ("crop": on the
-    # crop as turned for the keypoints). Alike where turn_by is "wrist_knuckle"
-    side_turn_by: str = "wrist_knuckle"
     # a tracked hand whose mean heatmap peak on this frame's crop is below this (None: never) is
     # also read at the three other quarter turns of its crop (without the side), as a new track
     # is, and the turn DetNet is surest of is kept: a hand read wrong way round turns its next
@@ -271,8 +266,6 @@ class DetectorSettings:
             raise ValueError(f"turn_head_margin must be 45..180 degrees, got {self.turn_head_margin}")
         if self.turn_by not in HAND_ANGLES:
             raise ValueError(f"turn_by must be one of {', '.join(HAND_ANGLES)}, got {self.turn_by!r}")
-        if self.side_turn_by not in (*HAND_ANGLES, "crop"):
-            raise ValueError(f"side_turn_by must be one of {', '.join(HAND_ANGLES)} or crop, got {self.side_turn_by!r}")
         if self.turn_check_every < 1:
             raise ValueError(f"turn_check_every must be >= 1, got {self.turn_check_every}")
         if self.redetect_every < 0 or (self.redetect_every_full or 0) < 0:
@@ -351,7 +344,7 @@ class HandDetector:
         self._beside_pool = None    # the finder's thread when it runs beside the crops (made on first use)
         self.stats = {"frames": 0, "finder_runs": 0, "crops": 0, "reseeds": 0, "unborn": 0, "fallback_runs": 0,
                       "evictions": 0, "handedness_turns": 0, "second_looks": 0, "turn_checks": 0,
-                      "side_rereads": 0, "grey_finder_runs": 0, "head_turns": 0, "side_crops": 0}
+                      "side_rereads": 0, "grey_finder_runs": 0, "head_turns": 0}
 
     @classmethod
     def load(cls, detnet=None, finder=None, threads=1, fallback=None, grey_finder=None, grey_detnet=None,
@@ -556,18 +549,10 @@ class HandDetector:
             rgb = cut(crops)
         pixels = np.stack(rgb + [cv2.flip(rgb[i], 1) for i in flipped])
         self.stats["crops"] += len(pixels)
-        if getattr(detnet, "side", None) is None:
-            out = detnet(pixels)
-        else:
-            # only a pair of networks (DetNetRunner `side`) has a side read to skip, and reads the
-            # flipped crops (mirror votes, whose handedness alone is wanted) with the side network
-            # only; where a crop's side network turns it its own way (side_angle), it reads that square
-            side_pixels = None
-            if read_side and any(c.side_angle is not None for c in crops):
-                side_rgb = [r if c.side_angle is None else cut([c.for_side()])[0] for c, r in zip(crops, rgb)]
-                side_pixels = np.stack(side_rgb + [cv2.flip(side_rgb[i], 1) for i in flipped])
-                self.stats["side_crops"] += sum(c.side_angle is not None for c in crops)
-            out = detnet(pixels, read_side=read_side, side_only=len(flipped), side_pixels=side_pixels)
+        # only a pair of networks (DetNetRunner `side`) has a side read to skip, and reads the
+        # flipped crops (mirror votes, whose handedness alone is wanted) with the side network only
+        out = detnet(pixels, read_side=read_side, side_only=len(flipped)) if getattr(detnet, "side", None) is not None \
+            else detnet(pixels)
         if "uv_peak" not in out:            # a file exported before session 17
             out["uv_peak"] = out["uv"].copy()
         return out
@@ -626,7 +611,7 @@ class HandDetector:
                     uv = t.crop.to_frame(out["uv_peak"][i])
                     angle = self._head_angle(t.crop, out, i)
                     t.crop = crop_for_joints(uv, not t.is_right, self.crop_scale, self.upright_step, self.crop_size,
-                                             self._joints_angle(uv) if angle is None else angle, self._side_angle(uv))
+                                             self._joints_angle(uv) if angle is None else angle)
             again = self._run_voting(image_bgr, [self.tracks[i] for i in idx])   # a new track votes again here
             for k, i in enumerate(idx):
                 for key in out:
@@ -793,7 +778,7 @@ class HandDetector:
             angle = rounded_turn(angle, self.upright_step)
             if angle_apart(angle, self.tracks[i].crop.angle) > 1e-6:
                 turned.append(i)
-                crops.append(replace(self.tracks[i].crop, angle=angle, side_angle=None))
+                crops.append(replace(self.tracks[i].crop, angle=angle))
         self.stats["head_turns"] += len(idx) - len(unsure)
         if turned:
             more = self._run(image_bgr, crops)
@@ -810,7 +795,7 @@ class HandDetector:
         first prediction on an upside-down hand is too poor to turn it upright from; a doubted
         tracked hand does with `turn_check_below` (_check_turns). read_side=False: the turns
         are read without a side network and each hand keeps its own crop's side reading."""
-        turns = [replace(self.tracks[i].crop, angle=self.tracks[i].crop.angle + k * math.pi / 2, side_angle=None)
+        turns = [replace(self.tracks[i].crop, angle=self.tracks[i].crop.angle + k * math.pi / 2)
                  for i in idx for k in (1, 2, 3)]
         more = self._run(image_bgr, turns, read_side=read_side)
         peak = more["confidence"].mean(axis=1).reshape(len(idx), 3)
@@ -882,10 +867,9 @@ class HandDetector:
         the joints'."""
         uv = uv + 0.5 * track.velocity
         crop = crop_for_joints(uv, not track.is_right, self.crop_scale, self.upright_step, self.crop_size,
-                               self._joints_angle(uv) if angle is None else angle, self._side_angle(uv))
+                               self._joints_angle(uv) if angle is None else angle)
         side = float(np.clip(crop.side, track.crop.side / max_change, track.crop.side * max_change))
-        return CropTransform.around(crop.centre, side, crop.size, mirrored=crop.mirrored, angle=crop.angle,
-                                    side_angle=crop.side_angle)
+        return CropTransform.around(crop.centre, side, crop.size, mirrored=crop.mirrored, angle=crop.angle)
 
     def _joints_angle(self, uv):
         """The hand's angle (radians, as hand_angle) from its joints (21,2) by `turn_by`, or None for
@@ -893,14 +877,6 @@ class HandDetector:
         if self.turn_by != "wrist_knuckle" and np.all(np.isfinite(uv[PALM_ANGLE_JOINTS, :])):
             return float(HAND_ANGLES[self.turn_by](uv))
         return None
-
-    def _side_angle(self, uv):
-        """The angle (radians, as hand_angle) a second side network turns a crop by (`side_turn_by`)
-        where `turn_by` turns it another way, from its joints (21,2); None: the crop's own."""
-        if self.side_turn_by in ("crop", self.turn_by) or getattr(self.detnet, "side", None) is None or \
-                not np.all(np.isfinite(uv[PALM_ANGLE_JOINTS, :])):
-            return None
-        return float(HAND_ANGLES[self.side_turn_by](uv))
 
     @staticmethod
     def _plausible(uv, shape):

@@ -146,20 +146,18 @@ class DetNetRunner:
             self._input = np.empty((INPUT_BUFFER_CROPS, *planes), np.float32)
         return to_input_tensor(crops, out=self._input[:len(crops)])
 
-    def __call__(self, crops_rgb, read_side=True, side_only=0, side_pixels=None):
+    def __call__(self, crops_rgb, read_side=True, side_only=0):
         """side_only: with a side network, the last this many crops are read by it alone (the
         mirror votes: only their handedness is wanted), so every output but `handedness` has
-        that many rows fewer. side_pixels: (N,S,S,3) uint8, the crops the side network reads
-        instead of crops_rgb, row for row (the same squares turned its way); None: crops_rgb."""
+        that many rows fewer."""
         x = self.network_input(crops_rgb)
-        xs = x if side_pixels is None or self.side is None else to_input_tensor(np.asarray(side_pixels))
         crops = len(x) - side_only if self.side is not None and side_only else len(x)   # read for keypoints
         sides = len(x) if read_side and self.side is not None else 0                   # read for the side
         here_k, here_s = split_reads(crops, sides) if self.beside else (crops, sides)
         there = None
         if here_k < crops or here_s < sides:
-            there = self.second_thread().submit(self._read, x[here_k:crops], xs[here_s:sides])
-        keypoints, side = self._read(x[:here_k], xs[:here_s])
+            there = self.second_thread().submit(self._read, x[here_k:crops], x[here_s:sides])
+        keypoints, side = self._read(x[:here_k], x[:here_s])
         if there is not None:
             more_keypoints, more_side = there.result()
             keypoints, side = _joined(keypoints, more_keypoints), _joined(side, more_side)
