@@ -6,14 +6,23 @@ hand red, the frame's other outputs blue) as OUT/<clip>_<frame>.png.
 
     python research/false_hands.py Kirichovka__want [--out runs/false_hands] [--detnet F] [--set KEY=VALUE ...]
     python research/false_hands.py held-back --montage runs/false_hands/v9.png [--finder F]
+    python research/false_hands.py training --tracks [--detnet F --side-detnet int8 --set turn_by=palm]
 
 A clip of video/wild or video/wild3, held-back or training (by its stem), or `held-back`: every
 held-back clip of both drops, one after the other. --montage also draws up to --per-clip
 false hands of each clip (evenly over its false hands; the scene three times the hand's size
 around it, the false hand's joints red, MediaPipe's green) into one picture to look at: which
-"false" hands are hands MediaPipe missed, and which are not hands at all.
+"false" hands are hands MediaPipe missed, and which are not hands at all. `training`: every
+training people's clip of both drops (where a threshold may be chosen). --tracks: instead of the
+rows of false hands, one row per track that is ever false (the frame it was born on, the mean
+heatmap peak it was born at, frames false of frames tracked, its peaks while false), then the birth
+peaks of the tracks mostly false, false at times and always on a real hand, and the false hands by
+their track's birth peak (session 59: with the palm network, `akstheme__gesture`'s false hands are one
+track on the face born at 0.34, just over birth_confidence 0.3; on the training clips the tracks
+mostly false were born at a median 0.39, those always real at 0.42 or more in nine of ten).
 """
 import argparse
+from collections import defaultdict
 from pathlib import Path
 
 import cv2
@@ -27,20 +36,23 @@ from handmocap.training.pose_data import SHARED_DATA
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("clip", help="stem of a video/wild or video/wild3 clip, or held-back (all of those clips)")
+    p.add_argument("clip", help="stem of a video/wild or video/wild3 clip, held-back or training (all of those clips)")
     p.add_argument("--shared", type=Path, default=SHARED_DATA)
     p.add_argument("--out", type=Path, default=Path("runs/false_hands"))
     p.add_argument("--montage", type=Path, help="draw up to --per-clip false hands of each clip into this PNG")
     p.add_argument("--per-clip", type=int, default=6)
+    p.add_argument("--tracks", action="store_true", help="a row per track that is ever false, with its birth peak")
     add_model_arguments(p)
     args = p.parse_args()
     every = [v for held in (True, False) for v in real_data.wild_clips(args.shared, held, drops=real_data.WILD_DROPS)]
-    clips = (real_data.wild_clips(args.shared, True, drops=real_data.WILD_DROPS) if args.clip == "held-back"
-             else [v for v in every if v.stem == args.clip])
+    clips = (real_data.wild_clips(args.shared, args.clip == "held-back", drops=real_data.WILD_DROPS)
+             if args.clip in ("held-back", "training") else [v for v in every if v.stem == args.clip])
     if not clips:
         raise SystemExit(f"no clip {args.clip} in {args.shared / 'video'} {'/'.join(real_data.WILD_DROPS)}")
     args.out.mkdir(parents=True, exist_ok=True)
     detector = HandDetector.load(**detector_keywords(model_paths(args)))
+    if args.tracks:
+        return false_tracks(detector, clips)
     tiles = []
     for clip in clips:
         found = false_hands(detector, clip, args.out if args.montage is None else None)
@@ -82,6 +94,37 @@ def false_hands(detector, clip, draw_to=None):
                         cv2.circle(drawn, (int(x), int(y)), 2, colour, -1)
                 cv2.imwrite(str(draw_to / f"{clip.stem}_{f}.png"), drawn)
     return found
+
+
+def false_tracks(detector, clips):
+    """Print a row per track of the clips that is ever a false hand, then the birth peaks of the
+    tracks by kind and the false hands by their track's birth peak (a tenth wide bands)."""
+    births, false_by_band = defaultdict(list), defaultdict(int)
+    print("| clip | track | born on frame | birth peak | frames false / tracked | peaks while false (median, max) |")
+    print("|---|---|---|---|---|---|")
+    for clip in clips:
+        detector.reset()
+        fps, tracks = eval_people.clip_fps(clip), {}
+        for f, (image, labels, _, _) in enumerate(eval_people.frames_of_clip(clip)):
+            for hand in detector.process(image, f / fps):
+                peak = float(np.mean(hand["confidence"]))
+                t = tracks.setdefault(hand["track_id"], {"born": f, "birth_peak": peak, "false": [], "frames": 0})
+                t["frames"] += 1
+                if eval_people.nearest_label(hand["uv"], labels)[1] >= eval_people.ON_HAND:
+                    t["false"].append(peak)
+        for tid, t in tracks.items():
+            kind = "mostly false" if len(t["false"]) > t["frames"] / 2 else \
+                "real, false at times" if t["false"] else "always real"
+            births[kind].append(t["birth_peak"])
+            false_by_band[min(int(t["birth_peak"] * 10), 9) / 10] += len(t["false"])
+            if t["false"]:
+                print(f"| {clip.stem} | {tid} | {t['born']} | {t['birth_peak']:.2f} | {len(t['false'])} / {t['frames']} "
+                      f"| {np.median(t['false']):.2f}, {np.max(t['false']):.2f} |", flush=True)
+    for kind, peaks in sorted(births.items()):
+        q = np.percentile(peaks, [10, 50, 90])
+        print(f"{kind} tracks: {len(peaks)}, birth peak 10/50/90th percentile {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f}")
+    print("false hands by their track's birth peak:",
+          ", ".join(f"{band:.1f}-{band + 0.1:.1f}: {n}" for band, n in sorted(false_by_band.items())))
 
 
 def tile(frame, image, uv, labels, title, side=160):
