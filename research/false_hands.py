@@ -7,6 +7,7 @@ hand red, the frame's other outputs blue) as OUT/<clip>_<frame>.png.
     python research/false_hands.py Kirichovka__want [--out runs/false_hands] [--detnet F] [--set KEY=VALUE ...]
     python research/false_hands.py held-back --montage runs/false_hands/v9.png [--finder F]
     python research/false_hands.py training --tracks [--detnet F --side-detnet int8 --set turn_by=palm]
+                                   [--second-detnet models/detnet_lite0_int8.onnx]
 
 A clip of video/wild or video/wild3, held-back or training (by its stem), or `held-back`: every
 held-back clip of both drops, one after the other. --montage also draws up to --per-clip
@@ -20,6 +21,8 @@ peaks of the tracks mostly false, false at times and always on a real hand, and 
 their track's birth peak (session 59: with the palm network, `akstheme__gesture`'s false hands are one
 track on the face born at 0.34, just over birth_confidence 0.3; on the training clips the tracks
 mostly false were born at a median 0.39, those always real at 0.42 or more in nine of ten).
+--second-detnet F: each birth read again by F (session 59, the default network: the face 0.20, but the
+training clips' tracks born below 0.3 by it carry only 74 of their 645 false hands).
 """
 import argparse
 from collections import defaultdict
@@ -28,7 +31,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from handmocap.perception.crops import crop_for_joints
 from handmocap.perception.detector import HandDetector
+from handmocap.perception.detnet_runner import DetNetRunner
 from handmocap.training import eval_people, real_data
 from handmocap.training.eval_cli import add_model_arguments, detector_keywords, model_paths
 from handmocap.training.pose_data import SHARED_DATA
@@ -42,6 +47,9 @@ def main():
     p.add_argument("--montage", type=Path, help="draw up to --per-clip false hands of each clip into this PNG")
     p.add_argument("--per-clip", type=int, default=6)
     p.add_argument("--tracks", action="store_true", help="a row per track that is ever false, with its birth peak")
+    p.add_argument("--second-detnet", type=Path, default=None, metavar="ONNX",
+                   help="with --tracks: each birth read again by this DetNet on the crop its joints give (turned by "
+                        "wrist -> middle knuckle), its mean peak beside the birth peak")
     add_model_arguments(p)
     args = p.parse_args()
     every = [v for held in (True, False) for v in real_data.wild_clips(args.shared, held, drops=real_data.WILD_DROPS)]
@@ -52,7 +60,8 @@ def main():
     args.out.mkdir(parents=True, exist_ok=True)
     detector = HandDetector.load(**detector_keywords(model_paths(args)))
     if args.tracks:
-        return false_tracks(detector, clips)
+        second = DetNetRunner.load(args.second_detnet, side_path="none") if args.second_detnet else None
+        return false_tracks(detector, clips, second)
     tiles = []
     for clip in clips:
         found = false_hands(detector, clip, args.out if args.montage is None else None)
@@ -96,19 +105,29 @@ def false_hands(detector, clip, draw_to=None):
     return found
 
 
-def false_tracks(detector, clips):
+def false_tracks(detector, clips, second=None):
     """Print a row per track of the clips that is ever a false hand, then the birth peaks of the
-    tracks by kind and the false hands by their track's birth peak (a tenth wide bands)."""
-    births, false_by_band = defaultdict(list), defaultdict(int)
-    print("| clip | track | born on frame | birth peak | frames false / tracked | peaks while false (median, max) |")
-    print("|---|---|---|---|---|---|")
+    tracks by kind and the false hands by their track's birth peak (a tenth wide bands); with
+    `second` (a DetNetRunner), each birth's mean peak as that network reads the crop of its joints."""
+    births, false_by_band, seconds = defaultdict(list), defaultdict(int), defaultdict(list)
+    print("| clip | track | born on frame | birth peak | frames false / tracked | peaks while false (median, max) "
+          "| second network's birth peak |")
+    print("|---|---|---|---|---|---|---|")
     for clip in clips:
         detector.reset()
         fps, tracks = eval_people.clip_fps(clip), {}
         for f, (image, labels, _, _) in enumerate(eval_people.frames_of_clip(clip)):
             for hand in detector.process(image, f / fps):
                 peak = float(np.mean(hand["confidence"]))
-                t = tracks.setdefault(hand["track_id"], {"born": f, "birth_peak": peak, "false": [], "frames": 0})
+                if hand["track_id"] not in tracks and second is not None:
+                    crop = crop_for_joints(hand["uv"], hand["handedness"] == "left", detector.crop_scale,
+                                           detector.upright_step, second.crop_side)
+                    rgb = cv2.cvtColor(crop.cut(image), cv2.COLOR_BGR2RGB)[None]
+                    second_peak = float(second(rgb)["confidence"].mean())
+                else:
+                    second_peak = np.nan
+                t = tracks.setdefault(hand["track_id"], {"born": f, "birth_peak": peak, "false": [], "frames": 0,
+                                                         "second": second_peak})
                 t["frames"] += 1
                 if eval_people.nearest_label(hand["uv"], labels)[1] >= eval_people.ON_HAND:
                     t["false"].append(peak)
@@ -116,13 +135,17 @@ def false_tracks(detector, clips):
             kind = "mostly false" if len(t["false"]) > t["frames"] / 2 else \
                 "real, false at times" if t["false"] else "always real"
             births[kind].append(t["birth_peak"])
+            seconds[kind].append(t["second"])
             false_by_band[min(int(t["birth_peak"] * 10), 9) / 10] += len(t["false"])
             if t["false"]:
                 print(f"| {clip.stem} | {tid} | {t['born']} | {t['birth_peak']:.2f} | {len(t['false'])} / {t['frames']} "
-                      f"| {np.median(t['false']):.2f}, {np.max(t['false']):.2f} |", flush=True)
+                      f"| {np.median(t['false']):.2f}, {np.max(t['false']):.2f} | {t['second']:.2f} |", flush=True)
     for kind, peaks in sorted(births.items()):
         q = np.percentile(peaks, [10, 50, 90])
         print(f"{kind} tracks: {len(peaks)}, birth peak 10/50/90th percentile {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f}")
+        if second is not None:
+            q = np.percentile(seconds[kind], [10, 50, 90])
+            print(f"  the second network's birth peak: {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f}")
     print("false hands by their track's birth peak:",
           ", ".join(f"{band:.1f}-{band + 0.1:.1f}: {n}" for band, n in sorted(false_by_band.items())))
 
