@@ -30,6 +30,7 @@ WILD_SOURCE = "wild/"              # source prefix of the training people's vide
 PART_CACHE = "parts_v1.npz"         # close-ups of part of a hand (build_part_cache), negatives for --part-neg
 ARM_CACHE = "arms_v1.npz"           # an arm without its hand (build_arm_cache), negatives for --arm-neg
 NEAR_CACHE = "near_v1.npz"          # the scene just beside a hand (build_near_cache), negatives for --near-neg
+FACE_CACHE = "faces_v1.npz"         # a face with no hand in the crop (build_face_cache), negatives for --face-neg
 ELBOW_REACHES = (1.6, 2.0, 2.4)     # arm_crop reaches (crop sides beyond the wrist) by the elbow
 
 
@@ -338,14 +339,14 @@ def exit_crop(image, uv, rng, others=(), scale=1.3):
     return real_data.warp(np.ascontiguousarray(kept), M, CROP, replicate=True)
 
 
-def for_training_frames(shared, add_frame, progress, every_found_reliable=False):
+def for_training_frames(shared, add_frame, progress, every_found_reliable=False, drops=("wild",)):
     """add_frame(image (H,W,3) RGB, hands (k,21,2) reliable pseudo-labelled keypoints, held)
     for every 2nd frame of the training videos (held: their held-out tails), every 3rd of the
-    training clips of video/wild and every images/scenes photo; progress(name) after each
-    source. every_found_reliable: only frames whose every hand MediaPipe found is reliable.
-    Never the held-back people."""
+    training clips of the `drops` (video/wild by default) and every images/scenes photo;
+    progress(name) after each source. every_found_reliable: only frames whose every hand
+    MediaPipe found is reliable. Never the held-back people."""
     videos = [(Path(shared) / rel, real_data.video_split, 2) for rel in real_data.TRAIN_VIDEOS]
-    videos += [(v, lambda n: (np.ones(n, bool), np.zeros(n, bool)), 3) for v in real_data.wild_clips(shared)]
+    videos += [(v, lambda n: (np.ones(n, bool), np.zeros(n, bool)), 3) for v in real_data.wild_clips(shared, drops=drops)]
     for video, split, stride in videos:
         lab = real_data.load_pseudo_labels(video)
         train, held = split(len(lab["found"]))
@@ -435,6 +436,66 @@ def build_near_cache(shared, path, seed=0, log=print):
     return _save_crops(path, "near", crops, held_out)
 
 
+def face_boxes(image, max_side=480):
+    """(k,4) x0, y0, x1, y1 frame px of the frontal faces OpenCV's stock Haar cascade
+    (`haarcascade_frontalface_default.xml`, shipped in the opencv wheel) finds in the RGB
+    frame `image` (H,W,3), read at most `max_side` px on its longer side."""
+    cascade = face_boxes.__dict__.get("cascade")
+    if cascade is None:
+        cascade = face_boxes.cascade = cv2.CascadeClassifier(cv2.data.haarcascades + "haarcascade_frontalface_default.xml")
+    zoom = min(1.0, max_side / max(image.shape[:2]))
+    gray = cv2.cvtColor(cv2.resize(image, None, fx=zoom, fy=zoom, interpolation=cv2.INTER_AREA) if zoom < 1 else image,
+                        cv2.COLOR_RGB2GRAY)
+    found = cascade.detectMultiScale(gray, scaleFactor=1.1, minNeighbors=6, minSize=(24, 24))
+    boxes = np.asarray(found, float).reshape(-1, 4) / zoom
+    return np.c_[boxes[:, :2], boxes[:, :2] + boxes[:, 2:]]
+
+
+def face_crop(image, face, hands, rng, scale=1.3):
+    """A 128 px crop of the face `face` (4,) x0 y0 x1 y1, or None: the side of a crop of one
+    of the frame's hands `hands` (k,21,2) as the detector cuts it (x 0.8-1.2), centred within
+    a quarter of the face's size of its centre, turned at random (a track's crop turns with
+    the hand it followed): where a track that lost its hand by the face sits. None where it
+    overlaps a hand's box grown by 30% or is under 80% inside the frame."""
+    side = jittered_side(hands[rng.integers(len(hands))], rng, scale)
+    size = face[2:] - face[:2]
+    cx, cy = (face[:2] + face[2:]) / 2 + rng.uniform(-0.25, 0.25, 2) * size
+    box = (cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2)
+    h, w = image.shape[:2]
+    if side < 16 or _boxes_overlap(box, [grown_box(o) for o in hands]) or _inside_share(box, w, h) < 0.8:
+        return None
+    return real_data.warp(image, real_data.crop_affine(cx, cy, side, CROP, angle_deg=rng.uniform(-180, 180)), CROP,
+                          replicate=True)
+
+
+def build_face_cache(shared, path, seed=0, log=print):
+    """Crops of each face (`face_boxes`) with no hand in the crop (`face_crop`, three tries a
+    face) on the frames `for_training_frames` gives (both drops' training clips: the signers
+    of video/wild3 show most of the faces), only those whose every found hand is reliable: face (m,128,128,3) uint8, face_held (m,) bool (the training videos' held-out
+    tails). A face is the scene's most hand-like patch (skin, a hand-sized blob) and where
+    tracks wrongly born stay. Never from the held-back people."""
+    rng = np.random.default_rng([seed, 13])
+    crops, held_out = [], []
+
+    def add_frame(image, hands, held):
+        for face in face_boxes(image):
+            for _ in range(3):
+                crop = face_crop(image, face, hands, rng)
+                if crop is not None:
+                    crops.append(crop)
+                    held_out.append(held)
+                    break
+
+    for_training_frames(shared, add_frame, lambda where: log(f"  {where}: {len(crops)} face crops so far"),
+                        every_found_reliable=True, drops=real_data.WILD_DROPS)
+    return _save_crops(path, "face", crops, held_out)
+
+
+def load_faces(shared, log=print):
+    """The face cache (build_face_cache)."""
+    return _crop_cache(shared, FACE_CACHE, build_face_cache, "face crops", log)
+
+
 def load_near(shared, log=print):
     """The beside-a-hand cache (build_near_cache)."""
     return _crop_cache(shared, NEAR_CACHE, build_near_cache, "crops beside a hand", log)
@@ -449,7 +510,8 @@ def load_arms(shared, log=print):
 # kind -> (its cache's loader, what it shows)
 HARD_NEGATIVES = {"part": (load_parts, "part-of-hand close-ups"),
                   "arm": (load_arms, "arm crops (edge of frame, elbow)"),
-                  "near": (load_near, "crops beside a hand")}
+                  "near": (load_near, "crops beside a hand"),
+                  "face": (load_faces, "face crops")}
 
 
 def _cached(path, build, what, log):

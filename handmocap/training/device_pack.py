@@ -34,7 +34,7 @@ from handmocap.perception.crops import CROP
 PACK_DIR = Path("runs/device/pack")
 HAND_KEYS = ("uv", "right", "weight", "held", "source", "xyz", "has_3d")
 SYNTH_KEYS = ("uv", "xyz_rel", "xyz", "handedness", "in_image")
-HARD_KINDS = ("arm", "near")        # hard negatives a pack can carry (train_detnet --arm-neg, --near-neg)
+HARD_KINDS = ("arm", "near", "face")    # hard negatives a pack can carry (train_detnet --arm-neg, --near-neg, --face-neg)
 IMAGENET_IN_PACK = "imagenet_lite0.pt"     # the lite0 trunk's ImageNet weights, float16, in a lite0 run's pack
 LABEL_BYTES = 250           # a crop's labels (float16 uv and xyz) in the compressed .npz, about
 
@@ -90,7 +90,7 @@ def pack(out_dir, real, synth, val, mb=24.0, real_share=0.75, quality=85, hard=N
     """Write out_dir/real.npz and synth.npz within about `mb` megabytes together, from the
     real cache (detnet_data.load_real), the synthetic crops, the held-out synthetic set
     (detnet_data.load_synth) and optionally hard negatives {kind: cache} (HARD_KINDS:
-    detnet_data.load_arms, load_near; every 2nd training crop of each goes);
+    detnet_data.load_arms, load_near, load_faces; every 2nd training crop of each goes);
     -> the pack's size, bytes."""
     budget = mb * 1e6
     log(f"encoding {len(real['image'])} real crops once to know their sizes")

@@ -113,6 +113,9 @@ def add_arguments(p):
     p.add_argument("--near-neg", type=float, default=0.0, metavar="P",
                    help="share of the no-hand crops that show the scene just beside a hand (hair, a face, "
                         "clothes: where a track that lost its hand drifts), taught as no hand (default %(default)s)")
+    p.add_argument("--face-neg", type=float, default=0.0, metavar="P",
+                   help="share of the no-hand crops that show a face with no hand in the crop (found by OpenCV's "
+                        "stock Haar cascade; where tracks wrongly born stay), taught as no hand (default %(default)s)")
     p.add_argument("--max-synth", type=int, default=65536, help="synthetic crops kept in memory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 measured faster on the shared 2 cores)")
