@@ -623,26 +623,26 @@ def test_near_negatives_show_the_scene_beside_a_hand_and_no_hand():
 
 
 def test_face_negatives_show_the_face_and_no_hand():
-    """face_crop: a crop of a hand's crop size centred near the face, never on a hand (its
-    box grown by 30%), mostly inside the frame; None where the hand is at the face.
-    face_boxes: OpenCV's stock cascade loads and finds no face in a blank frame."""
+    """face_crop: a crop of a hand's crop size centred near the face, no hand keypoint in it
+    (a hand may be just beside it), mostly inside the frame; None where the hand is at the
+    face. face_boxes: OpenCV's stock cascade loads and finds no face in a blank frame."""
     from handmocap.training.detnet_data import face_boxes, face_crop
     rng = np.random.default_rng(0)
     frame = np.full((600, 800, 3), 90, np.uint8)
     face = np.array([350.0, 80.0, 450.0, 200.0])
     frame[80:200, 350:450] = (200, 150, 120)
-    hand = np.array([560.0, 300.0]) + rng.uniform(0, 90, (21, 2))
-    lo, hi = np.floor(hand.min(0)).astype(int), np.ceil(hand.max(0)).astype(int)
-    frame[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] = (255, 0, 255)           # the hand: a colour nothing else has
+    hand = np.array([330.0, 250.0]) + rng.uniform(0, 90, (21, 2))       # just below the face
+    for x, y in hand.astype(int):
+        frame[y - 1:y + 2, x - 1:x + 2] = (255, 0, 255)              # the keypoints: a colour nothing else has
     made = 0
-    for _ in range(40):
+    for _ in range(60):
         crop = face_crop(frame, face, hand[None], rng)
         if crop is not None:
             made += 1
             assert crop.shape == (128, 128, 3)
             assert not ((crop[..., 0] > 200) & (crop[..., 1] < 50)).any()
             assert (np.abs(crop[60:68, 60:68].astype(int) - (200, 150, 120)) < 8).all()   # the face in the middle
-    assert made >= 30
+    assert made >= 5
     at_face = np.array([360.0, 120.0]) + rng.uniform(0, 90, (21, 2))
     assert all(face_crop(frame, face, at_face[None], rng) is None for _ in range(20))
     assert face_boxes(np.full((480, 640, 3), 128, np.uint8)).shape == (0, 4)

@@ -30,7 +30,7 @@ WILD_SOURCE = "wild/"              # source prefix of the training people's vide
 PART_CACHE = "parts_v1.npz"         # close-ups of part of a hand (build_part_cache), negatives for --part-neg
 ARM_CACHE = "arms_v1.npz"           # an arm without its hand (build_arm_cache), negatives for --arm-neg
 NEAR_CACHE = "near_v1.npz"          # the scene just beside a hand (build_near_cache), negatives for --near-neg
-FACE_CACHE = "faces_v1.npz"         # a face with no hand in the crop (build_face_cache), negatives for --face-neg
+FACE_CACHE = "faces_v2.npz"         # a face with no hand in the crop (build_face_cache), negatives for --face-neg
 ELBOW_REACHES = (1.6, 2.0, 2.4)     # arm_crop reaches (crop sides beyond the wrist) by the elbow
 
 
@@ -451,21 +451,27 @@ def face_boxes(image, max_side=480):
     return np.c_[boxes[:, :2], boxes[:, :2] + boxes[:, 2:]]
 
 
-def face_crop(image, face, hands, rng, scale=1.3):
+def face_crop(image, face, hands, rng, scale=1.3, margin=8):
     """A 128 px crop of the face `face` (4,) x0 y0 x1 y1, or None: the side of a crop of one
     of the frame's hands `hands` (k,21,2) as the detector cuts it (x 0.8-1.2), centred within
     a quarter of the face's size of its centre, turned at random (a track's crop turns with
-    the hand it followed): where a track that lost its hand by the face sits. None where it
-    overlaps a hand's box grown by 30% or is under 80% inside the frame."""
+    the hand it followed): where a track that lost its hand by the face sits. A hand may be
+    just beside the crop (a hand held below the face: where session 59's false track was
+    born), none of its keypoints within `margin` crop px of it. None where one is, or where
+    the crop is under 80% inside the frame."""
     side = jittered_side(hands[rng.integers(len(hands))], rng, scale)
     size = face[2:] - face[:2]
     cx, cy = (face[:2] + face[2:]) / 2 + rng.uniform(-0.25, 0.25, 2) * size
     box = (cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2)
     h, w = image.shape[:2]
-    if side < 16 or _boxes_overlap(box, [grown_box(o) for o in hands]) or _inside_share(box, w, h) < 0.8:
+    if side < 16 or _inside_share(box, w, h) < 0.8:
         return None
-    return real_data.warp(image, real_data.crop_affine(cx, cy, side, CROP, angle_deg=rng.uniform(-180, 180)), CROP,
-                          replicate=True)
+    M = real_data.crop_affine(cx, cy, side, CROP, angle_deg=rng.uniform(-180, 180))
+    half = (CROP - 1) / 2
+    for uv in hands:
+        if np.any(np.all(np.abs(real_data.apply_affine(M, uv) - half) < half + margin, axis=1)):
+            return None
+    return real_data.warp(image, M, CROP, replicate=True)
 
 
 def build_face_cache(shared, path, seed=0, log=print):
