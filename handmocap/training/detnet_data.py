@@ -478,8 +478,9 @@ def build_face_cache(shared, path, seed=0, log=print):
     """Crops of each face (`face_boxes`) with no hand in the crop (`face_crop`, three tries a
     face) on the frames `for_training_frames` gives (both drops' training clips: the signers
     of video/wild3 show most of the faces), only frames whose every found hand is reliable.
-    Saved: face (m,128,128,3) uint8, face_held (m,) bool (the training videos' held-out tails). A face is the scene's most hand-like patch (skin, a hand-sized blob) and where
-    tracks wrongly born stay. Never from the held-back people."""
+    Saved: face (m,128,128,3) uint8, face_held (m,) bool (the training videos' held-out tails).
+    A face is the scene's most hand-like patch (skin, a hand-sized blob) and where tracks
+    wrongly born stay. Never from the held-back people."""
     rng = np.random.default_rng([seed, 13])
     crops, held_out = [], []
 
