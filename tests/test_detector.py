@@ -11,7 +11,7 @@ import pytest
 from conftest import ROOT, graph_env
 from handmocap.perception.hand_finder import FoundHand
 from handmocap.perception.crops import CropTransform, crop_for_joints, hand_angle, head_angle_in_frame, palm_angle
-from handmocap.perception.detector import CENTRE, HandDetector
+from handmocap.perception.detector import CENTRE, DetectorSettings, HandDetector
 from handmocap.perception.tracks import HANDEDNESS_MEMORY, Track
 from handmocap.perception.rotations import mirror_points
 from handmocap.perception.skeleton import normalize_joints
@@ -1253,3 +1253,20 @@ def test_the_detector_node_refuses_a_model_file_that_is_another_network_at_start
     r = subprocess.run([sys.executable, "-m", "nodes.detector", f"{param}:=models/{wrong}"], cwd=ROOT,
                        env=graph_env(run_dir), capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and words in r.stderr and "Traceback" not in r.stderr, r.stderr[-2000:]
+
+
+def test_a_hand_entering_from_the_edge_is_kept_by_its_joints_inside():
+    """Session 62: a pianist's hand seen from above enters from the frame's bottom; DetNet reads
+    its unseen wrist far below the frame, the joints' box centre crosses the edge, and the track
+    ended while the fingers were in view. `edge_joints` keeps it while that many joints are inside."""
+    h, w = 540, 960
+    uv = np.stack([np.full(21, 400.0), np.linspace(300.0, 800.0, 21)], axis=1)   # centre y 550 > h
+    inside = int((uv[:, 1] < h).sum())
+    assert not HandDetector._plausible(uv, (h, w, 3))                       # the centre alone decides
+    assert HandDetector._plausible(uv, (h, w, 3), edge_joints=inside)
+    assert not HandDetector._plausible(uv, (h, w, 3), edge_joints=inside + 1)
+    gone = uv + [0.0, 600.0]                                                # every joint below the frame
+    assert not HandDetector._plausible(gone, (h, w, 3), edge_joints=1)
+    assert not HandDetector._plausible(uv * 10, (h, w, 3), edge_joints=1)   # wider than twice the frame
+    with pytest.raises(ValueError, match="edge_joints"):
+        DetectorSettings(edge_joints=0)

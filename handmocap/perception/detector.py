@@ -142,6 +142,11 @@ class DetectorSettings:
     # found hand inside a track's crop whose box overlaps the track's joints less than this re-seeds
     # the track from the finder's box (0: never; the finder then only runs while a slot is free)
     reseed_iou: float = 0.3
+    # a tracked hand whose joints' box centre lies outside the frame ends its track unless at least
+    # this many of its 21 joints lie inside (None: the centre alone decides). A hand entering from
+    # the frame's edge (a pianist's from the bottom) has its unseen wrist read far outside, and its
+    # centre crossed the edge while DetNet still read it at 0.7 (session 62)
+    edge_joints: int | None = None
     # a found hand becomes a track only from this mean heatmap peak on its refined crop on:
     # with min_confidence a hysteresis (chosen on training-side clips by
     # scripts/detector_thresholds.py). DetNet's presence head is sure of almost anything the
@@ -264,6 +269,8 @@ class DetectorSettings:
             raise ValueError(f"turn_head_memory must be in (0, 1] or None, got {self.turn_head_memory}")
         if not 45.0 <= self.turn_head_margin <= 180.0:
             raise ValueError(f"turn_head_margin must be 45..180 degrees, got {self.turn_head_margin}")
+        if self.edge_joints is not None and not 1 <= self.edge_joints <= 21:
+            raise ValueError(f"edge_joints must be 1..21 or None, got {self.edge_joints}")
         if self.turn_by not in HAND_ANGLES:
             raise ValueError(f"turn_by must be one of {', '.join(HAND_ANGLES)}, got {self.turn_by!r}")
         if self.turn_check_every < 1:
@@ -645,7 +652,7 @@ class HandDetector:
                 continue
             # the track follows the heatmap peaks; the hand published is read out finer (uv)
             uv, followed = t.crop.to_frame(out["uv"][i]), t.crop.to_frame(out["uv_peak"][i])
-            if not self._plausible(followed, image_bgr.shape):
+            if not self._plausible(followed, image_bgr.shape, self.edge_joints):
                 self.lost_last_frame = True
                 continue
             # the wire contract (messages/HandKeypoints.json): joint 9 at the origin, |0-9| = 1;
@@ -879,14 +886,20 @@ class HandDetector:
         return None
 
     @staticmethod
-    def _plausible(uv, shape):
-        """A hand whose joints are finite, centred inside the frame and no wider than twice it."""
+    def _plausible(uv, shape, edge_joints=None):
+        """A hand whose joints uv (21,2) frame px are finite, no wider than twice the frame and
+        centred inside it, or (edge_joints not None) with at least `edge_joints` joints inside it."""
         if not np.all(np.isfinite(uv)):
             return False
         h, w = shape[:2]
         lo, hi = uv.min(axis=0), uv.max(axis=0)
+        if np.max(hi - lo) > 2 * max(h, w):
+            return False
         centre = (lo + hi) / 2
-        return bool(0 <= centre[0] < w and 0 <= centre[1] < h and np.max(hi - lo) <= 2 * max(h, w))
+        if 0 <= centre[0] < w and 0 <= centre[1] < h:
+            return True
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        return edge_joints is not None and int(inside.sum()) >= edge_joints
 
     def _drop_duplicates(self, hands, followed=None, iou=0.5, inside=0.7):
         """Two tracks on one hand (joint boxes with IoU >= `iou`, or the smaller box at
