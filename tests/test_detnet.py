@@ -166,6 +166,48 @@ def test_a_fine_head_starts_as_the_coarse_read_out_and_trains_alone_on_a_frozen_
         DetNet("paper", fine=True)
 
 
+def test_a_presence_map_starts_at_zero_and_trains_the_presence_alone(tmp_path):
+    """--presence-map: the added term leaves a loaded net's presence as it was; trained with
+    the presence head on a frozen net (--train-only presence_map presence_head) it moves the
+    presence and nothing else, and the exported file gives the same presence as torch."""
+    torch = _torch()
+    import onnxruntime as ort
+    import torch.nn.functional as F
+    from handmocap.training.detnet import DetNet, export_onnx
+    from handmocap.training.detnet_init import load_matching
+    torch.manual_seed(0)
+    plain = DetNet("fast").eval()
+    net = DetNet("fast", presence_map=True)
+    assert {m.split(".")[0] for m in load_matching(net, plain.state_dict())} == {"presence_map"}
+    x = torch.rand(8, 3, 128, 128)
+    with torch.no_grad():
+        torch.testing.assert_close(net.eval()(x)["presence"], plain(x)["presence"])
+    trained = ("presence_map", "presence_head")
+    for name, p in net.named_parameters():
+        p.requires_grad_(name.split(".")[0] in trained)
+    frozen = {k: v.clone() for k, v in net.state_dict().items() if k.split(".")[0] not in trained}
+    for name, m in net.named_children():
+        m.train(name in trained)
+    target = torch.tensor([1.0, 0.0] * 4)
+    opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=1e-2)
+    first = F.binary_cross_entropy_with_logits(net(x)["presence"], target).item()
+    for _ in range(20):
+        loss = F.binary_cross_entropy_with_logits(net(x)["presence"], target)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert loss.item() < 0.5 * first
+    for k, v in net.state_dict().items():
+        if k in frozen:
+            assert torch.equal(v, frozen[k]), k
+
+    export_onnx(net.eval(), tmp_path / "pm.onnx", "softmax")
+    sess = ort.InferenceSession(str(tmp_path / "pm.onnx"), providers=["CPUExecutionProvider"])
+    got = sess.run(["presence"], {"image": x.numpy()})[0]
+    with torch.no_grad():
+        np.testing.assert_allclose(got, torch.sigmoid(net(x)["presence"]).numpy(), atol=1e-4)
+
+
 def _gaussian_maps(cells, grid):
     """(N,21,2) continuous cells -> (N,21,G,G) sigma-1 Gaussians."""
     g = np.arange(grid)

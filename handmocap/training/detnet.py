@@ -216,11 +216,30 @@ class FineHeatmaps(nn.Module):
         return up(coarse_logits) + self.out(self.mix(up(self.coarse(feat)) + self.skip(feat32)))
 
 
+class PresenceMap(nn.Module):
+    """A term added to the presence logit from where things lie in the crop, read as the
+    handedness head reads chirality (a 4x4 map of a few channels), where the presence head sees
+    only the features' mean over the crop: on that mean a face, a hand held at the face and two
+    touching hands were one thing (session 63). Its last layer starts at zero, so a network it
+    is added to starts as it was. feat (N,C,G,G), grid G -> (N,) logits."""
+
+    def __init__(self, c):
+        super().__init__()
+        self.map = conv_bn(c, 8, 1)
+        self.head = nn.Sequential(nn.Linear(8 * 16, 64), nn.ReLU(inplace=True), nn.Linear(64, 1))
+        nn.init.zeros_(self.head[2].weight)
+        nn.init.zeros_(self.head[2].bias)
+
+    def forward(self, feat, grid):
+        return self.head(F.avg_pool2d(self.map(feat), grid // 4).flatten(1))[:, 0]
+
+
 class DetNet(nn.Module):
     """Backbone + heatmap, delta, location heads (paper) + presence, handedness (ours);
-    fine=True adds FineHeatmaps (fast backbones), out["fine_logits"]."""
+    fine=True adds FineHeatmaps (fast backbones), out["fine_logits"]; presence_map=True adds to
+    the presence logit a term read off a coarse 4x4 map (PresenceMap)."""
 
-    def __init__(self, backbone="fast", fine=False):
+    def __init__(self, backbone="fast", fine=False, presence_map=False):
         super().__init__()
         if backbone not in BACKBONES:
             raise ValueError(f"backbone must be one of {sorted(BACKBONES)}, got {backbone!r}")
@@ -242,6 +261,7 @@ class DetNet(nn.Module):
         self.chirality = conv_bn(c, 8, 1)
         self.handedness_head = nn.Sequential(nn.Linear(8 * 16, 64), nn.ReLU(inplace=True), nn.Linear(64, 1))
         self.fine = FineHeatmaps(c, self.backbone.stem[0].out_channels) if fine else None
+        self.presence_map = PresenceMap(c) if presence_map else None
 
     def forward(self, image):
         """image (N,3,128,128) RGB [0,1] -> dict of maps (see module docstring)."""
@@ -257,6 +277,8 @@ class DetNet(nn.Module):
         delta = self.delta_head(torch.cat([x, heat], 1))
         loc = self.loc_head(torch.cat([x, heat, delta], 1))
         presence = self.presence_head(feat.mean((2, 3)))[:, 0]
+        if self.presence_map is not None:
+            presence = presence + self.presence_map(feat, self.grid)
         # a 4x4 mean pool with the grid's side known (adaptive pooling needs the traced shape, which
         # the pretrained trunk's "SAME" padding hides from the ONNX exporter)
         handedness = self.handedness_head(F.avg_pool2d(self.chirality(feat), self.grid // 4).flatten(1))[:, 0]

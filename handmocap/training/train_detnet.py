@@ -85,6 +85,9 @@ def add_arguments(p):
     p.add_argument("--fine-head", action="store_true",
                    help="add the fine (32x32) heatmaps (detnet.FineHeatmaps) and export their read-out if it "
                         "measures best on held-out synthetic crops")
+    p.add_argument("--presence-map", action="store_true",
+                   help="add detnet.PresenceMap (the presence also from a 4x4 map of the crop; starts at zero); "
+                        "train it with --train-only presence_map presence_head")
     p.add_argument("--train-only", nargs="+", default=None, metavar="MODULE",
                    help="train only these modules (e.g. `fine`); the rest stays as loaded, BatchNorm "
                         "statistics included")
@@ -213,7 +216,7 @@ def main(args):
     run_dir = args.run_dir or RUN_DIR / args.backbone
     if args.export is None:   # never the shipped model by default: a trial run must not replace it
         args.export = run_dir / "detnet.onnx"
-    net = DetNet(args.backbone, fine=args.fine_head).to(device, memory_format=torch.channels_last)
+    net = DetNet(args.backbone, fine=args.fine_head, presence_map=args.presence_map).to(device, memory_format=torch.channels_last)
     trained = dict(net.named_parameters())
     if args.train_only:
         trained = {k: v for k, v in trained.items() if k.split(".")[0] in args.train_only}
