@@ -3,10 +3,10 @@ held-back clips (both drops; OpenCV's stock Haar cascade, `detnet_data.face_boxe
 `handtrain detnet --face-neg` cuts the training people's, `detnet_data.face_crop`: a hand's
 crop side, no hand in the crop), read by each network given. Prints, per network, the mean
 heatmap peak (the tracker's confidence: a track is born at `birth_confidence` 0.3 and kept
-down to `min_confidence` 0.1), the share of face crops at or over 0.3 and over 0.1, the
-share the presence head calls a hand (> 0.5), and the share that would start a track (a peak
-at or over 0.3 with presence over 0.5: `birth_confidence` and `presence_threshold` both passed). Session 60: the face-negative network against
-the default and session 58's palm network.
+down to `min_confidence` 0.1), the share of face crops at or over each, the share the presence
+head calls a hand (over `presence_threshold` 0.5), and the share that would start a track (both
+bounds passed); the bounds are DetectorSettings' defaults. Session 60: the face-negative
+network against the default and session 58's palm network.
 
     python research/face_reads.py models/detnet_lite0_int8.onnx models/detnet_lite0_palm_int8.onnx [more.onnx]
            [--every 5] [--montage runs/s60/held_faces.png]
@@ -16,6 +16,7 @@ import argparse
 import cv2
 import numpy as np
 
+from handmocap.perception.detector import DetectorSettings
 from handmocap.perception.detnet_runner import DetNetRunner
 from handmocap.training import real_data
 from handmocap.training.detnet_data import face_boxes, face_crop
@@ -61,14 +62,17 @@ def main():
         pick = np.concatenate([pick, np.zeros((-len(pick) % 8, 128, 128, 3), np.uint8)])
         rows = [np.concatenate(list(pick[r * 8:(r + 1) * 8]), 1) for r in range(len(pick) // 8)]
         cv2.imwrite(args.montage, cv2.cvtColor(np.concatenate(rows, 0), cv2.COLOR_RGB2BGR))
-    print("| network | mean peak | peak >= 0.3 | peak >= 0.1 (kept) | presence > 0.5 | born (peak >= 0.3, presence > 0.5) | "
-          + " | ".join(f"{c} mean peak" for c in clips) + " |")
+    bounds = DetectorSettings()
+    born, kept, present = bounds.birth_confidence, bounds.min_confidence, bounds.presence_threshold
+    print(f"| network | mean peak | peak >= {born} | peak >= {kept} (kept) | presence > {present} | "
+          f"born (peak >= {born}, presence > {present}) | " + " | ".join(f"{c} mean peak" for c in clips) + " |")
     print("|---|---|---|---|---|---|" + "---|" * len(clips))
     for path in args.detnets:
         out = DetNetRunner.load(path, side_path="none")(crops, read_side=False)
         peak = out["confidence"].mean(axis=1)
-        print(f"| {path} | {peak.mean():.3f} | {(peak >= 0.3).mean():.3f} | {(peak >= 0.1).mean():.3f} | "
-              f"{(out['presence'] > 0.5).mean():.3f} | {((peak >= 0.3) & (out['presence'] > 0.5)).mean():.3f} | "
+        is_hand = out["presence"] > present
+        print(f"| {path} | {peak.mean():.3f} | {(peak >= born).mean():.3f} | {(peak >= kept).mean():.3f} | "
+              f"{is_hand.mean():.3f} | {((peak >= born) & is_hand).mean():.3f} | "
               + " | ".join(f"{peak[names == c].mean():.3f}" for c in clips) + " |")
 
 

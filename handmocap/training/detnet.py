@@ -216,6 +216,13 @@ class FineHeatmaps(nn.Module):
         return up(coarse_logits) + self.out(self.mix(up(self.coarse(feat)) + self.skip(feat32)))
 
 
+def pooled_4x4(maps, grid):
+    """(N,C,G,G) maps, grid G -> (N,C*16): a 4x4 mean pool, flattened. With the grid's side known,
+    not adaptive pooling, which needs the traced shape that the pretrained trunk's "SAME" padding
+    hides from the ONNX exporter."""
+    return F.avg_pool2d(maps, grid // 4).flatten(1)
+
+
 class PresenceMap(nn.Module):
     """A term added to the presence logit from where things lie in the crop, read as the
     handedness head reads chirality (a 4x4 map of a few channels), where the presence head sees
@@ -231,7 +238,7 @@ class PresenceMap(nn.Module):
         nn.init.zeros_(self.head[2].bias)
 
     def forward(self, feat, grid):
-        return self.head(F.avg_pool2d(self.map(feat), grid // 4).flatten(1))[:, 0]
+        return self.head(pooled_4x4(self.map(feat), grid))[:, 0]
 
 
 class DetNet(nn.Module):
@@ -277,11 +284,9 @@ class DetNet(nn.Module):
         delta = self.delta_head(torch.cat([x, heat], 1))
         loc = self.loc_head(torch.cat([x, heat, delta], 1))
         presence = self.presence_head(feat.mean((2, 3)))[:, 0]
-        if self.presence_map is not None:
+        handedness = self.handedness_head(pooled_4x4(self.chirality(feat), self.grid))[:, 0]
+        if self.presence_map is not None:   # after the plain net's convs, which then keep their order
             presence = presence + self.presence_map(feat, self.grid)
-        # a 4x4 mean pool with the grid's side known (adaptive pooling needs the traced shape, which
-        # the pretrained trunk's "SAME" padding hides from the ONNX exporter)
-        handedness = self.handedness_head(F.avg_pool2d(self.chirality(feat), self.grid // 4).flatten(1))[:, 0]
         out = {"heatmap": heat, "heat_logits": heat_logits, "delta": delta.view(n, NUM_JOINTS, 3, g, g),
                "location": loc.view(n, NUM_JOINTS, 3, g, g), "presence": presence, "handedness": handedness}
         if self.fine is not None:       # last, so the exported graph's convs keep the order state_from_onnx expects
