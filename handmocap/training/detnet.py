@@ -23,7 +23,7 @@ import torch.nn.functional as F
 
 from handmocap.perception.crops import CROP
 from handmocap.perception.skeleton import NUM_JOINTS, PARENTS
-from handmocap.training.efficientnet_lite import TAP_CHANNELS, LiteTrunk, normalize
+from handmocap.training.efficientnet_lite import TAP_CHANNELS, TAPS, LiteTrunk, lite_blocks, normalize
 
 
 
@@ -151,10 +151,15 @@ class LiteFPN(nn.Module):
         self.channels = channels
 
     def forward(self, x):
+        return self.features(x)[0]
+
+    def features(self, x):
+        """-> the heads' 16x16 map (N,C,16,16) and the trunk's stride-16 map (N,112,8,8)
+        (`PresenceBranch`)."""
         c8, c16, c32 = self.trunk(x)
         up = lambda t: F.interpolate(t, scale_factor=2.0, mode="nearest")  # noqa: E731
         p16 = self.smooth[0](self.lateral[1](c16) + up(self.lateral[2](c32)))
-        return self.smooth[1](self.lateral[0](c8) + up(p16))
+        return self.smooth[1](self.lateral[0](c8) + up(p16)), c16
 
 
 def lite0_backbone():
@@ -241,17 +246,49 @@ class PresenceMap(nn.Module):
         return self.head(pooled_4x4(self.map(feat), grid))[:, 0]
 
 
+class PresenceBranch(nn.Module):
+    """A term added to the presence logit from features of its own: a copy of the lite0 trunk's
+    stride-32 stage (blocks 11-15, `copy_trunk_into_presence_branch` seeds it from the trunk),
+    read from the trunk's stride-16 map, mean-pooled, and a small MLP whose last layer starts at
+    zero. Trained alone (--train-only presence_branch presence_head) it can learn features that
+    tell a face from a hand held at a face, which a read of the frozen features could not
+    (session 63), while every keypoint stays as it was. c16 (N,112,G/2,G/2) -> (N,) logits."""
+
+    FIRST = TAPS[16] + 1
+
+    def __init__(self):
+        super().__init__()
+        self.blocks = nn.Sequential(*lite_blocks(self.FIRST))
+        self.head = nn.Sequential(nn.Linear(TAP_CHANNELS[32], 64), nn.ReLU(inplace=True), nn.Linear(64, 1))
+        nn.init.zeros_(self.head[2].weight)
+        nn.init.zeros_(self.head[2].bias)
+
+    def forward(self, c16):
+        return self.head(self.blocks(c16).mean((2, 3)))[:, 0]
+
+
+def copy_trunk_into_presence_branch(net):
+    """Seed `net.presence_branch`'s blocks with the trunk's own (the loaded network's deep
+    stage), so the branch starts from what those blocks know."""
+    for i, block in enumerate(net.presence_branch.blocks):
+        block.load_state_dict(net.backbone.trunk._blocks[PresenceBranch.FIRST + i].state_dict())
+
+
 class DetNet(nn.Module):
     """Backbone + heatmap, delta, location heads (paper) + presence, handedness (ours);
     fine=True adds FineHeatmaps (fast backbones), out["fine_logits"]; presence_map=True adds to
-    the presence logit a term read off a coarse 4x4 map (PresenceMap)."""
+    the presence logit a term read off a coarse 4x4 map (PresenceMap); presence_branch=True
+    (lite0) one read by a copy of the trunk's deep stage (PresenceBranch). `arch()` names the
+    options a checkpoint or exported file records."""
 
-    def __init__(self, backbone="fast", fine=False, presence_map=False):
+    def __init__(self, backbone="fast", fine=False, presence_map=False, presence_branch=False):
         super().__init__()
         if backbone not in BACKBONES:
             raise ValueError(f"backbone must be one of {sorted(BACKBONES)}, got {backbone!r}")
         if fine and not backbone.startswith("fast"):
             raise ValueError("the fine heatmaps need a fast backbone's 32 px map")
+        if presence_branch and backbone != "lite0":
+            raise ValueError("the presence branch copies the lite0 trunk's deep stage: backbone lite0")
         self.backbone_name = backbone
         self.backbone, c, self.stride = BACKBONES[backbone]()
         self.grid = CROP // self.stride
@@ -269,12 +306,20 @@ class DetNet(nn.Module):
         self.handedness_head = nn.Sequential(nn.Linear(8 * 16, 64), nn.ReLU(inplace=True), nn.Linear(64, 1))
         self.fine = FineHeatmaps(c, self.backbone.stem[0].out_channels) if fine else None
         self.presence_map = PresenceMap(c) if presence_map else None
+        self.presence_branch = PresenceBranch() if presence_branch else None
+
+    def arch(self):
+        """The options that make this network's shape: {name: bool}, DetNet(backbone, **arch())."""
+        return {"fine": self.fine is not None, "presence_map": self.presence_map is not None,
+                "presence_branch": self.presence_branch is not None}
 
     def forward(self, image):
         """image (N,3,128,128) RGB [0,1] -> dict of maps (see module docstring)."""
         x = normalize(image) if self.backbone_name in PRETRAINED else image * 2.0 - 1.0
         if self.fine is not None:
             feat, feat32 = self.backbone.features(x)
+        elif self.presence_branch is not None:
+            feat, c16 = self.backbone.features(x)
         else:
             feat = self.backbone(x)
         n, _, g, _ = feat.shape
@@ -287,6 +332,8 @@ class DetNet(nn.Module):
         handedness = self.handedness_head(pooled_4x4(self.chirality(feat), self.grid))[:, 0]
         if self.presence_map is not None:   # after the plain net's convs, which then keep their order
             presence = presence + self.presence_map(feat, self.grid)
+        if self.presence_branch is not None:
+            presence = presence + self.presence_branch(c16)
         out = {"heatmap": heat, "heat_logits": heat_logits, "delta": delta.view(n, NUM_JOINTS, 3, g, g),
                "location": loc.view(n, NUM_JOINTS, 3, g, g), "presence": presence, "handedness": handedness}
         if self.fine is not None:       # last, so the exported graph's convs keep the order state_from_onnx expects
@@ -424,8 +471,8 @@ def export_onnx(net, path, refine="logquad", opset=17):
                       opset_version=opset, dynamo=False)
     model = onnx.load(str(path))
     model.producer_name = "handmocap.training.detnet"
-    model.doc_string = (f"DetNet backbone={net.backbone_name} fine={int(net.fine is not None)} refine={refine}; "
-                        f"see models/README.md")
+    options = " ".join(f"{k}={int(v)}" for k, v in net.arch().items())
+    model.doc_string = f"DetNet backbone={net.backbone_name} {options} refine={refine}; see models/README.md"
     from handmocap.perception.onnx_models import pad_depthwise_convs
     pad_depthwise_convs(model)          # the same function, ~20% faster on onnxruntime's CPU kernels
     onnx.checker.check_model(model)

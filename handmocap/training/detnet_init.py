@@ -3,20 +3,24 @@ residual blocks as the identity), an exported ONNX file made trainable again
 (`state_from_onnx`), or a pretrained backbone with its first blocks frozen (`frozen_modules`);
 and the float16 weights file that `--init-from` starts from (`write_weights`).
 """
+from pathlib import Path
+
 import numpy as np
 
 from handmocap.perception.crops import CROP
 
 
-def write_weights(path, net, refine, backbone, fine, iteration, history=(), **meta):
+def write_weights(path, net, refine, backbone, iteration, history=(), **meta):
     """Save `net`'s weights in float16 (half the size; `handtrain detnet --init-from` casts
-    them back) with what a run needs to go on from them, and say so. meta: more fields."""
+    them back) with what a run needs to go on from them (its shape: net.arch()), and say so.
+    meta: more fields."""
     import torch
     half = {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()}
-    torch.save({"model": half, "iteration": iteration, "refine": refine, "backbone": backbone, "fine": fine,
+    torch.save({"model": half, "iteration": iteration, "refine": refine, "backbone": backbone, **net.arch(),
                 "history": list(history), **meta}, path)
+    options = "".join(f" --{k.replace('_', '-')}" for k, v in net.arch().items() if v and k != "fine")
     print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB): "
-          f"`handtrain detnet --backbone {backbone} --init-from {path}` trains on from it")
+          f"`handtrain detnet --backbone {backbone}{options} --init-from {path}` trains on from it")
 
 
 def load_matching(net, state):
@@ -40,6 +44,26 @@ def unpadded(w, shape):
     return w[:shape[0], :shape[1]] if not rest.any() else None
 
 
+# the optional parts a DetNet's checkpoint and exported file record (DetNet.arch), besides "fine"
+PARTS = ("presence_map", "presence_branch")
+
+
+def onnx_doc(model):
+    """An exported DetNet's doc string as {key: value} ("backbone", "fine", PARTS, "refine")."""
+    return dict(p.split("=", 1) for p in model.doc_string.split() if "=" in p)
+
+
+def recorded_parts(path):
+    """{part: True} for each of PARTS that the checkpoint or exported file at `path` has."""
+    if Path(path).suffix == ".onnx":
+        import onnx
+        doc = onnx_doc(onnx.load(str(path), load_external_data=False))
+        return {k: doc.get(k) == "1" for k in PARTS}
+    import torch
+    ckpt = torch.load(path, weights_only=False, map_location="cpu")
+    return {k: bool(ckpt.get(k)) for k in PARTS}
+
+
 def state_from_onnx(path, images):
     """A trainable `DetNet` state dict recovered from an exported ONNX file (`path`), so the
     shipped model can seed training on a machine without its checkpoint.
@@ -57,13 +81,14 @@ def state_from_onnx(path, images):
 
     from handmocap.training.detnet import DetNet
     model = onnx.load(str(path))
-    doc = dict(p.split("=", 1) for p in model.doc_string.split() if "=" in p)
-    backbone, fine = doc.get("backbone", "fast"), doc.get("fine", "0") == "1"
+    doc = onnx_doc(model)
+    backbone = doc.get("backbone", "fast")
+    arch = {k: doc.get(k, "0") == "1" for k in ("fine", *PARTS)}
     params = {t.name: torch.from_numpy(numpy_helper.to_array(t).copy()) for t in model.graph.initializer}
     for node in model.graph.node:       # the exporter shares equal tensors (e.g. untrained biases) via Identity
         if node.op_type == "Identity" and node.input[0] in params:
             params[node.output[0]] = params[node.input[0]]
-    net = DetNet(backbone, fine).eval()
+    net = DetNet(backbone, **arch).eval()
     called = []                                         # convs in the order the forward pass calls them
     hooks = [m.register_forward_hook(lambda m, i, o: called.append(m))
              for m in net.modules() if isinstance(m, torch.nn.Conv2d)]

@@ -74,6 +74,17 @@ class MBConv(nn.Module):
         return x + h if self.residual else h
 
 
+def lite_blocks(first=0):
+    """The trunk's MBConv blocks from index `first` to the last (15), as STAGES lays them out:
+    [MBConv]. (A copy of the deep ones is DetNet's PresenceBranch.)"""
+    blocks, cin = [], 32
+    for repeats, k, stride, expand, cout in STAGES:
+        for r in range(repeats):
+            blocks.append(MBConv(cin, cout, k, stride if r == 0 else 1, expand))
+            cin = cout
+    return blocks[first:]
+
+
 class LiteTrunk(nn.Module):
     """EfficientNet-Lite0 without its classifier, up to block 15 (stride 32, 320 channels):
     (N,3,H,W) -> the stride 8, 16 and 32 maps (TAPS). 2.96 M parameters."""
@@ -82,12 +93,7 @@ class LiteTrunk(nn.Module):
         super().__init__()
         self._conv_stem = SameConv(3, 32, 3, 2)
         self._bn0 = nn.BatchNorm2d(32, eps=BN_EPS)
-        blocks, cin = [], 32
-        for repeats, k, stride, expand, cout in STAGES:
-            for r in range(repeats):
-                blocks.append(MBConv(cin, cout, k, stride if r == 0 else 1, expand))
-                cin = cout
-        self._blocks = nn.ModuleList(blocks)
+        self._blocks = nn.ModuleList(lite_blocks())
 
     def forward(self, x):
         x = F.relu6(self._bn0(self._conv_stem(x)))

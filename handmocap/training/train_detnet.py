@@ -26,8 +26,8 @@ from handmocap.training.detnet_batches import (BatchMaker, IterationBatches, deg
                                                to_torch)
 from handmocap.training.detnet_data import DATA_DIR, HARD_NEGATIVES, load_real, load_synth, synth_dirs
 from handmocap.training.detnet_eval import read_outs, real_val_set, synth_val_set, validate
-from handmocap.training.detnet_init import (frozen_modules, identity_init_new_blocks, load_matching, state_from_onnx,
-                                            write_weights)
+from handmocap.training.detnet_init import (PARTS, frozen_modules, identity_init_new_blocks, load_matching,
+                                            recorded_parts, state_from_onnx, write_weights)
 from handmocap.training.detnet_losses import LOSS_WEIGHTS, detnet_losses
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.training.training import add_pretrained_arguments, warmup_cosine_lr
@@ -88,6 +88,10 @@ def add_arguments(p):
     p.add_argument("--presence-map", action="store_true",
                    help="add detnet.PresenceMap (the presence also from a 4x4 map of the crop; starts at zero); "
                         "train it with --train-only presence_map presence_head")
+    p.add_argument("--presence-branch", action="store_true",
+                   help="add detnet.PresenceBranch (lite0: the presence also from a copy of the trunk's deep stage, "
+                        "seeded from the trunk's, at --backbone-lr x lr; starts at zero); train it with "
+                        "--train-only presence_branch presence_head")
     p.add_argument("--train-only", nargs="+", default=None, metavar="MODULE",
                    help="train only these modules (e.g. `fine`); the rest stays as loaded, BatchNorm "
                         "statistics included")
@@ -205,7 +209,7 @@ def main(args):
     import torch
     from tqdm import tqdm
 
-    from handmocap.training.detnet import PRETRAINED, DetNet, export_onnx
+    from handmocap.training.detnet import PRETRAINED, DetNet, copy_trunk_into_presence_branch, export_onnx
     from handmocap.training.efficientnet_lite import IMAGENET_PACKAGE
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -216,7 +220,21 @@ def main(args):
     run_dir = args.run_dir or RUN_DIR / args.backbone
     if args.export is None:   # never the shipped model by default: a trial run must not replace it
         args.export = run_dir / "detnet.onnx"
-    net = DetNet(args.backbone, fine=args.fine_head, presence_map=args.presence_map).to(device, memory_format=torch.channels_last)
+    ckpt_path = run_dir / "last.pt"
+    ckpt = {}
+    if args.resume or args.export_only:
+        if not ckpt_path.exists():
+            raise SystemExit(f"no checkpoint at {ckpt_path}: train from scratch with `handtrain detnet`")
+        ckpt = torch.load(ckpt_path, weights_only=False, map_location=device)
+        for part in PARTS:                                      # the run's shape, as it recorded it
+            setattr(args, part, bool(ckpt.get(part, getattr(args, part))))
+    elif args.init_from:                                        # its parts, and any the options add
+        if not args.init_from.is_file():
+            raise SystemExit(f"--init-from {args.init_from}: no such file")
+        for part, has in recorded_parts(args.init_from).items():
+            setattr(args, part, getattr(args, part) or has)
+    net = DetNet(args.backbone, fine=args.fine_head, presence_map=args.presence_map,
+                 presence_branch=args.presence_branch).to(device, memory_format=torch.channels_last)
     trained = dict(net.named_parameters())
     if args.train_only:
         trained = {k: v for k, v in trained.items() if k.split(".")[0] in args.train_only}
@@ -230,7 +248,8 @@ def main(args):
         for v in m.parameters():
             v.requires_grad_(False)
     trained = {k: v for k, v in trained.items() if v.requires_grad}
-    pretrained = {k for k in trained if args.backbone in PRETRAINED and k.startswith("backbone.trunk.")}
+    pretrained = {k for k in trained if args.backbone in PRETRAINED
+                  and k.startswith(("backbone.trunk.", "presence_branch.blocks."))}
     # (parameters, share of the schedule's learning rate): the pretrained blocks learn slower. The
     # shares stay out of the optimizer's groups, which a resumed checkpoint's replace.
     groups = [(params, scale) for params, scale in
@@ -238,16 +257,12 @@ def main(args):
                ([v for k, v in trained.items() if k in pretrained], args.backbone_lr)) if params]
     opt = torch.optim.AdamW([{"params": params} for params, _ in groups], lr=args.lr, weight_decay=args.weight_decay)
     lr_scales = [scale for _, scale in groups]
-    ckpt_path = run_dir / "last.pt"
-    start, history, refine, ckpt = 0, [], "softmax", {}
-    if args.resume or args.export_only:
-        if not ckpt_path.exists():
-            raise SystemExit(f"no checkpoint at {ckpt_path}: train from scratch with `handtrain detnet`")
-        ckpt = torch.load(ckpt_path, weights_only=False, map_location=device)
+    start, history, refine = 0, [], "softmax"
+    if ckpt:
         fresh = load_matching(net, ckpt["model"])
         if fresh:                                   # an older checkpoint: new heads start fresh, so does AdamW
             print(f"note: {ckpt_path} lacks {', '.join(sorted(fresh))}; those start from scratch")
-        else:
+        elif not args.export_only:                  # (an export needs no optimizer, nor the run's --train-only)
             opt.load_state_dict(ckpt["optimizer"])
         start, history, refine = ckpt["iteration"], ckpt["history"], ckpt.get("refine", refine)
         print(f"resumed {ckpt_path} at iteration {start}")
@@ -255,14 +270,14 @@ def main(args):
         export_onnx(net, args.export, refine)
         print(f"exported {args.export} (refine {refine})")
         if args.weights_out:
-            write_weights(args.weights_out, net, refine, args.backbone, args.fine_head, start, history[-1:])
+            write_weights(args.weights_out, net, refine, args.backbone, start, history[-1:])
         if ckpt.get("ema") is not None:             # the run kept a moving average (--ema): it goes beside
             decay = float(ckpt["args"]["ema"])      # the run's own
             average = averaged(net, decay, ckpt["ema"]).module
             export_onnx(average, ema_path(args.export), refine)
             print(f"exported the weights' moving average to {ema_path(args.export)}")
             if args.weights_out:
-                write_weights(ema_path(args.weights_out), average, refine, args.backbone, args.fine_head, start,
+                write_weights(ema_path(args.weights_out), average, refine, args.backbone, start,
                               history[-1:], moving_average=decay)
         return
 
@@ -311,6 +326,8 @@ def main(args):
         carried = args.pack / IMAGENET_IN_PACK if args.pack else None      # a pack's copy, where it has one
         carried = carried if carried and carried.exists() else None
         net.backbone.trunk.load_imagenet(carried)
+        if net.presence_branch is not None:
+            copy_trunk_into_presence_branch(net)
         print(f"{args.backbone}: trunk from the ImageNet weights of {IMAGENET_PACKAGE}"
               + (" (the pack's float16 copy)" if carried else "") + "; "
               + (f"stem and blocks 0-{args.freeze_blocks - 1} frozen, " if args.freeze_blocks > 0 else "")
@@ -328,6 +345,9 @@ def main(args):
             state = torch.load(args.init_from, weights_only=False, map_location=device)["model"]
         fresh = load_matching(net, state)
         grown = identity_init_new_blocks(net, state)
+        if net.presence_branch is not None and any(m.startswith("presence_branch.blocks") for m in fresh):
+            copy_trunk_into_presence_branch(net)
+            print("presence branch: blocks copied from the loaded trunk's")
         print(f"initialised from {args.init_from}; new: {', '.join(sorted(fresh)) or 'nothing'} "
               f"(residual blocks starting as the identity: {', '.join(grown) or 'none'})")
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -336,7 +356,7 @@ def main(args):
     def save(it):
         tmp = ckpt_path.with_suffix(".tmp")
         torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "iteration": it, "refine": refine,
-                    "history": history, "backbone": args.backbone, "fine": args.fine_head,
+                    "history": history, "backbone": args.backbone, **net.arch(),
                     "args": {k: str(v) for k, v in vars(args).items()},
                     **({"ema": ema.state_dict()} if ema is not None else {})}, tmp)
         os.replace(tmp, ckpt_path)
