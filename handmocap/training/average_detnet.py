@@ -19,14 +19,10 @@ included (the fine-tunes' statistics differ little; averaged, they match the ave
 weights well enough that the held-out metrics come out as good, see the log). Integer
 tensors (BatchNorm's batch counters) are the first checkpoint's. The read-out (`refine`)
 is the first checkpoint's. Checkpoints of other backbones, or with and without an optional
-part (fine heatmaps, presence map or branch: ARCH), are refused: their weights do not correspond.
+part (fine heatmaps, presence map or branch: detnet.ARCH), are refused: their weights do not correspond.
 """
 import argparse
 from pathlib import Path
-
-from handmocap.training.detnet_init import PARTS
-
-ARCH = ("fine", *PARTS)     # what a checkpoint records of its network's shape (DetNet.arch); absent: False
 
 
 def average_states(states):
@@ -49,7 +45,7 @@ def average_checkpoints(paths):
     (last.pt, or float16 weights files)."""
     import torch
 
-    from handmocap.training.detnet import DetNet
+    from handmocap.training.detnet import ARCH, DetNet       # ARCH: what a checkpoint records; absent: False
     if len(paths) < 2:
         raise ValueError(f"averaging needs at least two checkpoints, got {len(paths)}")
     ckpts = []

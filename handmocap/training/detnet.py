@@ -169,6 +169,11 @@ def lite0_backbone():
     return net, net.channels, 8
 
 
+# a DetNet's optional parts, by their DetNet keyword and attribute (None when absent): what its
+# checkpoint, float16 weights and exported file record (DetNet.arch); "fine" has its own option name
+PARTS = ("presence_map", "presence_branch")
+ARCH = ("fine", *PARTS)
+
 BACKBONES = {"paper": paper_backbone, "fast": fast_backbone, "fast-deep": fast_deep_backbone,
              "fast-deeper": fast_deeper_backbone, "lite0": lite0_backbone}
 # backbones whose weights start from ImageNet: their input is scaled as those weights expect
@@ -310,8 +315,7 @@ class DetNet(nn.Module):
 
     def arch(self):
         """The options that make this network's shape: {name: bool}, DetNet(backbone, **arch())."""
-        return {"fine": self.fine is not None, "presence_map": self.presence_map is not None,
-                "presence_branch": self.presence_branch is not None}
+        return {name: getattr(self, name) is not None for name in ARCH}
 
     def forward(self, image):
         """image (N,3,128,128) RGB [0,1] -> dict of maps (see module docstring)."""

@@ -3,8 +3,6 @@ residual blocks as the identity), an exported ONNX file made trainable again
 (`state_from_onnx`), or a pretrained backbone with its first blocks frozen (`frozen_modules`);
 and the float16 weights file that `--init-from` starts from (`write_weights`).
 """
-from pathlib import Path
-
 import numpy as np
 
 from handmocap.perception.crops import CROP
@@ -44,24 +42,20 @@ def unpadded(w, shape):
     return w[:shape[0], :shape[1]] if not rest.any() else None
 
 
-# the optional parts a DetNet's checkpoint and exported file record (DetNet.arch), besides "fine"
-PARTS = ("presence_map", "presence_branch")
-
-
 def onnx_doc(model):
-    """An exported DetNet's doc string as {key: value} ("backbone", "fine", PARTS, "refine")."""
+    """An exported DetNet's doc string as {key: value} ("backbone", detnet.ARCH's parts, "refine")."""
     return dict(p.split("=", 1) for p in model.doc_string.split() if "=" in p)
 
 
-def recorded_parts(path):
-    """{part: True} for each of PARTS that the checkpoint or exported file at `path` has."""
-    if Path(path).suffix == ".onnx":
-        import onnx
-        doc = onnx_doc(onnx.load(str(path), load_external_data=False))
-        return {k: doc.get(k) == "1" for k in PARTS}
-    import torch
-    ckpt = torch.load(path, weights_only=False, map_location="cpu")
-    return {k: bool(ckpt.get(k)) for k in PARTS}
+def recorded_parts(source):
+    """{part: whether it has it} for each of detnet.PARTS, from a loaded checkpoint (dict) or the
+    path of an exported file."""
+    from handmocap.training.detnet import PARTS
+    if isinstance(source, dict):
+        return {k: bool(source.get(k)) for k in PARTS}
+    import onnx
+    doc = onnx_doc(onnx.load(str(source), load_external_data=False))
+    return {k: doc.get(k) == "1" for k in PARTS}
 
 
 def state_from_onnx(path, images):
@@ -79,11 +73,11 @@ def state_from_onnx(path, images):
     import torch
     from onnx import numpy_helper
 
-    from handmocap.training.detnet import DetNet
+    from handmocap.training.detnet import ARCH, DetNet
     model = onnx.load(str(path))
     doc = onnx_doc(model)
     backbone = doc.get("backbone", "fast")
-    arch = {k: doc.get(k, "0") == "1" for k in ("fine", *PARTS)}
+    arch = {k: doc.get(k, "0") == "1" for k in ARCH}
     params = {t.name: torch.from_numpy(numpy_helper.to_array(t).copy()) for t in model.graph.initializer}
     for node in model.graph.node:       # the exporter shares equal tensors (e.g. untrained biases) via Identity
         if node.op_type == "Identity" and node.input[0] in params:

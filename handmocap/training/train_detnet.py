@@ -26,8 +26,8 @@ from handmocap.training.detnet_batches import (BatchMaker, IterationBatches, deg
                                                to_torch)
 from handmocap.training.detnet_data import DATA_DIR, HARD_NEGATIVES, load_real, load_synth, synth_dirs
 from handmocap.training.detnet_eval import read_outs, real_val_set, synth_val_set, validate
-from handmocap.training.detnet_init import (PARTS, frozen_modules, identity_init_new_blocks, load_matching,
-                                            recorded_parts, state_from_onnx, write_weights)
+from handmocap.training.detnet_init import (frozen_modules, identity_init_new_blocks, load_matching, recorded_parts,
+                                            state_from_onnx, write_weights)
 from handmocap.training.detnet_losses import LOSS_WEIGHTS, detnet_losses
 from handmocap.training.pose_data import SHARED_DATA
 from handmocap.training.training import add_pretrained_arguments, warmup_cosine_lr
@@ -188,6 +188,11 @@ def averaged(net, decay, state=None):
     return ema
 
 
+def not_a_detnet(path, error):
+    """The one-line error for an --init-from file that is no exported DetNet."""
+    return SystemExit(f"--init-from {path}: not an exported DetNet ({type(error).__name__}: {str(error)[:200]})")
+
+
 def main(args):
     if args.write_pack:                 # the data only: no network
         from handmocap.training.device_pack import HARD_KINDS, IMAGENET_IN_PACK, pack
@@ -209,7 +214,7 @@ def main(args):
     import torch
     from tqdm import tqdm
 
-    from handmocap.training.detnet import PRETRAINED, DetNet, copy_trunk_into_presence_branch, export_onnx
+    from handmocap.training.detnet import PARTS, PRETRAINED, DetNet, copy_trunk_into_presence_branch, export_onnx
     from handmocap.training.efficientnet_lite import IMAGENET_PACKAGE
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -231,7 +236,13 @@ def main(args):
     elif args.init_from:                                        # its parts, and any the options add
         if not args.init_from.is_file():
             raise SystemExit(f"--init-from {args.init_from}: no such file")
-        for part, has in recorded_parts(args.init_from).items():
+        onnx_file = args.init_from.suffix == ".onnx"            # (read again by state_from_onnx below)
+        init = None if onnx_file else torch.load(args.init_from, weights_only=False, map_location=device)
+        try:
+            recorded = recorded_parts(args.init_from if onnx_file else init)
+        except Exception as e:                      # onnx's and protobuf's errors have no common base of their own
+            raise not_a_detnet(args.init_from, e) from None
+        for part, has in recorded.items():
             setattr(args, part, getattr(args, part) or has)
     net = DetNet(args.backbone, fine=args.fine_head, presence_map=args.presence_map,
                  presence_branch=args.presence_branch).to(device, memory_format=torch.channels_last)
@@ -338,11 +349,10 @@ def main(args):
                 state, source = state_from_onnx(args.init_from,
                                                 maker.make(512, np.random.default_rng([args.seed, 2**31]))["image"])
             except Exception as e:                  # onnx's and protobuf's errors have no common base of their own
-                raise SystemExit(f"--init-from {args.init_from}: not an exported DetNet "
-                                 f"({type(e).__name__}: {str(e)[:200]})") from None
+                raise not_a_detnet(args.init_from, e) from None
             print(f"recovered a trainable {source} DetNet from {args.init_from}")
         else:
-            state = torch.load(args.init_from, weights_only=False, map_location=device)["model"]
+            state = init["model"]
         fresh = load_matching(net, state)
         grown = identity_init_new_blocks(net, state)
         if net.presence_branch is not None and any(m.startswith("presence_branch.blocks") for m in fresh):
