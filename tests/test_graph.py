@@ -88,8 +88,11 @@ nodes:
     assert len(fast["seqs"]) >= 100 and np.median(fast["ages_ms"]) < 60
     # 2 s of frames at 100 ms each: about 20 frames, each fresh (a backlog would age by 90 ms a frame)
     assert 10 <= len(slow["seqs"]) <= 30
-    # (the first frames can be late while the 2 cores are still busy starting 4 processes)
-    assert np.median(slow["ages_ms"]) < 40 and max(slow["ages_ms"][len(slow["ages_ms"]) // 2:]) < 150
+    # (the first frames can be late while the 2 cores are still busy starting 4 processes; a
+    # stall of the loaded machine can make one late later on, but a backlog makes every next
+    # one later still, so no two late ones follow each other)
+    late = np.array(slow["ages_ms"][len(slow["ages_ms"]) // 2:]) >= 150
+    assert np.median(slow["ages_ms"]) < 40 and not (late[1:] & late[:-1]).any(), slow["ages_ms"]
     assert slow["seqs"] == sorted(slow["seqs"]) and slow["seqs"][-1] == 199
 
 
