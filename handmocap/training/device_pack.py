@@ -14,7 +14,7 @@ carried files; `../shared` does not travel. So the job's data goes as one folder
   synthetic set for validation;
 * in real.npz too, every 2nd crop of an arm without its hand (detnet_data.build_arm_cache;
   `arm`, for --arm-neg), where that cache was given;
-* for `--backbone lite0`, the trunk's ImageNet weights in float16 (IMAGENET_IN_PACK, 6 MB):
+* for `--backbone lite0` (or lite2: `imagenet_in_pack`), the trunk's ImageNet weights in float16 (IMAGENET_IN_PACK, 6 MB):
   the machine has no registry to install the package that ships them.
 
 Which crops go: the byte budget (`--mb`) is split between real and synthetic crops
@@ -35,7 +35,13 @@ PACK_DIR = Path("runs/device/pack")
 HAND_KEYS = ("uv", "right", "weight", "held", "source", "xyz", "has_3d")
 SYNTH_KEYS = ("uv", "xyz_rel", "xyz", "handedness", "in_image")
 HARD_KINDS = ("arm", "near", "face")    # hard negatives a pack can carry (train_detnet --arm-neg, --near-neg, --face-neg)
-IMAGENET_IN_PACK = "imagenet_lite0.pt"     # the lite0 trunk's ImageNet weights, float16, in a lite0 run's pack
+def imagenet_in_pack(backbone: str) -> str:
+    """The file in a pack that carries `backbone`'s trunk's ImageNet weights, float16 (a run from
+    ImageNet weights on a lent machine, which has no registry)."""
+    return f"imagenet_{backbone}.pt"
+
+
+IMAGENET_IN_PACK = imagenet_in_pack("lite0")
 LABEL_BYTES = 250           # a crop's labels (float16 uv and xyz) in the compressed .npz, about
 
 

