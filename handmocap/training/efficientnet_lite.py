@@ -30,8 +30,6 @@ VARIANT_STAGES = {
     "lite2": ((1, 3, 1, 1, 16), (3, 3, 2, 6, 24), (3, 5, 2, 6, 48), (4, 3, 2, 6, 88), (4, 5, 1, 6, 120),
               (5, 5, 2, 6, 208), (1, 3, 1, 6, 352)),
 }
-VARIANTS = tuple(VARIANT_STAGES)
-STAGES = VARIANT_STAGES["lite0"]
 
 
 def taps(variant="lite0"):
