@@ -35,6 +35,9 @@ PACK_DIR = Path("runs/device/pack")
 HAND_KEYS = ("uv", "right", "weight", "held", "source", "xyz", "has_3d")
 SYNTH_KEYS = ("uv", "xyz_rel", "xyz", "handedness", "in_image")
 HARD_KINDS = ("arm", "near", "face")    # hard negatives a pack can carry (train_detnet --arm-neg, --near-neg, --face-neg)
+LABEL_BYTES = 250           # a crop's labels (float16 uv and xyz) in the compressed .npz, about
+
+
 def imagenet_in_pack(backbone: str) -> str:
     """The file in a pack that carries `backbone`'s trunk's ImageNet weights, float16 (a run from
     ImageNet weights on a lent machine, which has no registry)."""
@@ -42,7 +45,6 @@ def imagenet_in_pack(backbone: str) -> str:
 
 
 IMAGENET_IN_PACK = imagenet_in_pack("lite0")
-LABEL_BYTES = 250           # a crop's labels (float16 uv and xyz) in the compressed .npz, about
 
 
 def jpeg_blobs(images, quality=85):

@@ -208,8 +208,9 @@ def main(args):
         if args.backbone in PRETRAINED:    # its ImageNet weights travel too: the lent machine has no registry
             from handmocap.training.efficientnet_lite import save_imagenet_half
             args.write_pack.mkdir(parents=True, exist_ok=True)
-            save_imagenet_half(args.write_pack / imagenet_in_pack(args.backbone), args.backbone)
-            mb -= (args.write_pack / imagenet_in_pack(args.backbone)).stat().st_size / 1e6
+            weights = args.write_pack / imagenet_in_pack(args.backbone)
+            save_imagenet_half(weights, args.backbone)
+            mb -= weights.stat().st_size / 1e6
         pack(args.write_pack, real, synth, val, mb, quality=args.pack_quality, hard=hard)
         return
     import torch
