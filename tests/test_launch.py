@@ -228,6 +228,22 @@ def test_the_readme_arguments_exist_in_the_product_launch_files():
     assert webcam["visualizer"].params["mesh"] is False
 
 
+@pytest.mark.parametrize("name", ["webcam", "replay", "ros2"])
+def test_the_finder_argument_reaches_the_detector(name, monkeypatch):
+    """`finder:=models/finder_lite0_int8.onnx` (the README's advice for a camera above a desk)
+    is an argument of the graphs a user runs and reaches the detector; a missing file is the
+    launcher's one error naming the param and the file."""
+    monkeypatch.chdir(ROOT)
+    base = {"input": "data/demo/hand_clip.mp4"} if name == "replay" else {}
+    nodes = {n.name: n for n in load_launch_file(ROOT / "launch" / f"{name}.yaml",
+                                                 {**base, "finder": "models/finder_lite0_int8.onnx"}).nodes}
+    assert nodes["detector"].params["finder"] == "models/finder_lite0_int8.onnx"
+    default = {n.name: n for n in load_launch_file(ROOT / "launch" / f"{name}.yaml", base).nodes}
+    assert default["detector"].params["finder"] is None                 # null: models/finder.onnx
+    with pytest.raises(LaunchError, match="detector param finder: no such file models/nothere.onnx"):
+        load_launch_file(ROOT / "launch" / f"{name}.yaml", {**base, "finder": "models/nothere.onnx"})
+
+
 @pytest.mark.parametrize("name", ["webcam", "teleop", "ros2", "depthai"])
 def test_live_graphs_respawn_their_perception_container_at_once(name):
     """A live graph's perception container (source, detector, shape, ik) respawns after a
