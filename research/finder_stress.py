@@ -1,6 +1,6 @@
 """Hand finders alone on the held-back people's clips made harder the ways issue 47's scenes are.
 
-    python research/finder_stress.py models/finder.onnx models/finder_lite0_int8.onnx
+    python research/finder_stress.py models/finder.onnx models/finder_lite0_int8.onnx [--clips HandWash_017 ...]
 
 Issue 47's strangers' clips where hands go unfound are hands seen from above (pointing
 sideways or down), dim, small in the frame, blurred. The held-back clips (both drops, every
@@ -13,6 +13,7 @@ each applied to the letterboxed frame the finder sees, its boxes moved with it:
 - blur: a 11 px motion smear at an angle that changes every frame.
 Per finder and condition: hands counted, recall and false boxes a frame at the detector's
 threshold, and the recall reached at <= 0.10 false boxes a frame (issue 47's bound).
+--clips: only the held-back clips whose name holds one of these words, each read on its own.
 """
 import argparse
 from pathlib import Path
@@ -74,10 +75,23 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("finders", type=Path, nargs="+", help="finder ONNX files")
     p.add_argument("--data", type=Path, default=real_data.SHARED_DATA)
+    p.add_argument("--clips", nargs="+", default=None, help="words of clip names: those clips, each on its own")
     args = p.parse_args()
     if not (args.data / "video" / "wild").is_dir():
         raise SystemExit(f"finder_stress: {args.data} has no video/wild (the data pack's second drop)")
     clips = real_data.wild_clips(args.data, held_back=True, drops=real_data.WILD_DROPS)
+    groups = {"held-back clips": clips}
+    if args.clips:
+        groups = {c.stem: [c] for c in clips if any(w in c.stem for w in args.clips)}
+        if not groups:
+            raise SystemExit(f"finder_stress: no held-back clip's name holds {' or '.join(args.clips)}")
+    for title, group in groups.items():
+        print(f"\n{title}")
+        table(args, group)
+
+
+def table(args, clips):
+    """The table of every finder and condition on `clips`."""
     print(f"| finder | condition | hands | recall @{DetectorSettings.finder_threshold:g} | false / frame | "
           f"recall @ <= {FALSE_BOUND} false (threshold) |\n|---|---|---|---|---|---|")
     loaded = {}
