@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from handmocap.perception.detector import DetectorSettings
+from handmocap.perception.hand_finder import HandFinder
 from handmocap.training import real_data, train_finder
 
 THRESHOLDS = np.round(np.concatenate([np.arange(0.05, 0.3, 0.05), np.arange(0.3, 0.91, 0.1)]), 2)
@@ -29,6 +30,8 @@ FALSE_BOUND = 0.10
 
 
 def dim(images, boxes, rng):
+    """A dim room: exposure x0.45 after a gamma of 1.6, sensor noise sigma 3 (uint8 images of any
+    shape; boxes unchanged). research/tracker_stress.py dims its frames with it too."""
     x = 255 * 0.45 * (images / 255.0) ** 1.6 + rng.normal(0, 3, images.shape)
     return np.clip(x, 0, 255).astype(np.uint8), boxes
 
@@ -96,7 +99,6 @@ def table(args, clips):
           f"recall @ <= {FALSE_BOUND} false (threshold) |\n|---|---|---|---|---|---|")
     loaded = {}
     for path in args.finders:
-        from handmocap.perception.hand_finder import HandFinder
         side = HandFinder.load(path).size
         if side not in loaded:
             loaded[side] = train_finder.load_real_frames(args.data, clips, stride=2, size=side)

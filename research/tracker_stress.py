@@ -7,7 +7,7 @@ as it is and once under each condition, the whole frame changed and MediaPipe's 
 with it (research/finder_stress.py does the same for the finder alone):
 - turned: the clip turned by (i % 3) + 1 quarter turns, i its index: hands that point
   sideways or down, as a camera above a desk, a sink or a piano sees them;
-- dim: exposure x0.45 after a gamma of 1.6, sensor noise sigma 3;
+- dim: finder_stress.dim's dim room (exposure x0.45 after a gamma of 1.6, sensor noise);
 - small: every frame shrunk to half its side on a canvas of its mean colour, in the quadrant
   (i % 4): hands half as large (a waist-up view).
 Per condition, both drops summed: hands found (share of MediaPipe's), false hands a frame,
@@ -20,8 +20,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from finder_stress import dim      # research/ is the script's folder: one dim room for both studies
 from handmocap.training import eval_people, real_data
 from handmocap.training.eval_cli import add_model_arguments, detector_keywords, model_paths
+
+CONDITIONS = ("as-is", "turned", "dim", "small")
 
 
 def turn(image, uv, k):
@@ -32,11 +35,6 @@ def turn(image, uv, k):
         image = np.ascontiguousarray(np.rot90(image))
         uv = np.stack([uv[..., 1], w - 1 - uv[..., 0]], -1)
     return image, uv
-
-
-def dim(image, rng):
-    x = 255 * 0.45 * (image / 255.0) ** 1.6 + rng.normal(0, 3, image.shape)
-    return np.clip(x, 0, 255).astype(np.uint8)
 
 
 def shrink(image, uv, quadrant):
@@ -56,7 +54,7 @@ def changed_frames(video, condition, index):
         if condition == "turned":
             image, hands = turn(image, hands, index % 3 + 1)
         elif condition == "dim":
-            image = dim(image, rng)
+            image, _ = dim(image, None, rng)
         elif condition == "small":
             image, hands = shrink(image, hands, index % 4)
         yield image, hands, reliable, sides
@@ -65,8 +63,7 @@ def changed_frames(video, condition, index):
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, default=real_data.SHARED_DATA)
-    p.add_argument("--conditions", nargs="+", default=["as-is", "turned", "dim", "small"],
-                   choices=["as-is", "turned", "dim", "small"])
+    p.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=CONDITIONS)
     add_model_arguments(p)
     args = p.parse_args()
     if not (args.data / "video" / "wild").is_dir():
