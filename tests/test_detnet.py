@@ -166,12 +166,14 @@ def test_a_fine_head_starts_as_the_coarse_read_out_and_trains_alone_on_a_frozen_
         DetNet("paper", fine=True)
 
 
-@pytest.mark.parametrize("backbone,part", [("fast", "presence_map"), ("lite0", "presence_branch")])
-def test_a_presence_term_starts_at_zero_and_trains_the_presence_alone(tmp_path, backbone, part):
-    """--presence-map, --presence-branch: the added term leaves a loaded net's presence as it
-    was (the branch's blocks seeded from the trunk's); trained with the presence head on a
-    frozen net (--train-only PART presence_head) it moves the presence and nothing else, and
-    the exported file gives the same presence as torch and records the part."""
+@pytest.mark.parametrize("backbone,part,kind", [("fast", "presence_map", True), ("lite0", "presence_branch", True),
+                                               ("lite0", "presence_branch", "slim")])
+def test_a_presence_term_starts_at_zero_and_trains_the_presence_alone(tmp_path, backbone, part, kind):
+    """--presence-map, --presence-branch [slim]: the added term leaves a loaded net's presence as it
+    was (the branch's blocks seeded from the trunk's: all of the deep stage's, or the slim kind's
+    first and last); trained with the presence head on a frozen net (--train-only PART presence_head)
+    it moves the presence and nothing else, and the exported file gives the same presence as torch
+    and records the part and its kind."""
     torch = _torch()
     import onnx
     import onnxruntime as ort
@@ -180,12 +182,14 @@ def test_a_presence_term_starts_at_zero_and_trains_the_presence_alone(tmp_path, 
     from handmocap.training.detnet_init import load_matching
     torch.manual_seed(0)
     plain = DetNet(backbone).eval()
-    net = DetNet(backbone, **{part: True})
+    net = DetNet(backbone, **{part: kind})
     assert {m.split(".")[0] for m in load_matching(net, plain.state_dict())} == {part}
     if part == "presence_branch":
         copy_trunk_into_presence_branch(net)
-        for i, block in enumerate(net.presence_branch.blocks):
-            torch.testing.assert_close(block.state_dict(), net.backbone.trunk._blocks[11 + i].state_dict())
+        copied = (11, 12, 13, 14, 15) if kind is True else (11, 15)
+        assert len(net.presence_branch.blocks) == len(copied)
+        for block, i in zip(net.presence_branch.blocks, copied):
+            torch.testing.assert_close(block.state_dict(), net.backbone.trunk._blocks[i].state_dict())
     x = torch.rand(8, 3, 128, 128)
     with torch.no_grad():
         torch.testing.assert_close(net.eval()(x)["presence"], plain(x)["presence"])
@@ -209,13 +213,15 @@ def test_a_presence_term_starts_at_zero_and_trains_the_presence_alone(tmp_path, 
             assert torch.equal(v, frozen[k]), k
 
     export_onnx(net.eval(), tmp_path / "pm.onnx", "softmax")
-    assert f"{part}=1" in onnx.load(str(tmp_path / "pm.onnx")).doc_string
+    assert f"{part}={1 if kind is True else kind}" in onnx.load(str(tmp_path / "pm.onnx")).doc_string
     sess = ort.InferenceSession(str(tmp_path / "pm.onnx"), providers=["CPUExecutionProvider"])
     got = sess.run(["presence"], {"image": x.numpy()})[0]
     with torch.no_grad():
         np.testing.assert_allclose(got, torch.sigmoid(net(x)["presence"]).numpy(), atol=1e-4)
     with pytest.raises(ValueError, match="lite0"):
         DetNet("fast", presence_branch=True)
+    with pytest.raises(ValueError, match="kind must be one of"):
+        DetNet("lite0", presence_branch="wide")
 
 
 def _gaussian_maps(cells, grid):
@@ -1122,6 +1128,20 @@ def test_handtrain_detnet_lite0_starts_from_imagenet_keeps_its_first_blocks_and_
     main([*common, "--iters", "1", "--val-every", "1", "--lr", "0", "--init-from", str(tmp_path / "d" / "last.pt"),
           "--run-dir", str(tmp_path / "f"), "--export", str(tmp_path / "f.onnx")])
     assert torch.load(tmp_path / "f" / "last.pt", weights_only=False)["presence_branch"]
+    # a slim branch started from the deep one keeps its first and last block (the deep branch's 0 and 4),
+    # and its run and exported file record the kind
+    main([*common, "--iters", "1", "--val-every", "1", "--lr", "0", "--init-from", str(tmp_path / "d" / "last.pt"),
+          "--presence-branch", "slim", "--train-only", "presence_branch", "presence_head",
+          "--run-dir", str(tmp_path / "g"), "--export", str(tmp_path / "g.onnx")])
+    slim = torch.load(tmp_path / "g" / "last.pt", weights_only=False)
+    assert slim["presence_branch"] == "slim"
+    assert sorted({k.split(".")[2] for k in slim["model"] if k.startswith("presence_branch.blocks.")}) == ["0", "1"]
+    for deep_block, slim_block in ((0, 0), (4, 1)):
+        assert torch.equal(slim["model"][f"presence_branch.blocks.{slim_block}._project_conv.weight"],
+                           branched["model"][f"presence_branch.blocks.{deep_block}._project_conv.weight"])
+    from handmocap.training.detnet_init import recorded_parts
+    assert "presence_branch=slim" in onnx.load(str(tmp_path / "g.onnx")).doc_string
+    assert recorded_parts(tmp_path / "g.onnx")["presence_branch"] == "slim"
 
 
 def test_the_lite0_detnet_runs_by_name_and_its_weights_rebuild_it():

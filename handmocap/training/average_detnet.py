@@ -53,7 +53,7 @@ def average_checkpoints(paths):
         if not Path(p).is_file():
             raise FileNotFoundError(f"{p}: no such checkpoint (a `handtrain detnet` run's last.pt)")
         ckpts.append(torch.load(p, weights_only=False, map_location="cpu"))
-    shapes = {(c.get("backbone"), *(bool(c.get(k)) for k in ARCH)) for c in ckpts}
+    shapes = {(c.get("backbone"), *(c.get(k) or False for k in ARCH)) for c in ckpts}
     if len(shapes) > 1:
         raise ValueError(f"the checkpoints are of different networks ((backbone, {', '.join(ARCH)})): "
                          f"{sorted(shapes)}")

@@ -260,19 +260,30 @@ class PresenceMap(nn.Module):
         return self.head(pooled_4x4(self.map(feat), grid))[:, 0]
 
 
+# the presence branch's kinds, by DetNet's `presence_branch` value: which of lite0's stride-32 blocks
+# (11-15) it copies, as offsets from the first. True: the whole stage (session 64, 1.19x the palm
+# network's time a crop). "slim": its first and last block only (session 68): the three residual
+# 192-channel blocks between them cost 0.3 of the branch's 0.5 profiled ms a crop.
+BRANCH_BLOCKS = {True: (0, 1, 2, 3, 4), "slim": (0, 4)}
+
+
 class PresenceBranch(nn.Module):
     """A term added to the presence logit from features of its own: a copy of the lite0 trunk's
-    stride-32 stage (blocks 11-15, `copy_trunk_into_presence_branch` seeds it from the trunk),
-    read from the trunk's stride-16 map, mean-pooled, and a small MLP whose last layer starts at
-    zero. Trained alone (--train-only presence_branch presence_head) it can learn features that
-    tell a face from a hand held at a face, which a read of the frozen features could not
+    stride-32 stage (blocks 11-15, or the kind's BRANCH_BLOCKS of them; `copy_trunk_into_presence_branch`
+    seeds them from the trunk), read from the trunk's stride-16 map, mean-pooled, and a small MLP whose
+    last layer starts at zero. Trained alone (--train-only presence_branch presence_head) it can learn
+    features that tell a face from a hand held at a face, which a read of the frozen features could not
     (session 63), while every keypoint stays as it was. c16 (N,112,G/2,G/2) -> (N,) logits."""
 
     FIRST = TAPS[16] + 1
 
-    def __init__(self):
+    def __init__(self, kind=True):
         super().__init__()
-        self.blocks = nn.Sequential(*lite_blocks(self.FIRST))
+        if kind not in BRANCH_BLOCKS:
+            raise ValueError(f"presence branch kind must be one of {list(BRANCH_BLOCKS)}, got {kind!r}")
+        self.kind = kind
+        deep = lite_blocks(self.FIRST)
+        self.blocks = nn.Sequential(*[deep[i] for i in BRANCH_BLOCKS[kind]])
         self.head = nn.Sequential(nn.Linear(TAP_CHANNELS[32], 64), nn.ReLU(inplace=True), nn.Linear(64, 1))
         nn.init.zeros_(self.head[2].weight)
         nn.init.zeros_(self.head[2].bias)
@@ -284,16 +295,46 @@ class PresenceBranch(nn.Module):
 def copy_trunk_into_presence_branch(net):
     """Seed `net.presence_branch`'s blocks with the trunk's own (the loaded network's deep
     stage), so the branch starts from what those blocks know."""
-    for i, block in enumerate(net.presence_branch.blocks):
+    for i, block in zip(BRANCH_BLOCKS[net.presence_branch.kind], net.presence_branch.blocks):
         block.load_state_dict(net.backbone.trunk._blocks[PresenceBranch.FIRST + i].state_dict())
+
+
+def branch_state_as(state, source_kind, kind):
+    """`state` (a DetNet state dict whose presence branch is of `source_kind`) with its branch's
+    blocks renamed to `kind`'s places: the blocks both kinds copy keep their weights (a "slim"
+    branch started from a deep one keeps its first and last block); the rest are dropped."""
+    if source_kind in (False, None) or source_kind == kind:
+        return state
+    place = {b: i for i, b in enumerate(BRANCH_BLOCKS[kind])}
+    out = {}
+    for k, v in state.items():
+        if k.startswith("presence_branch.blocks."):
+            i, rest = k[len("presence_branch.blocks."):].split(".", 1)
+            block = BRANCH_BLOCKS[source_kind][int(i)]
+            if block in place:
+                out[f"presence_branch.blocks.{place[block]}.{rest}"] = v
+        else:
+            out[k] = v
+    return out
+
+
+def part_value(text):
+    """A part's record in an exported file's doc string ("0", "1", or a kind's name such as "slim")
+    -> DetNet's keyword value (False, True, the name); absent: False."""
+    return {None: False, "0": False, "1": True}.get(text, text)
+
+
+def part_text(value):
+    """DetNet.arch()'s value of a part -> its record in an exported file's doc string (part_value's inverse)."""
+    return str(int(value)) if isinstance(value, bool) else str(value)
 
 
 class DetNet(nn.Module):
     """Backbone + heatmap, delta, location heads (paper) + presence, handedness (ours);
     fine=True adds FineHeatmaps (fast backbones), out["fine_logits"]; presence_map=True adds to
     the presence logit a term read off a coarse 4x4 map (PresenceMap); presence_branch=True
-    (lite0) one read by a copy of the trunk's deep stage (PresenceBranch). `arch()` names the
-    options a checkpoint or exported file records."""
+    (lite0) one read by a copy of the trunk's deep stage (PresenceBranch; "slim": two of its blocks).
+    `arch()` names the options a checkpoint or exported file records."""
 
     def __init__(self, backbone="fast", fine=False, presence_map=False, presence_branch=False):
         super().__init__()
@@ -320,11 +361,15 @@ class DetNet(nn.Module):
         self.handedness_head = nn.Sequential(nn.Linear(8 * 16, 64), nn.ReLU(inplace=True), nn.Linear(64, 1))
         self.fine = FineHeatmaps(c, self.backbone.stem[0].out_channels) if fine else None
         self.presence_map = PresenceMap(c) if presence_map else None
-        self.presence_branch = PresenceBranch() if presence_branch else None
+        self.presence_branch = PresenceBranch(presence_branch) if presence_branch else None
 
     def arch(self):
-        """The options that make this network's shape: {name: bool}, DetNet(backbone, **arch())."""
-        return {name: getattr(self, name) is not None for name in ARCH}
+        """The options that make this network's shape: {name: value}, DetNet(backbone, **arch()); a
+        value is a bool, or the presence branch's kind ("slim")."""
+        arch = {name: getattr(self, name) is not None for name in ARCH}
+        if self.presence_branch is not None:
+            arch["presence_branch"] = self.presence_branch.kind
+        return arch
 
     def forward(self, image):
         """image (N,3,128,128) RGB [0,1] -> dict of maps (see module docstring)."""
@@ -484,7 +529,7 @@ def export_onnx(net, path, refine="logquad", opset=17):
                       opset_version=opset, dynamo=False)
     model = onnx.load(str(path))
     model.producer_name = "handmocap.training.detnet"
-    options = " ".join(f"{k}={int(v)}" for k, v in net.arch().items())
+    options = " ".join(f"{k}={part_text(v)}" for k, v in net.arch().items())
     model.doc_string = f"DetNet backbone={net.backbone_name} {options} refine={refine}; see models/README.md"
     from handmocap.perception.onnx_models import pad_depthwise_convs
     pad_depthwise_convs(model)          # the same function, ~20% faster on onnxruntime's CPU kernels

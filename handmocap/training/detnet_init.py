@@ -16,7 +16,8 @@ def write_weights(path, net, refine, backbone, iteration, history=(), **meta):
     half = {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()}
     torch.save({"model": half, "iteration": iteration, "refine": refine, "backbone": backbone, **net.arch(),
                 "history": list(history), **meta}, path)
-    options = "".join(f" --{k.replace('_', '-')}" for k, v in net.arch().items() if v and k != "fine")
+    options = "".join(f" --{k.replace('_', '-')}" + ("" if v is True else f" {v}")
+                      for k, v in net.arch().items() if v and k != "fine")
     print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB): "
           f"`handtrain detnet --backbone {backbone}{options} --init-from {path}` trains on from it")
 
@@ -48,14 +49,14 @@ def onnx_doc(model):
 
 
 def recorded_parts(source):
-    """{part: whether it has it} for each of detnet.PARTS, from a loaded checkpoint (dict) or the
-    path of an exported file."""
-    from handmocap.training.detnet import PARTS
+    """{part: its value (False where it has none, else True or its kind, e.g. "slim")} for each of
+    detnet.PARTS, from a loaded checkpoint (dict) or the path of an exported file."""
+    from handmocap.training.detnet import PARTS, part_value
     if isinstance(source, dict):
-        return {k: bool(source.get(k)) for k in PARTS}
+        return {k: source.get(k) or False for k in PARTS}
     import onnx
     doc = onnx_doc(onnx.load(str(source), load_external_data=False))
-    return {k: doc.get(k) == "1" for k in PARTS}
+    return {k: part_value(doc.get(k)) for k in PARTS}
 
 
 def state_from_onnx(path, images):
@@ -73,11 +74,11 @@ def state_from_onnx(path, images):
     import torch
     from onnx import numpy_helper
 
-    from handmocap.training.detnet import ARCH, DetNet
+    from handmocap.training.detnet import ARCH, DetNet, part_value
     model = onnx.load(str(path))
     doc = onnx_doc(model)
     backbone = doc.get("backbone", "fast")
-    arch = {k: doc.get(k, "0") == "1" for k in ARCH}
+    arch = {k: part_value(doc.get(k)) for k in ARCH}
     params = {t.name: torch.from_numpy(numpy_helper.to_array(t).copy()) for t in model.graph.initializer}
     for node in model.graph.node:       # the exporter shares equal tensors (e.g. untrained biases) via Identity
         if node.op_type == "Identity" and node.input[0] in params:

@@ -88,10 +88,12 @@ def add_arguments(p):
     p.add_argument("--presence-map", action="store_true",
                    help="add detnet.PresenceMap (the presence also from a 4x4 map of the crop; starts at zero); "
                         "train it with --train-only presence_map presence_head")
-    p.add_argument("--presence-branch", action="store_true",
+    p.add_argument("--presence-branch", nargs="?", const=True, default=False, choices=[True, "slim"],
+                   metavar="slim",
                    help="add detnet.PresenceBranch (lite0: the presence also from a copy of the trunk's deep stage, "
-                        "seeded from the trunk's, at --backbone-lr x lr; starts at zero); train it with "
-                        "--train-only presence_branch presence_head")
+                        "seeded from the trunk's, at --backbone-lr x lr; starts at zero); `--presence-branch slim` "
+                        "copies two of its five blocks (a sixth of the deep one's cost; from a deep branch's "
+                        "--init-from it keeps those two); train it with --train-only presence_branch presence_head")
     p.add_argument("--train-only", nargs="+", default=None, metavar="MODULE",
                    help="train only these modules (e.g. `fine`); the rest stays as loaded, BatchNorm "
                         "statistics included")
@@ -216,7 +218,8 @@ def main(args):
     import torch
     from tqdm import tqdm
 
-    from handmocap.training.detnet import PARTS, PRETRAINED, DetNet, copy_trunk_into_presence_branch, export_onnx
+    from handmocap.training.detnet import (PARTS, PRETRAINED, DetNet, branch_state_as, copy_trunk_into_presence_branch,
+                                           export_onnx)
     from handmocap.training.efficientnet_lite import imagenet_package
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -234,7 +237,7 @@ def main(args):
             raise SystemExit(f"no checkpoint at {ckpt_path}: train from scratch with `handtrain detnet`")
         ckpt = torch.load(ckpt_path, weights_only=False, map_location=device)
         for part in PARTS:                                      # the run's shape, as it recorded it
-            setattr(args, part, bool(ckpt.get(part, getattr(args, part))))
+            setattr(args, part, ckpt.get(part, getattr(args, part)) or False)
     elif args.init_from:                                        # its parts, and any the options add
         if not args.init_from.is_file():
             raise SystemExit(f"--init-from {args.init_from}: no such file")
@@ -244,7 +247,7 @@ def main(args):
             recorded = recorded_parts(args.init_from if onnx_file else init)
         except Exception as e:                      # onnx's and protobuf's errors have no common base of their own
             raise not_a_detnet(args.init_from, e) from None
-        for part, has in recorded.items():
+        for part, has in recorded.items():                      # (a kind asked for wins over the one recorded)
             setattr(args, part, getattr(args, part) or has)
     net = DetNet(args.backbone, fine=args.fine_head, presence_map=args.presence_map,
                  presence_branch=args.presence_branch).to(device, memory_format=torch.channels_last)
@@ -358,6 +361,7 @@ def main(args):
             print(f"recovered a trainable {source} DetNet from {args.init_from}")
         else:
             state = init["model"]
+        state = branch_state_as(state, recorded["presence_branch"], args.presence_branch)
         fresh = load_matching(net, state)
         grown = identity_init_new_blocks(net, state)
         if net.presence_branch is not None and any(m.startswith("presence_branch.blocks") for m in fresh):
