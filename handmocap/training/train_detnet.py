@@ -88,11 +88,11 @@ def add_arguments(p):
     p.add_argument("--presence-map", action="store_true",
                    help="add detnet.PresenceMap (the presence also from a 4x4 map of the crop; starts at zero); "
                         "train it with --train-only presence_map presence_head")
-    p.add_argument("--presence-branch", nargs="?", const=True, default=False, choices=[True, "slim"],
-                   metavar="slim",
+    p.add_argument("--presence-branch", nargs="?", const=True, default=False, choices=["slim"],
+                   metavar="slim",      # (alone: True, the deep kind; argparse checks only a kind given)
                    help="add detnet.PresenceBranch (lite0: the presence also from a copy of the trunk's deep stage, "
                         "seeded from the trunk's, at --backbone-lr x lr; starts at zero); `--presence-branch slim` "
-                        "copies two of its five blocks (a sixth of the deep one's cost; from a deep branch's "
+                        "copies two of its five blocks (0.2 against 0.5 profiled ms a crop; from a deep branch's "
                         "--init-from it keeps those two); train it with --train-only presence_branch presence_head")
     p.add_argument("--train-only", nargs="+", default=None, metavar="MODULE",
                    help="train only these modules (e.g. `fine`); the rest stays as loaded, BatchNorm "
