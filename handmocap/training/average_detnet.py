@@ -46,6 +46,7 @@ def average_checkpoints(paths):
     import torch
 
     from handmocap.training.detnet import ARCH, DetNet       # ARCH: what a checkpoint records; absent: False
+    from handmocap.training.detnet_init import recorded_parts
     if len(paths) < 2:
         raise ValueError(f"averaging needs at least two checkpoints, got {len(paths)}")
     ckpts = []
@@ -53,7 +54,7 @@ def average_checkpoints(paths):
         if not Path(p).is_file():
             raise FileNotFoundError(f"{p}: no such checkpoint (a `handtrain detnet` run's last.pt)")
         ckpts.append(torch.load(p, weights_only=False, map_location="cpu"))
-    shapes = {(c.get("backbone"), *(c.get(k) or False for k in ARCH)) for c in ckpts}
+    shapes = {(c.get("backbone"), c.get("fine") or False, *recorded_parts(c).values()) for c in ckpts}
     if len(shapes) > 1:
         raise ValueError(f"the checkpoints are of different networks ((backbone, {', '.join(ARCH)})): "
                          f"{sorted(shapes)}")

@@ -218,7 +218,7 @@ def main(args):
     import torch
     from tqdm import tqdm
 
-    from handmocap.training.detnet import (PARTS, PRETRAINED, DetNet, branch_state_as, copy_trunk_into_presence_branch,
+    from handmocap.training.detnet import (PRETRAINED, DetNet, branch_state_as, copy_trunk_into_presence_branch,
                                            export_onnx)
     from handmocap.training.efficientnet_lite import imagenet_package
     torch.set_num_threads(args.threads)
@@ -236,8 +236,8 @@ def main(args):
         if not ckpt_path.exists():
             raise SystemExit(f"no checkpoint at {ckpt_path}: train from scratch with `handtrain detnet`")
         ckpt = torch.load(ckpt_path, weights_only=False, map_location=device)
-        for part in PARTS:                                      # the run's shape, as it recorded it
-            setattr(args, part, ckpt.get(part, getattr(args, part)) or False)
+        for part, value in recorded_parts(ckpt).items():        # the run's shape, as it recorded it
+            setattr(args, part, value)
     elif args.init_from:                                        # its parts, and any the options add
         if not args.init_from.is_file():
             raise SystemExit(f"--init-from {args.init_from}: no such file")
